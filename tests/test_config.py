@@ -1,0 +1,61 @@
+"""Config: flat keys from files and --set, strict errors naming the nearest key."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from torch_gpmpc.config import Config, load_config, parse_overrides
+from torch_gpmpc.errors import GpmpcError
+
+
+def test_defaults_are_the_paper_scenario():
+    c = Config()
+    assert (c.horizon, c.rho, c.r_safe, c.eps, c.u_max, c.alpha, c.goal_tol, c.max_steps) == (
+        13, 20.0, 0.5, 0.1, 2.0, 1e-3, 0.1, 150)
+    assert (c.num_agents, c.method, c.noise_std, c.risk_split) == (3, "gp-chance", 0.1, 0.5)
+
+
+def test_file_then_overrides(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text('rho = 5\nmethod = "nominal"\ncomm_radius = 3.0\n')
+    c = load_config(f, parse_overrides(["rho=7.5", "admm_dual_tol=1e-3"]))
+    assert (c.rho, c.method, c.comm_radius, c.admm_dual_tol) == (7.5, "nominal", 3.0, 1e-3)
+    j = tmp_path / "c.json"
+    j.write_text(json.dumps({"horizon": 5}))
+    assert load_config(j).horizon == 5
+
+
+@pytest.mark.parametrize(
+    "data, fragment",
+    [
+        ({"rhoo": 1}, "did you mean 'rho'"),
+        ({"horizn": 3}, "did you mean 'horizon'"),
+        ({"horizon": 1.5}, "expected int"),
+        ({"horizon": 0}, "'horizon'"),
+        ({"eps": 1.5}, "(0, 1)"),
+        ({"eps": 0}, "(0, 1)"),
+        ({"u_max": -1}, "'u_max'"),
+        ({"r_safe": -0.1}, "'r_safe'"),
+        ({"method": "mpc"}, "gp-chance"),
+        ({"rho": "big"}, "expected float"),
+        ({"rho": float("nan")}, "not finite"),
+        ({"num_agents": 5}, "scenario=circle"),
+    ],
+)
+def test_bad_values_name_the_key_and_fix(data, fragment):
+    with pytest.raises(GpmpcError, match=None) as exc:
+        load_config(overrides=data)
+    assert fragment in str(exc.value)
+
+
+def test_bad_files(tmp_path):
+    with pytest.raises(GpmpcError, match="does not exist"):
+        load_config(tmp_path / "missing.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("rho = = 3")
+    with pytest.raises(GpmpcError, match="cannot be parsed"):
+        load_config(bad)
+    with pytest.raises(GpmpcError, match="NAME=VALUE"):
+        parse_overrides(["rho"])

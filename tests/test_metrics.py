@@ -1,0 +1,159 @@
+"""compute_metrics on hand-made rollouts against hand-computed values."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.metrics import CONTRACT_KEYS, compute_metrics, pair_distances, pair_index, time_to_target
+from torch_gpmpc.rollout import Rollout
+
+
+def make_rollout(states, targets, *, config=None, admm_iterations=None, converged=None,
+                 solve_time=None, infeasible=None, horizon=2) -> Rollout:
+    """A Rollout around given states (S+1, K, D) and targets (K, D); other arrays filled simply."""
+    states = np.asarray(states, dtype=np.float64)
+    targets = np.asarray(targets, dtype=np.float64)
+    s, k, d = states.shape[0] - 1, states.shape[1], states.shape[2]
+    iters = 3
+    plans = np.repeat(states[:-1, :, None, :], horizon + 1, axis=2)  # (S, K, T+1, D)
+    primal = np.full((s, iters), np.nan)
+    primal[:, 0], primal[:, 1] = 1.0, 0.1
+    return Rollout(
+        states=states,
+        inputs=np.diff(states, axis=0) * 10.0,
+        plans=plans,
+        targets=targets,
+        adjacency=np.ones((s, k, k), dtype=bool),
+        admm_iterations=np.asarray(admm_iterations if admm_iterations is not None else [2] * s, dtype=int),
+        converged=np.asarray(converged if converged is not None else [True] * s, dtype=bool),
+        primal_residuals=primal,
+        dual_residuals=primal * 2.0,
+        slack_max=np.zeros(s),
+        infeasible_solves=np.asarray(infeasible if infeasible is not None else [0] * s, dtype=int),
+        solve_time=np.asarray(solve_time if solve_time is not None else [0.01] * s, dtype=np.float64),
+        chance_margin=np.zeros(s),
+        wall_time_s=1.5,
+        method="gp-chance",
+        seed=7,
+        config=config if config is not None else {"r_safe": 4.0, "goal_tol": 0.1, "noise_std": 0.1,
+                                                  "admm_tol": 1e-3, "admm_dual_tol": None},
+    )
+
+
+# Agent 0: (0,0) -> (3,0) -> (3,4) -> (6,8) -> (6,8); legs 3, 4, 5, 0; target (6,8), straight 10.
+# Agent 1: (0,4) -> (0,1) -> (3,5) -> (0,9) -> (0,9); legs 3, 5, 5, 0; target (0,9), straight 5.
+# Pair distances: 4, sqrt(10), 1, sqrt(37), sqrt(37). With r_safe = 4: violations at s=1, s=2
+# (s=0 is exactly 4: not a violation). Both agents at their targets first at s=3.
+HAND_STATES = [
+    [[0, 0], [0, 4]],
+    [[3, 0], [0, 1]],
+    [[3, 4], [3, 5]],
+    [[6, 8], [0, 9]],
+    [[6, 8], [0, 9]],
+]
+HAND_TARGETS = [[6, 8], [0, 9]]
+
+
+@pytest.fixture
+def hand_rollout() -> Rollout:
+    return make_rollout(HAND_STATES, HAND_TARGETS, admm_iterations=[3, 5, 2, 10],
+                        converged=[True, True, False, True], solve_time=[0.1, 0.2, 0.3, 0.4],
+                        infeasible=[0, 1, 0, 2])
+
+
+def test_hand_computed_metrics(hand_rollout):
+    m = compute_metrics(hand_rollout)
+    assert set(CONTRACT_KEYS) <= set(m)
+    assert m["method"] == "gp-chance" and m["seed"] == 7
+    assert m["num_agents"] == 2 and m["steps"] == 4
+    assert m["reached"] is True and m["time_to_target"] == 3
+    assert m["min_pair_distance"] == pytest.approx(1.0)
+    assert m["violations"] == 2
+    assert m["path_length"] == pytest.approx([12.0, 13.0])
+    assert m["straight_line_length"] == pytest.approx([10.0, 5.0])
+    assert m["admm_iterations_mean"] == pytest.approx(5.0)
+    assert m["admm_iterations_max"] == 10
+    assert m["converged_fraction"] == pytest.approx(0.75)
+    assert m["wall_time_s"] == pytest.approx(1.5)
+    assert m["solve_time_s_per_step"] == pytest.approx(0.25)
+    assert m["infeasible_local_solves"] == 3
+    assert m["r_safe"] == 4.0 and m["goal_tol"] == 0.1 and m["noise_std"] == 0.1
+    assert m["final_distance_to_target"] == pytest.approx([0.0, 0.0])
+    assert m["at_target_final"] is True
+
+
+def test_metrics_are_plain_json(hand_rollout):
+    m = compute_metrics(hand_rollout)
+    text = json.dumps(m, allow_nan=False)
+    assert json.loads(text) == m
+    for key in ("num_agents", "steps", "violations", "admm_iterations_max", "infeasible_local_solves"):
+        assert type(m[key]) is int, key
+    assert all(type(v) is float for v in m["path_length"])
+
+
+def test_pair_distances_three_agents():
+    # Agents at (0,0), (3,4), (0,8): pairs (0,1)=5, (0,2)=8, (1,2)=5.
+    states = np.array([[[0.0, 0.0], [3.0, 4.0], [0.0, 8.0]]])
+    assert pair_index(3) == [(0, 1), (0, 2), (1, 2)]
+    np.testing.assert_allclose(pair_distances(states), [[5.0, 8.0, 5.0]])
+    assert pair_distances(states[:, :1]).shape == (1, 0)
+
+
+def test_never_reached_is_none():
+    r = make_rollout(HAND_STATES, [[100, 100], [-100, 100]])
+    m = compute_metrics(r)
+    assert m["time_to_target"] is None and m["reached"] is False and m["at_target_final"] is False
+
+
+def test_reached_at_step_zero():
+    r = make_rollout(HAND_STATES, [[0, 0], [0, 4]])
+    m = compute_metrics(r)
+    assert m["time_to_target"] == 0 and m["reached"] is True
+    assert m["straight_line_length"] == [0.0, 0.0]
+
+
+def test_goal_tolerance_is_inclusive_and_all_agents_needed():
+    # distances to the targets per step: agent 0: 1, 0.05, 0; agent 1: 0, 0.5, 0.05
+    states = np.array([[[1.0, 0.0], [5.0, 0.0]], [[0.05, 0.0], [5.0, 0.5]], [[0.0, 0.0], [5.0, 0.05]]])
+    targets = [[0.0, 0.0], [5.0, 0.0]]
+    assert time_to_target(states, targets, 0.1) == 2
+    assert time_to_target(states, targets, 0.5) == 1  # exactly 0.5 away counts
+    assert time_to_target(states, targets, 1.0) == 0
+    assert time_to_target(states, targets, 0.01) is None
+
+
+def test_single_agent():
+    states = [[[0.0, 0.0]], [[3.0, 4.0]], [[3.0, 4.0]]]
+    m = compute_metrics(make_rollout(states, [[3.0, 4.0]]))
+    assert m["num_agents"] == 1
+    assert m["min_pair_distance"] is None and m["violations"] == 0
+    assert m["path_length"] == pytest.approx([5.0]) and m["time_to_target"] == 1
+    json.dumps(m, allow_nan=False)
+
+
+def test_zero_steps_gives_null_means():
+    m = compute_metrics(make_rollout([[[0.0, 0.0], [1.0, 0.0]]], [[0.0, 0.0], [1.0, 0.0]]))
+    assert m["steps"] == 0 and m["time_to_target"] == 0
+    assert m["admm_iterations_mean"] is None and m["admm_iterations_max"] is None
+    assert m["solve_time_s_per_step"] is None and m["path_length"] == [0.0, 0.0]
+    json.dumps(m, allow_nan=False)
+
+
+def test_missing_config_uses_defaults():
+    r = make_rollout(HAND_STATES, HAND_TARGETS, config={})
+    m = compute_metrics(r)
+    assert m["r_safe"] == 0.5 and m["goal_tol"] == 0.1
+    assert m["violations"] == 0  # no distance below 0.5
+    assert math.isclose(m["min_pair_distance"], 1.0)
+
+
+def test_bad_shapes_raise():
+    r = make_rollout(HAND_STATES, HAND_TARGETS)
+    r.targets = np.zeros((3, 2))
+    with pytest.raises(GpmpcError, match="targets"):
+        compute_metrics(r)

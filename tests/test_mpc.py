@@ -1,0 +1,265 @@
+"""Tests of torch_gpmpc.mpc.LocalMPC against independent cvxpy solves and finite differences."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+
+import cvxpy as cp
+import numpy as np
+import pytest
+import torch
+
+from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.linearize import linearize_plan
+from torch_gpmpc.mpc import LocalMPC, LocalProblemData, collision_rows, get_local_mpc
+from torch_gpmpc.risk import chance_margins, collision_normals, pair_risks, state_covariances
+from torch_gpmpc.systems import NominalModel, VortexWind
+
+torch.set_default_dtype(torch.float64)
+
+T, D = 13, 2
+U_MAX, ALPHA, PENALTY, R_SAFE = 2.0, 1e-3, 1e4, 0.5
+NOMINAL = NominalModel()
+METHODS = ("nominal", "nominal-chance", "nonlinear", "nonlinear-chance", "gp", "gp-chance")
+#: Tight interior-point tolerances for finite-difference checks.
+
+
+class FakeGP:
+    """Stand-in for ResidualGP: mean = a scaled vortex wind, quadratic variance."""
+
+    def __init__(self, scale: float = 0.08):
+        self.wind = VortexWind(scale=scale)
+        self.noise = torch.full((D,), 0.01)
+
+    def linearize(self, x):
+        var = 0.01 + 0.002 * (x ** 2).sum(-1, keepdim=True) * torch.tensor([1.0, 1.5])
+        return self.wind(x), self.wind.jacobian(x), var
+
+
+@dataclass
+class Instance:
+    """Crossing agents: linearization data plus ADMM state (all tensors)."""
+
+    xbar: torch.Tensor  # (B, T+1, D)
+    xbar_nbr: torch.Tensor  # (B, M, T+1, D)
+    xref: torch.Tensor
+    x0: torch.Tensor
+    dyn_A: torch.Tensor
+    dyn_c: torch.Tensor
+    sigma: torch.Tensor  # (B, T+1, D, D)
+    normals: torch.Tensor  # (B, M, T+1, D)
+    active: torch.Tensor
+    z_own: torch.Tensor
+    z_nbr: torch.Tensor
+    lam_own: torch.Tensor
+    lam_nbr: torch.Tensor
+
+
+def line(start, direction, speed):
+    """Points start + tau * speed * direction for tau = 0..T, shape (..., T+1, D)."""
+    steps = torch.arange(T + 1, dtype=torch.float64)[:, None]
+    return start[..., None, :] + speed * steps * direction[..., None, :]
+
+
+def crossing_instance(batch, num_nbr, method="gp-chance", mode="pointwise", seed=0, active=None):
+    """Agents on a circle of radius 0.9 heading through the centre, neighbours crossing them."""
+    g = torch.Generator().manual_seed(seed)
+    angle = 2 * torch.pi * torch.rand(batch, generator=g)
+    start = 0.9 * torch.stack([torch.cos(angle), torch.sin(angle)], -1)
+    heading = -start / start.norm(dim=-1, keepdim=True)
+    xbar = line(start, heading, 0.12)
+    xref = line(start, heading, 0.18)
+    nbr_angle = angle[:, None] + 2 * torch.pi * (torch.arange(num_nbr) + 1) / (num_nbr + 1) \
+        + 0.2 * torch.rand(batch, num_nbr, generator=g)
+    nbr_start = 0.9 * torch.stack([torch.cos(nbr_angle), torch.sin(nbr_angle)], -1)
+    xbar_nbr = line(nbr_start, -nbr_start / 0.9, 0.12)
+    lin = linearize_plan(method, xbar, NOMINAL, VortexWind(), [FakeGP() for _ in range(batch)])
+    sigma = state_covariances(mode, lin.var, lin.dyn_A)
+    ids = torch.arange(batch)
+    normals = collision_normals(xbar, xbar_nbr, ids, ids[:, None] + 100 + torch.arange(num_nbr))
+    if active is None:
+        active = torch.ones(batch, num_nbr, dtype=torch.bool)
+    noise = lambda *shape: torch.randn(*shape, generator=g)  # noqa: E731
+    return Instance(
+        xbar=xbar, xbar_nbr=xbar_nbr, xref=xref, x0=start.clone(), dyn_A=lin.dyn_A, dyn_c=lin.dyn_c,
+        sigma=sigma, normals=normals, active=active,
+        z_own=xbar[:, None].expand(batch, num_nbr, T + 1, D) + 0.02 * noise(batch, num_nbr, T + 1, D),
+        z_nbr=xbar_nbr + 0.02 * noise(batch, num_nbr, T + 1, D),
+        lam_own=0.1 * noise(batch, num_nbr, T + 1, D), lam_nbr=0.1 * noise(batch, num_nbr, T + 1, D),
+    )
+
+
+def problem_data(inst, rho=20.0, split=0.5, eps=0.1, x0=None, z_own=None, z_nbr=None):
+    """LocalProblemData through the differentiable chain pair_risks -> ndtri -> margins."""
+    eps_low, _ = pair_risks(torch.as_tensor(eps), torch.as_tensor(split))
+    batch, num_nbr = inst.active.shape
+    margins = chance_margins(inst.normals, inst.sigma, eps_low * torch.ones(batch, num_nbr))
+    normals, bounds = collision_rows(inst.normals, margins, R_SAFE, inst.active)
+    return LocalProblemData(
+        x0=inst.x0 if x0 is None else x0, xref=inst.xref, dyn_A=inst.dyn_A, dyn_c=inst.dyn_c,
+        normals=normals, bounds=bounds, active=inst.active, rho=torch.as_tensor(rho),
+        z_own=inst.z_own if z_own is None else z_own, z_nbr=inst.z_nbr if z_nbr is None else z_nbr,
+        lam_own=inst.lam_own, lam_nbr=inst.lam_nbr,
+    )
+
+
+def reference_solve(data: LocalProblemData, b: int):
+    """Agent b's problem in the natural (non-DPP) form with numeric values, plain Clarabel."""
+    n = lambda t: t[b].detach().numpy()  # noqa: E731
+    rho = data.rho.expand(data.active.shape)[b].detach().numpy() if data.rho.dim() == 0 else n(data.rho)
+    X, U = cp.Variable((T + 1, D)), cp.Variable((T, D))
+    B = NOMINAL.B().numpy()
+    cost = cp.sum_squares(X - n(data.xref)) + ALPHA * cp.sum_squares(U)
+    cons = [X[0] == n(data.x0)]
+    A, c = n(data.dyn_A), n(data.dyn_c)
+    for tau in range(T):
+        cons += [X[tau + 1] == A[tau] @ X[tau] + B @ U[tau] + c[tau], cp.norm(U[tau]) <= U_MAX]
+    Ys, slacks = {}, {}
+    for j in np.flatnonzero(n(data.active)):
+        Y, s = cp.Variable((T + 1, D)), cp.Variable(T, nonneg=True)
+        Ys[j], slacks[j] = Y, s
+        cost += (cp.sum(cp.multiply(n(data.lam_own)[j], X)) + cp.sum(cp.multiply(n(data.lam_nbr)[j], Y))
+                 + rho[j] / 2 * (cp.sum_squares(X - n(data.z_own)[j]) + cp.sum_squares(Y - n(data.z_nbr)[j]))
+                 + PENALTY * cp.sum(s))
+        for tau in range(1, T + 1):
+            cons.append(n(data.normals)[j, tau - 1] @ (X[tau] - Y[tau]) + s[tau - 1] >= n(data.bounds)[j, tau - 1])
+    cp.Problem(cp.Minimize(cost), cons).solve(solver=cp.CLARABEL, tol_gap_abs=1e-10, tol_gap_rel=1e-10,
+                                              tol_feas=1e-10)
+    return X.value, U.value, {j: Y.value for j, Y in Ys.items()}, {j: s.value for j, s in slacks.items()}
+
+
+@pytest.fixture(scope="module")
+def layers():
+    return {m: get_local_mpc(T, D, m, NOMINAL, U_MAX, ALPHA, PENALTY, "clarabel") for m in (0, 1, 3)}
+
+
+def assert_feasible(data, sol, tol=1e-6):
+    X, U = sol.X.detach(), sol.U.detach()
+    pred = (data.dyn_A @ X[:, :-1, :, None]).squeeze(-1) + U @ NOMINAL.B().T + data.dyn_c
+    assert (X[:, 1:] - pred).abs().max() < tol
+    assert (X[:, 0] - data.x0).abs().max() < tol
+    assert U.norm(dim=-1).max() <= U_MAX + tol
+    if sol.Y.shape[1]:
+        gap = (data.normals * (X[:, None, 1:] - sol.Y.detach()[:, :, 1:])).sum(-1) + sol.slack.detach()
+        assert (gap - data.bounds).min() >= -tol
+        assert sol.slack.min() >= -tol
+
+
+@pytest.mark.parametrize("num_nbr", [0, 1, 3])
+@pytest.mark.parametrize("mode", ["pointwise", "propagated"])
+@pytest.mark.parametrize("method", METHODS)
+def test_matches_independent_cvxpy(layers, method, mode, num_nbr):
+    active = torch.ones(3, num_nbr, dtype=torch.bool)
+    if num_nbr == 3:
+        active[1, 2] = False  # padding slot
+    inst = crossing_instance(3, num_nbr, method, mode, seed=METHODS.index(method) + 7 * num_nbr, active=active)
+    data = problem_data(inst)
+    sol = layers[num_nbr](data)
+    assert sol.ok.all()
+    assert_feasible(data, sol)
+    for b in range(3):
+        X, U, Ys, slacks = reference_solve(data, b)
+        np.testing.assert_allclose(sol.X[b].detach().numpy(), X, atol=1e-5)
+        np.testing.assert_allclose(sol.U[b].detach().numpy(), U, atol=1e-5)
+        for j in range(num_nbr):
+            if active[b, j]:
+                np.testing.assert_allclose(sol.Y[b, j].detach().numpy(), Ys[j], atol=1e-5)
+                np.testing.assert_allclose(sol.slack[b, j].detach().numpy(), slacks[j], atol=1e-5)
+            else:  # padding slot: Y -> 0, no slack
+                assert sol.Y[b, j].abs().max() < 1e-6 and sol.slack[b, j].abs().max() < 1e-6
+    cost = ((sol.X - data.xref) ** 2).sum((1, 2)) + ALPHA * (sol.U ** 2).sum((1, 2))
+    torch.testing.assert_close(sol.cost, cost)
+
+
+def test_collision_rows_are_active_in_crossing_instance(layers):
+    data = problem_data(crossing_instance(1, 1))
+    sol = layers[1](data)
+    gap = (data.normals * (sol.X[:, None, 1:] - sol.Y[:, :, 1:])).sum(-1) - data.bounds
+    assert gap.min().abs() < 1e-6  # some row is tight
+    assert not sol.slack_active.any()
+
+
+def test_gradients_match_finite_differences(layers):
+    """d/d(rho, risk split, x0, z) of a fixed random functional of the plan."""
+    inst = crossing_instance(1, 1, seed=3)
+    weights = torch.randn(T + 1, D, generator=torch.Generator().manual_seed(5))
+    layer = layers[1]
+
+    def objective(rho, split, x0, z_own, z_nbr):
+        sol = layer(problem_data(inst, rho=rho, split=split, x0=x0, z_own=z_own, z_nbr=z_nbr))
+        assert sol.ok.all()
+        return (sol.X[0] * weights).sum() + sol.cost.sum()
+
+    base = dict(rho=torch.tensor(20.0), split=torch.tensor(0.4), x0=inst.x0.clone(),
+                z_own=inst.z_own.clone(), z_nbr=inst.z_nbr.clone())
+    leaves = {k: v.clone().requires_grad_(True) for k, v in base.items()}
+    objective(**leaves).backward()
+    g = torch.Generator().manual_seed(11)
+    # steps well above the solution accuracy (~1e-9) but small for the curvature
+    h = {"rho": 1e-2, "split": 1e-3, "x0": 1e-3, "z_own": 1e-3, "z_nbr": 1e-3}
+    for name, value in base.items():
+        direction = torch.randn(value.shape, generator=g)
+        with torch.no_grad():
+            up = objective(**{**base, name: value + h[name] * direction})
+            down = objective(**{**base, name: value - h[name] * direction})
+        fd = (up - down).item() / (2 * h[name])
+        analytic = (leaves[name].grad * direction).sum().item()
+        assert abs(fd) > 1e-3, name  # the instance is sensitive to every input
+        assert analytic == pytest.approx(fd, rel=1e-3), name
+    assert abs(leaves["split"].grad.item()) > 1e-3  # the collision row is active
+
+
+def test_infeasible_copies_use_slack_and_batched_equals_one_by_one(layers):
+    """Neighbour copies pinned onto the agent's own plan by a huge rho: slack, no exception."""
+    inst = crossing_instance(3, 1, seed=4)
+    pinned = replace(inst, z_nbr=inst.xbar[:, None].clone(), z_own=inst.xbar[:, None].clone())
+    data = problem_data(pinned, rho=1e7)
+    data.rho = torch.tensor([[1e7], [20.0], [1e7]])
+    sol = layers[1](data)
+    assert sol.ok.all()
+    assert sol.slack_active.tolist() == [True, False, True]
+    assert_feasible(data, sol, tol=1e-5)
+    for b in range(3):
+        single = layers[1](LocalProblemData(**{k: (v if k == "rho" and v.dim() == 0 else v[b:b + 1])
+                                               for k, v in vars(data).items()}))
+        for field in ("X", "U", "Y", "slack"):
+            torch.testing.assert_close(getattr(single, field)[0], getattr(sol, field)[b], atol=1e-6, rtol=0)
+
+
+def test_solver_exception_is_isolated(layers, caplog, monkeypatch):
+    """A solver error in one agent's problem: the others are solved, ok=False for it, no raise."""
+    layer = layers[1]
+    data = problem_data(crossing_instance(3, 1, seed=6))
+    real_forward = layer.layer.forward
+
+    def flaky(*params, solver_args=None):
+        if params[0].shape[0] > 1 or torch.allclose(params[0], data.x0[1:2]):
+            raise RuntimeError("synthetic solver failure")
+        return real_forward(*params, solver_args=solver_args)
+
+    monkeypatch.setattr(layer.layer, "forward", flaky)
+    with caplog.at_level(logging.WARNING, logger="torch_gpmpc.mpc"):
+        sol = layer(data)
+    assert sol.ok.tolist() == [True, False, True]
+    assert torch.isnan(sol.X[1]).all() and torch.isfinite(sol.X[[0, 2]]).all()
+    assert "synthetic solver failure" in caplog.text
+
+
+def test_reference_solver_agrees_with_clarabel(layers):
+    data = problem_data(crossing_instance(1, 1, seed=8))
+    ref = LocalMPC(T, D, 1, NOMINAL, U_MAX, ALPHA, PENALTY, solver="reference")(data)
+    sol = layers[1](data)
+    assert ref.ok.all()
+    torch.testing.assert_close(ref.X, sol.X, atol=1e-5, rtol=0)
+    torch.testing.assert_close(ref.Y, sol.Y, atol=1e-5, rtol=0)
+
+
+def test_cache_and_input_errors(layers):
+    assert get_local_mpc(T, D, 1, NOMINAL, U_MAX, ALPHA, PENALTY, "clarabel") is layers[1]
+    data = problem_data(crossing_instance(2, 1))
+    with pytest.raises(GpmpcError, match="normals"):
+        layers[3](data)
+    with pytest.raises(GpmpcError, match="solver"):
+        LocalMPC(T, D, 1, NOMINAL, U_MAX, ALPHA, solver="scs")
+    assert LocalMPC(T, D, 0, NOMINAL, U_MAX, ALPHA).problem.is_dpp()

@@ -1,0 +1,122 @@
+"""The ``gpmpc`` command line (contract: design.md §2).
+
+This module only parses arguments and turns user errors into one clear line on
+stderr; each command's work is a ``main(args)`` in ``training/`` or ``eval/``,
+which are thin over the library.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from .errors import GpmpcError
+
+# command -> module holding its main(args)
+_COMMANDS = {
+    "collect": "training.collect",
+    "fit-gp": "training.fit_gp",
+    "tune": "training.tune",
+    "run": "eval.run",
+    "reproduce": "eval.reproduce",
+    "bench": "eval.bench",
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports a usage error as one line (no usage dump)."""
+
+    def error(self, message: str) -> None:  # noqa: D102 - argparse API
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", help="TOML/JSON/YAML file of flat config keys (or a tuned.json)")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="override one config key; repeatable (e.g. --set rho=5)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The full ``gpmpc`` argument parser."""
+    parser = _Parser(prog="gpmpc", description="Cooperative GP-MPC for safe multi-agent navigation")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    p = sub.add_parser("collect", help="log transitions of the true system (paper data recipe)")
+    p.add_argument("--out", required=True, help="output file, .npz or .csv")
+    p.add_argument("--agents", type=int, default=3, help="number of agents K (default 3)")
+    p.add_argument("--samples", type=int, default=100, help="samples per agent N (default 100)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--dim", type=int, default=2, help="state dimension D (2 or 3)")
+    p.add_argument("--noise-std", type=float, default=0.1, help="process noise std s (default 0.1)")
+    p.add_argument("--u-max", type=float, default=2.0, help="input norm bound (default 2)")
+    p.add_argument("--box", type=float, default=4.0, help="states uniform in [-box, box]^D (default 4)")
+
+    p = sub.add_parser("fit-gp", help="fit one residual GP per state dimension")
+    p.add_argument("--transitions", required=True, help="transitions file (.npz or .csv)")
+    p.add_argument("--out", required=True, help="model file to write (.pt)")
+    p.add_argument("--logdir", help="TensorBoard directory")
+    p.add_argument("--holdout", type=float, default=0.0, help="fraction held out for RMSE/coverage")
+    p.add_argument("--agent", type=int, help="fit only rows of this agent id")
+    p.add_argument("--inputs", choices=("state", "state_input"), default="state")
+    p.add_argument("--optimizer", choices=("lbfgs", "adam"), default="lbfgs")
+    p.add_argument("--iters", type=int, default=50)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--figure", help="also write a PNG of the learned mean vs. the wind field (2D)")
+
+    p = sub.add_parser("run", help="one closed-loop scenario")
+    _add_config_args(p)
+    p.add_argument("--scenario", help="scenario file (JSON/TOML with starts, targets[, reference])")
+    p.add_argument("--method", help="nominal, nominal-chance, nonlinear, nonlinear-chance, gp, gp-chance")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--gp-model", help="a model file from fit-gp (used by every agent)")
+    p.add_argument("--backend", choices=("inprocess", "distributed"), default="inprocess")
+    p.add_argument("--out", default="runs/run", help="output directory (default runs/run)")
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+
+    p = sub.add_parser("tune", help="gradient tuning of rho and the risk split")
+    _add_config_args(p)
+    p.add_argument("--out", default="runs/tune")
+    p.add_argument("--iters", type=int, default=20)
+    p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt")
+
+    p = sub.add_parser("reproduce", help="the paper's six methods, figures 1-6 and a table")
+    _add_config_args(p)
+    p.add_argument("--runs", type=int, default=10)
+    p.add_argument("--out", default="runs/reproduce")
+    p.add_argument("--workers", type=int, help="parallel processes (default: number of cores)")
+
+    p = sub.add_parser("bench", help="performance workloads, ratios against baselines")
+    p.add_argument("--out", default="runs/bench")
+    p.add_argument("--sections", default="gp,local", help="comma-separated: gp, local, scale")
+    p.add_argument("--quick", action="store_true", help="fewer repetitions (for CI smoke runs)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``gpmpc`` console script; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        module = importlib.import_module(_COMMANDS[args.command])
+        code = module.main(args)
+    except GpmpcError as exc:
+        if args.debug:
+            raise
+        print(f"gpmpc {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"gpmpc {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return int(code or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,14 @@
+"""The one exception type for bad user input.
+
+The CLI turns a :class:`GpmpcError` into one line on stderr and a non-zero exit
+(no traceback unless ``--debug``); anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+
+class GpmpcError(ValueError):
+    """Bad input from a user: a file, a config value, a command-line argument.
+
+    The message names the field and says how to fix it.
+    """

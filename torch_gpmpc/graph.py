@@ -1,0 +1,100 @@
+"""The communication graph: who talks to whom, and how edges map to neighbour slots.
+
+Agents k and j communicate when their distance is below ``comm_radius`` (all pairs
+when it is ``None``; paper §2). Each undirected edge ``e = (lo, hi)`` with
+``lo < hi`` holds one shared vector ``z_e = [traj_lo; traj_hi]`` (paper eq. 18).
+An agent sees its edges as *slots* ``0..M-1`` (M = largest degree); padding slots
+are inactive so every agent's local problem has the same shape (one batched solve).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+
+@dataclass(frozen=True)
+class Graph:
+    """Edges and the agent-slot view of them.
+
+    Attributes:
+        num_agents: K.
+        edges: (E, 2) long, rows ``(lo, hi)`` with ``lo < hi``, sorted.
+        slot_edge: (K, M) long, edge index held in agent k's slot m (0 where inactive).
+        slot_side: (K, M) long, 0 if agent k is the edge's ``lo`` end, 1 if ``hi``.
+        slot_nbr: (K, M) long, the neighbour's agent id (k itself where inactive).
+        active: (K, M) bool, which slots hold a real edge.
+    """
+
+    num_agents: int
+    edges: Tensor
+    slot_edge: Tensor
+    slot_side: Tensor
+    slot_nbr: Tensor
+    active: Tensor
+
+    @property
+    def num_edges(self) -> int:
+        """E."""
+        return int(self.edges.shape[0])
+
+    @property
+    def num_slots(self) -> int:
+        """M, the largest degree."""
+        return int(self.active.shape[1])
+
+    def degrees(self) -> Tensor:
+        """Neighbour count per agent, (K,) long."""
+        return self.active.sum(dim=1)
+
+    def adjacency(self) -> Tensor:
+        """(K, K) bool adjacency matrix."""
+        adj = torch.zeros(self.num_agents, self.num_agents, dtype=torch.bool)
+        if self.num_edges:
+            adj[self.edges[:, 0], self.edges[:, 1]] = True
+            adj[self.edges[:, 1], self.edges[:, 0]] = True
+        return adj
+
+
+def graph_from_edges(num_agents: int, edges: list[tuple[int, int]]) -> Graph:
+    """Build the slot view from a list of undirected edges.
+
+    Args:
+        num_agents: K.
+        edges: pairs ``(i, j)``, ``i != j``; order and duplicates do not matter.
+    """
+    pairs = sorted({(min(i, j), max(i, j)) for i, j in edges if i != j})
+    neighbours: list[list[tuple[int, int, int]]] = [[] for _ in range(num_agents)]
+    for e, (lo, hi) in enumerate(pairs):
+        neighbours[lo].append((e, 0, hi))
+        neighbours[hi].append((e, 1, lo))
+    slots = max((len(n) for n in neighbours), default=0)
+    slot_edge = torch.zeros(num_agents, slots, dtype=torch.long)
+    slot_side = torch.zeros(num_agents, slots, dtype=torch.long)
+    slot_nbr = torch.arange(num_agents).unsqueeze(1).repeat(1, slots)
+    active = torch.zeros(num_agents, slots, dtype=torch.bool)
+    for k, entries in enumerate(neighbours):
+        for m, (e, side, nbr) in enumerate(entries):
+            slot_edge[k, m], slot_side[k, m], slot_nbr[k, m], active[k, m] = e, side, nbr, True
+    edge_tensor = torch.tensor(pairs, dtype=torch.long).reshape(-1, 2)
+    return Graph(num_agents, edge_tensor, slot_edge, slot_side, slot_nbr, active)
+
+
+def communication_graph(positions: Tensor, comm_radius: float | None) -> Graph:
+    """Edges between agents closer than ``comm_radius`` (all pairs if ``None``).
+
+    Args:
+        positions: current states, shape (K, D).
+        comm_radius: communication range, or ``None`` for a complete graph.
+    """
+    num_agents = positions.shape[0]
+    dist = torch.cdist(positions, positions)
+    edges = [
+        (i, j)
+        for i in range(num_agents)
+        for j in range(i + 1, num_agents)
+        if comm_radius is None or float(dist[i, j]) < comm_radius
+    ]
+    return graph_from_edges(num_agents, edges)
