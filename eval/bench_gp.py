@@ -72,6 +72,21 @@ def gpytorch_linearize(gp: ResidualGP, x: torch.Tensor):
     return mean.detach(), torch.stack(rows, dim=1), var.detach()
 
 
+def _default_threads_row(gp: ResidualGP, xq: torch.Tensor, quick: bool, default_threads: int) -> dict:
+    """N = 100 again, at the thread count the process started with."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(default_threads)
+    try:
+        reps_ours, reps_base = _reps(100, quick)
+        t_ours, _ = _median_time(lambda: gp.linearize(xq), reps_ours)
+        t_base, _ = _median_time(lambda: gpytorch_linearize(gp, xq), reps_base)
+    finally:
+        torch.set_num_threads(threads)
+    return {"workload": f"linearize {NUM_POINTS} pts, N=100, {default_threads} threads",
+            "ours_ms": 1e3 * t_ours, "gpytorch_ms": 1e3 * t_base, "ratio": t_base / t_ours,
+            "max_abs_diff": None}
+
+
 def _reps(n: int, quick: bool) -> tuple[int, int]:
     """(ours, baseline) repetitions for N = n."""
     table = {100: (200, 30), 1000: (30, 5), 5000: (5, 2)}
@@ -80,7 +95,11 @@ def _reps(n: int, quick: bool) -> tuple[int, int]:
 
 
 def run(quick: bool, out=None) -> dict:
-    """Run the GP workloads.
+    """Run the GP workloads single-threaded (plus one row at the default thread count).
+
+    The workloads are tiny; on a shared 2-core machine intra-op threading made them
+    up to 30x slower and very noisy, so the table is measured with
+    ``torch.set_num_threads(1)`` (restored afterwards).
 
     Args:
         quick: fewer repetitions (CI smoke run).
@@ -90,6 +109,17 @@ def run(quick: bool, out=None) -> dict:
         ``{"table": [rows], "threads": int, ...}``; rows have ``workload``, ``ours_ms``,
         ``gpytorch_ms``, ``ratio`` (gpytorch / ours) and ``max_abs_diff``.
     """
+    default_threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        result = _run(quick, default_threads)
+    finally:
+        torch.set_num_threads(default_threads)
+    result["default_threads"] = default_threads
+    return result
+
+
+def _run(quick: bool, default_threads: int) -> dict:
     gen = torch.Generator().manual_seed(123)
     xq = (torch.rand(NUM_POINTS, 2, generator=gen, dtype=torch.float64) * 2 - 1) * 4.0
     X100, Y100 = _data(100, seed=0)
@@ -102,14 +132,15 @@ def run(quick: bool, out=None) -> dict:
     for n in SIZES:
         gp = base if n == 100 else _reuse_hyperparameters(base, *_data(n, seed=1))
         reps_ours, reps_base = _reps(n, quick)
-        t_ours, ours = _median_time(lambda: gp.linearize(xq), reps_ours)
-        t_base, ref = _median_time(lambda: gpytorch_linearize(gp, xq), reps_base)
-        diff = max(float((a - b).abs().max()) for a, b in zip(ours, ref))
+        t_ours, ours = _median_time(lambda gp=gp: gp.linearize(xq), reps_ours)
+        t_base, ref = _median_time(lambda gp=gp: gpytorch_linearize(gp, xq), reps_base)
+        diff = max(float((a - b).abs().max()) for a, b in zip(ours, ref, strict=True))
         rows.append({"workload": f"linearize {NUM_POINTS} pts, N={n}", "ours_ms": 1e3 * t_ours,
                      "gpytorch_ms": 1e3 * t_base, "ratio": t_base / t_ours, "max_abs_diff": diff})
+    rows.append(_default_threads_row(base, xq, quick, default_threads))
     return {
         "table": rows,
-        "threads": torch.get_num_threads(),
+        "threads": 1,
         "num_points": NUM_POINTS,
         "note": "N=1000/5000 reuse the N=100 hyperparameters (cache only); gpytorch baseline: "
                 "eval-mode model(x) with exact variances + autograd Jacobian, warm",

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import math
 
 import numpy as np
 import pytest
@@ -264,5 +263,4 @@ def test_dimension_mismatch_with_nominal(data):
     odd = Transitions(data.x, data.u[:, :1], data.x_next)
     with pytest.raises(GpmpcError, match="input dimension Du=1"):
         odd.residuals(NominalModel(dim=2))
-    data.check_dim(2)
-    assert math.isclose(float(data.x.abs().max()), float(data.x.abs().max()))
+    data.check_dim(2)  # matching dimensions pass silently

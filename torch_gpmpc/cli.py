@@ -43,6 +43,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="gpmpc", description="Cooperative GP-MPC for safe multi-agent navigation")
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch intra-op threads (default 1: the problems are small, so more "
+                             "threads only add overhead; parallel work uses processes)")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     p = sub.add_parser("collect", help="log transitions of the true system (paper data recipe)")
@@ -104,6 +107,12 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
+    if args.threads < 1:
+        print(f"gpmpc: error: --threads must be >= 1, got {args.threads}", file=sys.stderr)
+        return 2
+    import torch
+
+    torch.set_num_threads(args.threads)
     try:
         module = importlib.import_module(_COMMANDS[args.command])
         code = module.main(args)

@@ -52,7 +52,7 @@ def _fail(source: str, message: str) -> GpmpcError:
     return GpmpcError(f"{source}: {message}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Transitions:
     """N logged transitions ``x -> x_next`` under inputs ``u``.
 
@@ -279,7 +279,7 @@ def check_suffix(path: str | Path) -> str:
 
 def _as_float_matrix(value, name: str, src: str) -> Tensor:
     arr = value.detach().cpu().numpy() if isinstance(value, Tensor) else np.asarray(value)
-    if arr.dtype.kind not in "fiu" or arr.dtype.kind == "b":
+    if arr.dtype.kind not in "fiu":
         raise _fail(src, f"array {name!r} must be numeric (float), got dtype {arr.dtype}")
     if arr.ndim != 2:
         raise _fail(src, f"array {name!r} must be 2-D with shape (N, D), got shape {tuple(arr.shape)}")
@@ -375,9 +375,9 @@ def _parse_header(header: list[str], src: str) -> tuple[int, int, bool]:
     if dim == 0 or input_dim == 0 or names != expected:
         missing = [c for c in ("x0", "u0", "x_next0") if c not in names]
         hint = f"missing column(s) {', '.join(missing)}; " if missing else ""
-        raise _fail(src, f"bad header {','.join(names)!r}: {hint}expected columns "
-                    f"{','.join(expected) if dim and input_dim else 'x0..x{D-1},u0..u{Du-1},x_next0..x_next{D-1}[,agent]'} "
-                    "in this order")
+        generic = "x0..x{D-1},u0..u{Du-1},x_next0..x_next{D-1}[,agent]"
+        wanted = ",".join(expected) if dim and input_dim else generic
+        raise _fail(src, f"bad header {','.join(names)!r}: {hint}expected columns {wanted} in this order")
     return dim, input_dim, has_agent
 
 

@@ -29,6 +29,7 @@ import contextlib
 import logging
 import math
 import pickle
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -93,6 +94,7 @@ class _Cache:
     ls: Tensor  # (D, 1, Din) standardized lengthscales
     x_scale: Tensor  # (D, 1, Din) raw: x_std * lengthscale
     S: Tensor  # (D, N, Din) training inputs / lengthscale (standardized)
+    S_cols: tuple[Tensor, ...]  # Din contiguous columns of S, each (D, 1, N)
     outputscale: Tensor  # (D,)
     chol: Tensor  # (D, N, N) lower Cholesky factor of K + s^2 I
     alpha: Tensor  # (D, N) (K + s^2 I)^{-1} y
@@ -212,7 +214,8 @@ class ResidualGP(torch.nn.Module):
             chol = _safe_cholesky(K, outputscale)
             ys = ((self.train_y_raw - self.y_mean) / self.y_std).T.unsqueeze(-1)
             alpha = torch.cholesky_solve(ys, chol).squeeze(-1)
-        self._cache = _Cache(self.x_mean, self.x_std, ls, self.x_std * ls, S, outputscale, chol, alpha,
+        S_cols = tuple(S[:, None, :, i].contiguous() for i in range(Din))
+        self._cache = _Cache(self.x_mean, self.x_std, ls, self.x_std * ls, S, S_cols, outputscale, chol, alpha,
                              self.y_mean, self.y_std, noise * self.y_std ** 2)
         return self
 
@@ -226,7 +229,11 @@ class ResidualGP(torch.nn.Module):
         c = self._get_cache()
         x = self._check_query(x)
         s = ((x - c.x_mean) / c.x_std) / c.ls
-        k = c.outputscale[:, None, None] * torch.exp(-0.5 * _sqdist(s, c.S))
+        # squared distances column by column: exact differences, faster than cdist for small Din
+        sq = (s[..., 0:1] - c.S_cols[0]).square_()
+        for i in range(1, len(c.S_cols)):
+            sq += (s[..., i:i + 1] - c.S_cols[i]).square_()
+        k = c.outputscale[:, None, None] * torch.exp(-0.5 * sq)
         return c, s, k
 
     def _check_query(self, x: Tensor) -> Tensor:
@@ -255,7 +262,7 @@ class ResidualGP(torch.nn.Module):
             ``(mean (n, D), var (n, D))`` in raw units.
         """
         c, _, k = self._cross(x)
-        mean = c.y_mean + c.y_std * (k @ c.alpha[..., None]).squeeze(-1).T
+        mean = c.y_mean + c.y_std * (k * c.alpha[:, None, :]).sum(-1).T  # same op order as linearize
         var = c.y_std ** 2 * self._variance(c, k).T
         if include_noise:
             var = var + c.noise_raw
@@ -270,7 +277,8 @@ class ResidualGP(torch.nn.Module):
         Returns:
             ``J`` of shape (n, D, Din) with ``J[j, d, i] = d mu_d / d x_i`` at ``x[j]``.
         """
-        return self.linearize(x)[1]
+        c, s, k = self._cross(x)
+        return self._mean_jac(c, s, k)[1]
 
     def linearize(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Mean, mean Jacobian and latent variance at ``x`` in one call.
@@ -284,13 +292,19 @@ class ResidualGP(torch.nn.Module):
             ``(mean (n, D), jac (n, D, Din), var (n, D))`` in raw units.
         """
         c, s, k = self._cross(x)
+        mean, jac = self._mean_jac(c, s, k)
+        var = c.y_std ** 2 * self._variance(c, k).T
+        return mean, jac, var
+
+    @staticmethod
+    def _mean_jac(c: _Cache, s: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
+        """Raw-unit mean (n, D) and Jacobian (n, D, Din) from one cross-covariance k (D, n, N)."""
         W = k * c.alpha[:, None, :]  # (D, n, N)
         mean_std = W.sum(-1)  # (D, n)
-        # d mu_std / d s_i = sum_n W_n (S_ni - s_i); chain rule through s = (x - x_mean) / x_scale
+        # eq. 13 in scaled coordinates: d mu_std / d s_i = sum_n W_n (S_ni - s_i);
+        # chain rule through s = (x - x_mean) / (x_std * lengthscale), then y = y_mean + y_std mu_std
         jac = (W @ c.S - mean_std[..., None] * s) / c.x_scale * c.y_std[:, None, None]
-        mean = c.y_mean + c.y_std * mean_std.T
-        var = c.y_std ** 2 * self._variance(c, k).T
-        return mean, jac.transpose(0, 1), var
+        return c.y_mean + c.y_std * mean_std.T, jac.transpose(0, 1)
 
     def gpytorch_predict(self, x: Tensor, include_noise: bool = False) -> tuple[Tensor, Tensor]:
         """The same prediction through GPyTorch's own predictive path (reference/baseline).
@@ -411,19 +425,24 @@ def _normalization(inputs: Tensor, y: Tensor) -> tuple[Tensor, Tensor, Tensor, T
 
 
 def _torch_load(path: Path, src: str) -> Any:
+    """``torch.load(weights_only=True)`` with every failure turned into a GpmpcError."""
     if not path.is_file():
         raise GpmpcError(f"{src}: file not found; fit one with `gpmpc fit-gp --out FILE`")
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # e.g. "Detected pickle protocol 4"
+            return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
-        if "weights_only" in str(exc) or "Unsupported global" in str(exc):
-            raise GpmpcError(f"{src}: refused to load: it contains Python objects other than tensors "
-                             "(an unsafe or foreign pickle); only files written by ResidualGP.save "
-                             "are accepted") from None
-        raise GpmpcError(f"{src}: cannot be read (corrupt or truncated file): {exc}") from None
+        if "GLOBAL" in str(exc):
+            raise GpmpcError(f"{src}: refused to load: it references Python code or objects other "
+                             "than tensors (an unsafe or foreign pickle); only files written by "
+                             "ResidualGP.save are accepted") from None
+        raise GpmpcError(f"{src}: cannot be read (corrupt or truncated file, or unsupported "
+                         "pickle content); only files written by ResidualGP.save are accepted") from None
     except Exception as exc:  # torch raises RuntimeError/EOFError/ValueError... on garbage
+        first = str(exc).splitlines()[0] if str(exc) else ""
         raise GpmpcError(f"{src}: cannot be read (corrupt, truncated or not a torch file): "
-                         f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}") from None
+                         f"{type(exc).__name__}: {first}") from None
 
 
 def _from_payload(payload: Any, src: str) -> ResidualGP:

@@ -99,7 +99,7 @@ def main(args) -> int:
         metrics = None
         if test is not None:
             metrics = holdout_metrics(gp, *test.residuals(nominal, inputs=args.inputs))
-            for d, (r, c) in enumerate(zip(metrics["rmse"], metrics["coverage95"])):
+            for d, (r, c) in enumerate(zip(metrics["rmse"], metrics["coverage95"], strict=True)):
                 tb.scalar(f"gp/holdout_rmse/d{d}", r, args.iters)
                 tb.scalar(f"gp/holdout_coverage95/d{d}", c, args.iters)
     gp.save(args.out)
