@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 from pathlib import Path
 
 from tqdm import tqdm
@@ -29,15 +30,25 @@ def main(args) -> int:
     from torch_gpmpc.gp import ResidualGP
     from torch_gpmpc.metrics import compute_metrics
     from torch_gpmpc.scenarios import make_scenario
-    from torch_gpmpc.sim import simulate
+    from torch_gpmpc.sim import needs_gp, simulate
     from torch_gpmpc.tblog import TBLogger
 
-    if args.backend != "inprocess":
-        raise GpmpcError("--backend distributed is not implemented yet; use --backend inprocess")
+    distributed = args.backend == "distributed"
+    if distributed:
+        from torch_gpmpc import distributed as dist_backend
+
+        if dist_backend.is_agent_rank():  # torchrun / env launch: ranks > 0 serve agents, rank 0 writes
+            return dist_backend.agent_main(threads=getattr(args, "threads", 1))
+    # validate everything (config, scenario, model, output path) before any work or output
     cfg = config_from_args(args)
-    scenario = make_scenario(cfg, args.scenario)  # validates before any work
-    gps = [ResidualGP.load(args.gp_model, expected_dim=cfg.dim)] if args.gp_model else None
+    scenario = make_scenario(cfg, args.scenario)
+    gps = [ResidualGP.load(args.gp_model, expected_dim=cfg.dim, expected_input_dim=cfg.dim)] \
+        if args.gp_model else None
+    if gps is None and needs_gp(cfg.method) and cfg.gp_inputs != "state":
+        raise GpmpcError("config key 'gp_inputs': the controller needs state-input GPs; use gp_inputs=state")
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise GpmpcError(f"--out {str(out)!r} is an existing file; give a directory path")
     tb = TBLogger(out / "tb")
     bar = tqdm(total=cfg.max_steps, desc=f"{cfg.method} seed {cfg.seed}", unit="step", leave=False)
 
@@ -46,11 +57,19 @@ def main(args) -> int:
         bar.set_postfix(admm_it=info["iterations"], min_dist=f"{info['min_distance']:.3f}")
 
     try:
-        rollout = simulate(cfg, scenario, gps=gps, on_step=on_step, tb=tb)
+        if distributed:  # every agent process loads --gp-model (or trains its own GP) itself
+            rollout, report = dist_backend.simulate_distributed(
+                cfg, scenario, gp_model=args.gp_model, on_step=on_step, tb=tb,
+                agents_per_process=getattr(args, "agents_per_process", 1),
+                timeout_s=getattr(args, "timeout", dist_backend.DEFAULT_TIMEOUT_S), log_dir=out / "agent_logs")
+        else:
+            rollout = simulate(cfg, scenario, gps=gps, on_step=on_step, tb=tb)
     finally:
         bar.close()
         tb.close()
     metrics = compute_metrics(rollout)
+    if distributed:
+        metrics.update(report.metrics(rollout, cfg))
     rollout.save(out / "rollout.npz")
     write_json(out / "metrics.json", metrics)
     if not args.no_figures:
@@ -58,6 +77,9 @@ def main(args) -> int:
 
         save_run_figures(rollout, out / "figures", reference_paths=scenario.reference_path().numpy())
     print(_summary(metrics, out))
+    if distributed and report.lost_agents:
+        print(f"gpmpc run: warning: {report.summary()}", file=sys.stderr)
+        return 3
     return 0
 
 

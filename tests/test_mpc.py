@@ -239,7 +239,7 @@ def test_solver_exception_is_isolated(layers, caplog, monkeypatch):
         return real_forward(*params, solver_args=solver_args)
 
     monkeypatch.setattr(layer.layer, "forward", flaky)
-    with caplog.at_level(logging.WARNING, logger="torch_gpmpc.mpc"):
+    with caplog.at_level(logging.DEBUG, logger="torch_gpmpc.mpc"):  # ADMM warns once per kind
         sol = layer(data)
     assert sol.ok.tolist() == [True, False, True]
     assert torch.isnan(sol.X[1]).all() and torch.isfinite(sol.X[[0, 2]]).all()

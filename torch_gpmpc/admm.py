@@ -35,7 +35,9 @@ from torch import Tensor
 from .config import Config
 from .graph import Graph
 from .linearize import linearize_plan
-from .mpc import LocalProblemData, LocalSolution, get_local_mpc
+from .errors import GpmpcError
+from .mpc import FAILURE_KINDS, FAIL_EXCEPTION, FAIL_INACCURATE, FAIL_NONFINITE, LocalProblemData, \
+    LocalSolution, get_local_mpc
 from .risk import chance_margins, collision_normals, pair_risks, state_covariances
 from .systems import NominalModel, VortexWind
 
@@ -87,6 +89,8 @@ class StepResult:
         slack_max: largest collision slack of the final iterate.
         infeasible_solves: local solves with active slack or failure, summed over iterations.
         failed_solves: local solves that failed (fallback plan used), summed over iterations.
+        failed_by_kind: ``failed_solves`` split by kind, ``{kind: count}`` for every kind
+            in :data:`~torch_gpmpc.mpc.FAILURE_KINDS` (exception, non-finite, inaccurate).
         solve_time_s: seconds spent in local solves.
         max_margin: largest chance margin of the final iterate (0 for deterministic methods).
         messages: (K,) numbers each agent sends per iteration.
@@ -103,6 +107,7 @@ class StepResult:
     slack_max: float = 0.0
     infeasible_solves: int = 0
     failed_solves: int = 0
+    failed_by_kind: dict[str, int] = field(default_factory=lambda: dict.fromkeys(FAILURE_KINDS, 0))
     solve_time_s: float = 0.0
     max_margin: float = 0.0
     messages: Tensor | None = None
@@ -194,6 +199,8 @@ class ADMM:
         self.wind = wind
         self.gps = gps
         self.chance = self.method.endswith("-chance")
+        #: failure kinds already warned about (one warning per kind per ADMM object, i.e. per run)
+        self._warned: set[str] = set()
 
     def _layer(self, num_slots: int):
         cfg = self.cfg
@@ -251,18 +258,66 @@ class ADMM:
         copies = copies.index_put((e_idx, a_idx, 1 - a_idx), sol.Y[k_idx, m_idx])
         return copies
 
+    def _solve(self, layer, data: LocalProblemData) -> LocalSolution:
+        """One batched local solve; an exception escaping the layer fails every agent (kind
+        ``exception``) instead of ending the run. Input errors (GpmpcError) still raise."""
+        try:
+            return layer(data)
+        except GpmpcError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - counted and warned by _fallback
+            batch, T, D = data.xref.shape[0], data.xref.shape[1] - 1, data.xref.shape[2]
+            M = data.active.shape[1]
+            nan = data.xref.new_full((), float("nan"))
+            return LocalSolution(
+                X=nan.expand(batch, T + 1, D).clone(), U=nan.expand(batch, T, D).clone(),
+                Y=nan.expand(batch, M, T + 1, D).clone(), slack=nan.expand(batch, M, T).clone(),
+                slack_active=torch.zeros(batch, dtype=torch.bool), ok=torch.zeros(batch, dtype=torch.bool),
+                cost=nan.expand(batch).clone(), failure=torch.full((batch,), FAIL_EXCEPTION),
+                failure_detail=f"{type(exc).__name__}: {exc}")
+
+    def _count_failures(self, sol: LocalSolution, result: StepResult) -> None:
+        """Add this iteration's failed solves to ``result`` and warn once per kind per run."""
+        bad = ~sol.ok
+        if not bool(bad.any()):
+            return
+        if sol.failure is not None:
+            codes = sol.failure
+        else:  # a layer that does not report kinds: infer them
+            finite = torch.isfinite(sol.X).flatten(1).all(1) & torch.isfinite(sol.U).flatten(1).all(1)
+            codes = torch.where(finite, torch.full_like(bad, FAIL_INACCURATE, dtype=torch.int64),
+                                torch.full_like(bad, FAIL_NONFINITE, dtype=torch.int64))
+        result.failed_solves += int(bad.sum())
+        for i, kind in enumerate(FAILURE_KINDS):
+            agents = (bad & (codes == i + 1)).nonzero().flatten().tolist()
+            if not agents:
+                continue
+            result.failed_by_kind[kind] += len(agents)
+            if kind not in self._warned:
+                self._warned.add(kind)
+                detail = f" ({sol.failure_detail})" if kind == "exception" and sol.failure_detail else ""
+                log.warning("local MPC solve failed (%s%s) for agent(s) %s; using their previous (shifted) "
+                            "plans. Further %s failures are not logged again; they are counted in "
+                            "metrics.json 'failed_local_solves'", kind, detail, agents, kind)
+            else:
+                log.debug("local MPC solve failed (%s) for agent(s) %s; previous plans used", kind, agents)
+
     def _fallback(self, sol: LocalSolution, state: ADMMState, graph: Graph) -> LocalSolution:
-        """Replace failed agents' solutions by their previous plans (a safe, feasible guess)."""
+        """Replace failed agents' solutions by their previous plans (a safe, feasible guess).
+
+        At the first ADMM iteration of a step the previous plan is the last step's plan
+        shifted by one step (the warm start); later it is the previous iterate.
+        """
         bad = ~sol.ok
         if not bool(bad.any()):
             return sol
-        log.warning("local solve failed for agents %s; keeping their previous plans", bad.nonzero().flatten().tolist())
         X = torch.where(bad[:, None, None], state.plans, sol.X)
         U = torch.where(bad[:, None, None], state.inputs, sol.U)
         nbr_prev = state.plans[graph.slot_nbr]
         Y = torch.where(bad[:, None, None, None], nbr_prev, sol.Y)
         return LocalSolution(X=X, U=U, Y=Y, slack=torch.where(bad[:, None, None], torch.zeros_like(sol.slack), sol.slack),
-                             slack_active=sol.slack_active, ok=sol.ok, cost=sol.cost)
+                             slack_active=sol.slack_active, ok=sol.ok, cost=sol.cost, failure=sol.failure,
+                             failure_detail=sol.failure_detail)
 
     def solve_step(
         self,
@@ -300,9 +355,9 @@ class ADMM:
             lin_state = state if cfg.relinearize else ADMMState(frozen_plans, state.inputs, state.edges, state.z, state.lam)
             data, max_margin = self._problem_data(x0, xref, lin_state, graph, rho_t, eps_self)
             t0 = time.perf_counter()
-            sol = layer(data)
+            sol = self._solve(layer, data)
             result.solve_time_s += time.perf_counter() - t0
-            result.failed_solves += int((~sol.ok).sum())
+            self._count_failures(sol, result)
             sol = self._fallback(sol, state, graph)
             result.infeasible_solves += int((sol.slack_active | ~sol.ok).sum())
             if graph.num_edges:

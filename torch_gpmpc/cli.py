@@ -8,11 +8,16 @@ which are thin over the library.
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
 import sys
 
+from .config import METHODS
 from .errors import GpmpcError
+
+#: OSError numbers without a file name that are still the user's storage: disk full, quota, read-only.
+_STORAGE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
 
 # command -> module holding its main(args)
 _COMMANDS = {
@@ -77,6 +82,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int)
     p.add_argument("--gp-model", help="a model file from fit-gp (used by every agent)")
     p.add_argument("--backend", choices=("inprocess", "distributed"), default="inprocess")
+    p.add_argument("--agents-per-process", type=int, default=1,
+                   help="distributed backend: agents hosted by one process (default 1)")
+    p.add_argument("--timeout", type=float, default=30.0,
+                   help="distributed backend: seconds to wait for a peer before treating it as lost")
     p.add_argument("--out", default="runs/run", help="output directory (default runs/run)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
 
@@ -91,6 +100,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--runs", type=int, default=10)
     p.add_argument("--out", default="runs/reproduce")
     p.add_argument("--workers", type=int, help="parallel processes (default: number of cores)")
+    p.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset of the six methods")
+    p.add_argument("--rho-values", default="1,5,20,50,100", help="rho values of the Fig. 4 study")
+    p.add_argument("--rho-steps", type=int, default=10, help="closed-loop steps per Fig. 4 run")
+    p.add_argument("--rho-iterations", type=int, default=60, help="ADMM iterations per step in Fig. 4 runs")
 
     p = sub.add_parser("bench", help="performance workloads, ratios against baselines")
     p.add_argument("--out", default="runs/bench")
@@ -120,6 +133,15 @@ def main(argv: list[str] | None = None) -> int:
         if args.debug:
             raise
         print(f"gpmpc {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # unwritable/unreadable path, disk full: the user's environment, not a bug
+        if args.debug or (exc.filename is None and exc.errno not in _STORAGE_ERRNOS):
+            raise  # e.g. a network error of the distributed backend: keep its traceback
+        where = f" {exc.filename!r}" if exc.filename else ""
+        why = ("a part of the path is an existing file, not a directory"
+               if isinstance(exc, (FileExistsError, NotADirectoryError)) else exc.strerror or str(exc))
+        print(f"gpmpc {args.command}: error: cannot access{where}: {why}; "
+              "check the path and its permissions", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"gpmpc {args.command}: interrupted", file=sys.stderr)

@@ -125,7 +125,7 @@ _CHOICES = {
 
 # (predicate, description of the allowed range); checked in __post_init__.
 _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
-    "horizon": (lambda v: v >= 1, "an integer >= 1"),
+    "horizon": (lambda v: 1 <= v <= 1000, "an integer in [1, 1000]"),
     "rho": (lambda v: v > 0, "a number > 0"),
     "r_safe": (lambda v: v >= 0, "a number >= 0"),
     "eps": (lambda v: 0 < v < 1, "a number in (0, 1)"),
@@ -135,17 +135,19 @@ _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "noise_std": (lambda v: v >= 0, "a number >= 0"),
     "admm_tol": (lambda v: v > 0, "a number > 0"),
     "admm_dual_tol": (lambda v: v is None or v > 0, "a number > 0 or null"),
-    "admm_max_iter": (lambda v: v >= 1, "an integer >= 1"),
+    "admm_max_iter": (lambda v: 1 <= v <= 100_000, "an integer in [1, 100000]"),
     "comm_radius": (lambda v: v is None or v > 0, "a number > 0 or null (all pairs)"),
     "goal_tol": (lambda v: v > 0, "a number > 0"),
-    "max_steps": (lambda v: v >= 1, "an integer >= 1"),
+    "max_steps": (lambda v: 1 <= v <= 1_000_000, "an integer in [1, 1000000]"),
     "num_agents": (lambda v: 1 <= v <= 1000, "an integer in [1, 1000]"),
     "seed": (lambda v: v >= 0, "an integer >= 0"),
     "dim": (lambda v: v in (2, 3), "2 or 3"),
     "ref_points": (lambda v: v >= 2, "an integer >= 2"),
-    "circle_radius": (lambda v: v > 0, "a number > 0"),
+    # the same bound as scenario-file coordinates (scenarios.MAX_COORDINATE)
+    "circle_radius": (lambda v: 0 < v <= 1e4, "a number in (0, 10000]"),
     "min_separation": (lambda v: v >= 0, "a number >= 0"),
-    "gp_samples": (lambda v: v >= 2, "an integer >= 2"),
+    # an exact GP costs O(N^3) time and O(N^2) memory per agent
+    "gp_samples": (lambda v: 2 <= v <= 5000, "an integer in [2, 5000]"),
     "gp_iters": (lambda v: v >= 1, "an integer >= 1"),
     "slack_penalty": (lambda v: v > 0, "a number > 0"),
     "wind_scale": (lambda v: v >= 0, "a number >= 0"),

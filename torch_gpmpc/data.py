@@ -43,6 +43,9 @@ log = logging.getLogger(__name__)
 MAX_ABS_VALUE = 1e6
 #: Fewest transitions a GP can be fitted to.
 MIN_SAMPLES = 2
+#: Most transitions :func:`collect_transitions` writes in one call (K x N); more is
+#: almost always a typo and would exhaust memory before anything is written.
+MAX_COLLECT_ROWS = 1_000_000
 SUFFIXES = (".npz", ".csv")
 _ARRAYS = ("x", "u", "x_next")
 
@@ -172,11 +175,14 @@ class Transitions:
         if first.size == self.num_samples:
             return self
         keep = torch.from_numpy(np.sort(first))
+        dropped = self.num_samples - keep.numel()
+        if keep.numel() < MIN_SAMPLES:
+            raise _fail(self.source, f"only {keep.numel()} transition(s) left after dropping {dropped} "
+                        f"exact duplicate row(s); need at least {MIN_SAMPLES} distinct rows to fit a GP "
+                        "(collect more with `gpmpc collect --samples N`)")
         log.warning("%s: dropped %d exact duplicate transition row(s), %d remain",
-                    self.source, self.num_samples - keep.numel(), keep.numel())
-        out = self._rows(keep)
-        _check_count(out.num_samples, out.source)
-        return out
+                    self.source, dropped, keep.numel())
+        return self._rows(keep)
 
     # ------------------------------------------------------------------ model checks
     def check_dim(self, dim: int, input_dim: int | None = None) -> None:
@@ -353,8 +359,10 @@ def _read_npz(path: Path, src: str):
             raise _fail(src, "contains a pickled (object) array, which is refused; "
                         "store plain numeric arrays") from exc
         raise _fail(src, f"cannot be read as .npz (corrupt or truncated?): {exc}") from exc
-    except (OSError, EOFError, zipfile.BadZipFile, KeyError) as exc:
-        raise _fail(src, f"cannot be read as .npz (corrupt or truncated?): {exc}") from exc
+    except Exception as exc:  # noqa: BLE001 - a damaged zip/npy header fails in many ways
+        # (BadZipFile, OSError, EOFError, KeyError, NotImplementedError, MemoryError, ...)
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise _fail(src, f"cannot be read as .npz (corrupt or truncated?): {first}") from exc
     return arrays["x"], arrays["u"], arrays["x_next"], arrays.get("agent")
 
 
@@ -386,7 +394,10 @@ def _read_csv(path: Path, src: str):
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
         raise _fail(src, "is not a UTF-8 text file (corrupt, or not a CSV?)") from exc
-    rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    try:
+        rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    except csv.Error as exc:  # NUL bytes, oversized fields, ...
+        raise _fail(src, f"cannot be parsed as CSV (corrupt file?): {exc}") from exc
     if not rows:
         raise _fail(src, "is empty; expected a header line x0..,u0..,x_next0..[,agent] and data rows")
     dim, input_dim, has_agent = _parse_header(rows[0], src)
@@ -464,6 +475,9 @@ def collect_transitions(system: TrueSystem, num_agents: int = 3, samples: int = 
         raise GpmpcError(f"agents must be >= 1, got {num_agents}; e.g. --agents 3")
     if int(samples) < MIN_SAMPLES:
         raise GpmpcError(f"samples must be >= {MIN_SAMPLES} per agent, got {samples}; e.g. --samples 100")
+    if int(num_agents) * int(samples) > MAX_COLLECT_ROWS:
+        raise GpmpcError(f"agents x samples = {int(num_agents) * int(samples)} transitions is more than "
+                         f"{MAX_COLLECT_ROWS}; lower --agents or --samples (the paper uses 100 per agent)")
     for name, value in (("u-max", u_max), ("box", box)):
         if not (math.isfinite(value) and value > 0):
             raise GpmpcError(f"{name} must be a positive number, got {value}")

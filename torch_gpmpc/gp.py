@@ -26,6 +26,7 @@ ADMM iteration.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import logging
 import math
 import pickle
@@ -47,6 +48,9 @@ log = logging.getLogger(__name__)
 FORMAT = "torch_gpmpc.ResidualGP"
 VERSION = 1
 INPUT_KINDS = ("state", "state_input")
+#: Most training points :func:`fit_residual_gp` accepts: an exact GP needs O(N^2)
+#: memory and O(N^3) time per output dimension (5000 points: ~0.4 GB for D = 2).
+MAX_TRAINING_POINTS = 5000
 #: Jitter levels (added to the kernel diagonal, standardized units) tried when a
 #: Cholesky factorization fails; ``None`` is GPyTorch's default.
 JITTERS = (None, 1e-6, 1e-4)
@@ -354,6 +358,7 @@ class ResidualGP(torch.nn.Module):
             "y_mean": self.y_mean.clone(), "y_std": self.y_std.clone(),
             "state_dict": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
         }
+        payload["checksum"] = _checksum(payload)
         with atomic_path(path) as tmp:
             torch.save(payload, tmp)
 
@@ -379,7 +384,8 @@ class ResidualGP(torch.nn.Module):
                              f"D={expected_dim} is required; fit a model on data of dimension {expected_dim}")
         if expected_input_dim is not None and gp.input_dim != int(expected_input_dim):
             raise GpmpcError(f"{src}: the model takes Din={gp.input_dim} inputs ({gp.input_kind}) but "
-                             f"Din={expected_input_dim} is required; refit with the matching --inputs")
+                             f"Din={expected_input_dim} is required; refit with the matching --inputs "
+                             "(state: Din = D, state_input: Din = D + Du)")
         return gp
 
 
@@ -428,6 +434,9 @@ def _torch_load(path: Path, src: str) -> Any:
     """``torch.load(weights_only=True)`` with every failure turned into a GpmpcError."""
     if not path.is_file():
         raise GpmpcError(f"{src}: file not found; fit one with `gpmpc fit-gp --out FILE`")
+    if path.stat().st_size == 0:
+        raise GpmpcError(f"{src}: cannot be read: the file is empty (an interrupted copy?); "
+                         "fit one with `gpmpc fit-gp --out FILE`")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # e.g. "Detected pickle protocol 4"
@@ -440,9 +449,34 @@ def _torch_load(path: Path, src: str) -> Any:
         raise GpmpcError(f"{src}: cannot be read (corrupt or truncated file, or unsupported "
                          "pickle content); only files written by ResidualGP.save are accepted") from None
     except Exception as exc:  # torch raises RuntimeError/EOFError/ValueError... on garbage
-        first = str(exc).splitlines()[0] if str(exc) else ""
+        first = (str(exc).splitlines() or [""])[0].split(". ")[0]  # torch's miniz errors run on
         raise GpmpcError(f"{src}: cannot be read (corrupt, truncated or not a torch file): "
                          f"{type(exc).__name__}: {first}") from None
+
+
+def _checksum(payload: dict) -> str:
+    """SHA-256 over every entry except ``checksum`` (names, dtypes, shapes and bytes of tensors).
+
+    torch's zip container does not verify its CRCs on load, so without this a damaged
+    tensor (a flipped bit) would load as a silently different model.
+    """
+    digest = hashlib.sha256()
+
+    def feed(key: str, value: Any) -> None:
+        digest.update(key.encode())
+        if isinstance(value, dict):
+            for k in sorted(value):
+                feed(f"{key}/{k}", value[k])
+        elif isinstance(value, Tensor):
+            t = value.detach().cpu().contiguous()
+            digest.update(f"{t.dtype}{tuple(t.shape)}".encode())
+            digest.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+        else:
+            digest.update(repr(value).encode())
+
+    for key in sorted(k for k in payload if k != "checksum"):
+        feed(key, payload[key])
+    return digest.hexdigest()
 
 
 def _from_payload(payload: Any, src: str) -> ResidualGP:
@@ -474,6 +508,11 @@ def _from_payload(payload: Any, src: str) -> ResidualGP:
     gp = ResidualGP(X, Y, input_kind=kind,
                     normalization=(tensors["x_mean"], tensors["x_std"], tensors["y_mean"], tensors["y_std"]))
     _load_state(gp, payload.get("state_dict"), src)
+    # last: the checks above give more specific messages; this catches what they cannot see
+    if "checksum" in payload:  # files written before the checksum existed have none
+        if payload["checksum"] != _checksum(payload):
+            raise GpmpcError(f"{src}: checksum mismatch, the file is corrupt (damaged or modified after "
+                             "it was written); copy it again or refit with `gpmpc fit-gp`")
     return gp.refresh()
 
 
@@ -543,11 +582,25 @@ def fit_residual_gp(inputs: Tensor, y: Tensor, optimizer: str = "lbfgs", iters: 
         raise GpmpcError(f"optimizer must be 'lbfgs' or 'adam', got {optimizer!r}")
     if int(iters) < 0:
         raise GpmpcError(f"iters must be >= 0, got {iters}")
+    inputs = torch.as_tensor(inputs)
+    check_training_size(int(inputs.shape[0]) if inputs.ndim else 0)
     gp = ResidualGP(inputs, y, input_kind=input_kind)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(seed))
         _optimize(gp, optimizer, int(iters), callback, lr)
     return gp.refresh()
+
+
+def check_training_size(num_points: int) -> None:
+    """Raise if ``num_points`` exceeds :data:`MAX_TRAINING_POINTS`.
+
+    Raises:
+        GpmpcError: naming the size, the limit and the fix.
+    """
+    if num_points > MAX_TRAINING_POINTS:
+        raise GpmpcError(f"GP training data: N={num_points} points is more than an exact GP fits in "
+                         f"reasonable time and memory (at most {MAX_TRAINING_POINTS}); subsample the "
+                         "transitions or fit one agent's rows (fit-gp --agent K)")
 
 
 def _optimize(gp: ResidualGP, optimizer: str, iters: int, callback: Callback | None,

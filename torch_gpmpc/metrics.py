@@ -95,7 +95,10 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
     Beyond the contract keys (:data:`CONTRACT_KEYS`) it adds ``noise_std``, ``r_safe``,
     ``goal_tol`` (from ``rollout.config``, defaults from :class:`Config` when absent),
     ``final_distance_to_target`` (per agent), ``at_target_final`` (all agents within
-    ``goal_tol`` at the last state) and ``max_slack``.
+    ``goal_tol`` at the last state), ``max_slack``, ``failed_local_solves`` (local solves
+    that failed and were replaced by the agent's previous plan; 0 when the rollout does
+    not record them) and ``failed_local_solves_by_kind`` (``{"exception": n,
+    "non-finite": n, "inaccurate": n}``).
 
     ``reached`` is ``time_to_target is not None``: with process noise an agent can
     drift out of the tolerance again after arriving (``at_target_final`` tells).
@@ -145,6 +148,21 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
         "final_distance_to_target": [float(v) for v in final],
         "at_target_final": bool(np.all(final <= goal_tol)),
         "max_slack": _max(np.asarray(rollout.slack_max, dtype=np.float64)),
+        **_failures(rollout),
+    }
+
+
+def _failures(rollout: Rollout) -> dict[str, Any]:
+    """``failed_local_solves`` and its split by kind (zeros when the rollout lacks them)."""
+    from .mpc import FAILURE_KINDS
+
+    by_kind = getattr(rollout, "failed_solves_by_kind", None)
+    total = getattr(rollout, "failed_solves", None)
+    counts = (np.asarray(by_kind, dtype=np.int64).reshape(-1, len(FAILURE_KINDS)).sum(axis=0)
+              if by_kind is not None else np.zeros(len(FAILURE_KINDS), dtype=np.int64))
+    return {
+        "failed_local_solves": int(np.sum(total)) if total is not None else int(counts.sum()),
+        "failed_local_solves_by_kind": {kind: int(n) for kind, n in zip(FAILURE_KINDS, counts)},
     }
 
 

@@ -31,6 +31,12 @@ SLACK_ACTIVE_TOL = 1e-6
 #: Relative residual above which a returned solution is not accepted as a solution.
 FEASIBILITY_TOL = 1e-5
 
+#: Why a local solve was rejected; :attr:`LocalSolution.failure` holds ``1 + index``
+#: into this tuple (0 = accepted): the solver raised, returned NaN/inf, or returned a
+#: finite answer that violates a constraint by more than :data:`FEASIBILITY_TOL`.
+FAILURE_KINDS = ("exception", "non-finite", "inaccurate")
+FAIL_NONE, FAIL_EXCEPTION, FAIL_NONFINITE, FAIL_INACCURATE = 0, 1, 2, 3
+
 #: Solver arguments per ``solver`` name (merged with per-call overrides); passed to
 #: diffcp's batch solve and from there to the solver's settings.
 SOLVER_ARGS: dict[str, dict[str, Any]] = {
@@ -130,6 +136,9 @@ class LocalSolution:
         ok: finite solution, no solver error, constraints met, shape (B,); rows with
             ``ok = False`` are NaN.
         cost: planned tracking + control cost ``||X - Xref||^2 + alpha ||U||^2``, shape (B,).
+        failure: why a row was rejected, int64 shape (B,): 0 if ``ok``, else ``1 + i`` for
+            ``FAILURE_KINDS[i]`` (exception, non-finite, inaccurate); ``None`` if unknown.
+        failure_detail: the first solver exception message of the batch, if any.
     """
 
     X: Tensor
@@ -139,6 +148,8 @@ class LocalSolution:
     slack_active: Tensor
     ok: Tensor
     cost: Tensor
+    failure: Tensor | None = None
+    failure_detail: str | None = None
 
 
 def collision_rows(normals: Tensor, margins: Tensor, r_safe: float, active: Tensor) -> tuple[Tensor, Tensor]:
@@ -315,7 +326,8 @@ class LocalMPC(nn.Module):
         """Solve the B local problems with one batched layer call.
 
         A solver exception does not propagate: the batch is retried agent by agent and
-        the failing agents are returned with ``ok = False`` (NaN rows) and a warning.
+        the failing agents are returned with ``ok = False`` (NaN rows) and ``failure``
+        set (logged at DEBUG level; :class:`~torch_gpmpc.admm.ADMM` warns once per kind).
 
         Args:
             data: inputs with shapes as in :class:`LocalProblemData`.
@@ -330,24 +342,31 @@ class LocalMPC(nn.Module):
         args = {**SOLVER_ARGS[self.solver], **(BACKWARD_ARGS if needs_grad else {}), **(solver_args or {})}
         if not needs_grad:
             args = {k: v for k, v in args.items() if k not in _BACKWARD_ONLY_KEYS}
+        detail = None
         try:
             outputs = self.layer(*params, solver_args=args)
             failed = torch.zeros(batch, dtype=torch.bool)
         except Exception as exc:  # noqa: BLE001 - any solver failure is reported, not raised
-            logger.warning("LocalMPC: batched solve of %d problems failed (%s); retrying one by one",
-                           batch, exc)
-            outputs, failed = self._solve_one_by_one(params, args)
-        return self._solution(data, outputs, failed)
+            logger.debug("LocalMPC: batched solve of %d problems failed (%s); retrying one by one",
+                         batch, exc)
+            outputs, failed, detail = self._solve_one_by_one(params, args)
+        return self._solution(data, outputs, failed, detail)
 
-    def _solve_one_by_one(self, params: list[Tensor], args: dict[str, Any]) -> tuple[list[Tensor], Tensor]:
-        """Solve each problem alone; failures become NaN rows. Returns (outputs, failed (B,))."""
+    def _solve_one_by_one(self, params: list[Tensor], args: dict[str, Any]
+                          ) -> tuple[list[Tensor], Tensor, str | None]:
+        """Solve each problem alone; failures become NaN rows.
+
+        Returns:
+            ``(outputs, failed (B,), first exception message or None)``.
+        """
         batch = params[0].shape[0]
-        rows, failed = [], torch.zeros(batch, dtype=torch.bool)
+        rows, failed, detail = [], torch.zeros(batch, dtype=torch.bool), None
         for b in range(batch):
             try:
                 rows.append(self.layer(*[p[b:b + 1] for p in params], solver_args=args))
             except Exception as exc:  # noqa: BLE001
-                logger.warning("LocalMPC: problem %d of %d failed: %s", b, batch, exc)
+                logger.debug("LocalMPC: problem %d of %d failed: %s", b, batch, exc)
+                detail = detail or f"{type(exc).__name__}: {exc}"
                 failed[b] = True
                 rows.append(None)
         template = next((r for r in rows if r is not None), None)
@@ -358,9 +377,10 @@ class LocalMPC(nn.Module):
         for i, ref in enumerate(template):
             nan_row = torch.full_like(ref.detach(), float("nan"))
             outputs.append(torch.cat([r[i] if r is not None else nan_row for r in rows]))
-        return outputs, failed
+        return outputs, failed, detail
 
-    def _solution(self, data: LocalProblemData, outputs: list[Tensor], failed: Tensor) -> LocalSolution:
+    def _solution(self, data: LocalProblemData, outputs: list[Tensor], failed: Tensor,
+                  detail: str | None = None) -> LocalSolution:
         """Assemble a :class:`LocalSolution` and check each returned solution."""
         T, D, M = self.horizon, self.dim, self.num_neighbors
         batch = data.x0.shape[0]
@@ -374,16 +394,25 @@ class LocalMPC(nn.Module):
             Y = X.new_zeros(batch, 0, T + 1, D)
             slack = X.new_zeros(batch, 0, T)
             slack_active = torch.zeros(batch, dtype=torch.bool)
-        ok = ~failed & self._accepted(data, X.detach(), U.detach(), slack.detach())
+        failure = self._check(data, X.detach(), U.detach(), Y.detach(), slack.detach())
+        failure = torch.where(failed, torch.full_like(failure, FAIL_EXCEPTION), failure)
+        ok = failure == FAIL_NONE
         if not bool(ok.all()):
-            logger.warning("LocalMPC: %d of %d local problems returned no valid solution", int((~ok).sum()), batch)
+            logger.debug("LocalMPC: %d of %d local problems returned no valid solution (kinds %s)",
+                         int((~ok).sum()), batch, failure.tolist())
         cost = ((X - data.xref) ** 2).sum(dim=(1, 2)) + self.alpha * (U ** 2).sum(dim=(1, 2))
-        return LocalSolution(X=X, U=U, Y=Y, slack=slack, slack_active=slack_active & ok, ok=ok, cost=cost)
+        return LocalSolution(X=X, U=U, Y=Y, slack=slack, slack_active=slack_active & ok, ok=ok, cost=cost,
+                             failure=failure, failure_detail=detail)
 
-    def _accepted(self, data: LocalProblemData, X: Tensor, U: Tensor, slack: Tensor) -> Tensor:
-        """Finite and feasible within :data:`FEASIBILITY_TOL` (relative), shape (B,)."""
+    def _check(self, data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor) -> Tensor:
+        """Failure code per problem (0 accepted, else ``FAIL_NONFINITE`` or ``FAIL_INACCURATE``), (B,).
+
+        A finite answer is accepted when the initial condition, the dynamics, the input
+        bound, ``slack >= 0`` and the (softened) collision rows of active slots hold within
+        :data:`FEASIBILITY_TOL` relative to the plan's scale.
+        """
         finite = torch.isfinite(X).flatten(1).all(1) & torch.isfinite(U).flatten(1).all(1) \
-            & torch.isfinite(slack).flatten(1).all(1)
+            & torch.isfinite(slack).flatten(1).all(1) & torch.isfinite(Y).flatten(1).all(1)
         Xs, Us = torch.nan_to_num(X), torch.nan_to_num(U)
         scale = 1.0 + Xs.abs().flatten(1).amax(1)
         pred = (data.dyn_A.detach() @ Xs[:, :-1, :, None]).squeeze(-1) + Us @ self.nominal.B(dtype=X.dtype).T \
@@ -392,9 +421,20 @@ class LocalMPC(nn.Module):
         init_res = (Xs[:, 0] - data.x0.detach()).abs().amax(1)
         u_res = (torch.linalg.vector_norm(Us, dim=-1) - self.u_max).clamp(min=0).amax(1)
         s_res = (-torch.nan_to_num(slack)).clamp(min=0).flatten(1).amax(1) if slack.numel() else torch.zeros_like(u_res)
+        if self.num_neighbors > 0 and slack.numel():
+            # collision rows n^T (X_tau - Y_j,tau) + s_j,tau >= bound_j,tau, tau = 1..T, active slots only
+            gap = (data.normals.detach() * (Xs[:, None, 1:] - torch.nan_to_num(Y)[:, :, 1:])).sum(-1)
+            viol = (data.bounds.detach() - gap - torch.nan_to_num(slack)).clamp(min=0)
+            viol = torch.where(data.active.to(torch.bool)[:, :, None], viol, torch.zeros_like(viol))
+            c_res = viol.flatten(1).amax(1)
+        else:
+            c_res = torch.zeros_like(u_res)
         tol = FEASIBILITY_TOL
-        return finite & (dyn_res <= tol * scale) & (init_res <= tol * scale) \
-            & (u_res <= tol * (1 + self.u_max)) & (s_res <= tol * scale)
+        feasible = (dyn_res <= tol * scale) & (init_res <= tol * scale) \
+            & (u_res <= tol * (1 + self.u_max)) & (s_res <= tol * scale) & (c_res <= tol * scale)
+        code = torch.full(finite.shape, FAIL_NONE, dtype=torch.int64)
+        code = torch.where(feasible, code, torch.full_like(code, FAIL_INACCURATE))
+        return torch.where(finite, code, torch.full_like(code, FAIL_NONFINITE))
 
 
 @functools.lru_cache(maxsize=32)

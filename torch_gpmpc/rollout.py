@@ -40,6 +40,11 @@ class Rollout:
         seed: run seed.
         config: the run's configuration as a flat dict.
         messages_per_iteration: numbers each agent sends per ADMM iteration, shape (S, K).
+        failed_solves: local solves that failed (solver exception, non-finite or inaccurate
+            answer; the agent's previous plan was used instead) per step, int, shape (S,);
+            ``None`` in files written before it existed.
+        failed_solves_by_kind: the same split by kind, int, shape (S, 3), columns in the
+            order of :data:`torch_gpmpc.mpc.FAILURE_KINDS` (exception, non-finite, inaccurate).
     """
 
     states: np.ndarray
@@ -60,6 +65,8 @@ class Rollout:
     seed: int
     config: dict[str, Any] = field(default_factory=dict)
     messages_per_iteration: np.ndarray | None = None
+    failed_solves: np.ndarray | None = None
+    failed_solves_by_kind: np.ndarray | None = None
 
     @property
     def num_steps(self) -> int:
@@ -81,8 +88,9 @@ class Rollout:
                 "infeasible_solves", "solve_time", "chance_margin",
             )
         }
-        if self.messages_per_iteration is not None:
-            arrays["messages_per_iteration"] = np.asarray(self.messages_per_iteration)
+        for name in ("messages_per_iteration", "failed_solves", "failed_solves_by_kind"):
+            if getattr(self, name) is not None:
+                arrays[name] = np.asarray(getattr(self, name))
         meta = {"method": self.method, "seed": self.seed, "wall_time_s": self.wall_time_s,
                 "config": self.config}
         arrays["meta_json"] = np.array(json.dumps(meta))
@@ -96,8 +104,10 @@ class Rollout:
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}
-        except (OSError, ValueError) as exc:
-            raise GpmpcError(f"rollout file {str(path)!r} cannot be read: {exc}") from exc
-        meta = json.loads(str(arrays.pop("meta_json")))
-        return cls(**arrays, method=meta["method"], seed=meta["seed"],
-                   wall_time_s=meta["wall_time_s"], config=meta["config"])
+            meta = json.loads(str(arrays.pop("meta_json")))
+            return cls(**arrays, method=meta["method"], seed=meta["seed"],
+                       wall_time_s=meta["wall_time_s"], config=meta["config"])
+        except Exception as exc:  # noqa: BLE001 - BadZipFile, KeyError, TypeError, ... on a damaged file
+            first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise GpmpcError(f"rollout file {str(path)!r} cannot be read (corrupt, truncated or not "
+                             f"written by gpmpc run): {first}") from exc

@@ -72,14 +72,17 @@ class Scenario:
         starts = torch.as_tensor(self.starts, dtype=torch.float64)
         targets = torch.as_tensor(self.targets, dtype=torch.float64)
         if starts.ndim != 2 or starts.shape != targets.shape or starts.shape[0] < 1:
-            raise ValueError(
+            raise GpmpcError(
                 f"Scenario: starts and targets must both have shape (K, D) with K >= 1, "
                 f"got {tuple(starts.shape)} and {tuple(targets.shape)}"
             )
+        for key, mat in (("starts", starts), ("targets", targets)):
+            if not bool(torch.isfinite(mat).all()) or bool((mat.abs() > MAX_COORDINATE).any()):
+                raise GpmpcError(f"Scenario: {key} must be finite coordinates within +-{MAX_COORDINATE:g}")
         if self.reference_kind not in REFERENCES:
-            raise ValueError(f"Scenario: reference_kind {self.reference_kind!r} is not one of {REFERENCES}")
+            raise GpmpcError(f"Scenario: reference_kind {self.reference_kind!r} is not one of {REFERENCES}")
         if int(self.ref_points) < 2:
-            raise ValueError(f"Scenario: ref_points must be >= 2, got {self.ref_points}")
+            raise GpmpcError(f"Scenario: ref_points must be >= 2, got {self.ref_points}")
         object.__setattr__(self, "starts", starts)
         object.__setattr__(self, "targets", targets)
         object.__setattr__(self, "ref_points", int(self.ref_points))

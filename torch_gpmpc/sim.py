@@ -25,6 +25,7 @@ from .admm import ADMM, StepResult
 from .config import Config
 from .errors import GpmpcError
 from .graph import communication_graph
+from .mpc import FAILURE_KINDS
 from .rollout import Rollout
 from .scenarios import Scenario, make_scenario
 from .systems import TrueSystem, make_system
@@ -177,7 +178,8 @@ class _Recorder:
         self.num_agents = num_agents
         self.rows: dict[str, list] = {k: [] for k in (
             "inputs", "plans", "adjacency", "admm_iterations", "converged", "primal", "dual",
-            "slack_max", "infeasible_solves", "solve_time", "chance_margin", "messages")}
+            "slack_max", "infeasible_solves", "solve_time", "chance_margin", "messages",
+            "failed_solves", "failed_by_kind")}
         self.violations_total = 0
 
     def record(self, t: int, res: StepResult, adjacency: Tensor, u: Tensor, x_next: Tensor) -> dict:
@@ -191,6 +193,8 @@ class _Recorder:
         r["dual"].append(res.dual_residuals)
         r["slack_max"].append(res.slack_max)
         r["infeasible_solves"].append(res.infeasible_solves)
+        r["failed_solves"].append(res.failed_solves)
+        r["failed_by_kind"].append([res.failed_by_kind[kind] for kind in FAILURE_KINDS])
         r["solve_time"].append(res.solve_time_s)
         r["chance_margin"].append(res.max_margin)
         r["messages"].append(res.messages.numpy())
@@ -234,4 +238,6 @@ class _Recorder:
             seed=cfg.seed,
             config=cfg.to_dict(),
             messages_per_iteration=stack("messages", (0, k), int),
+            failed_solves=stack("failed_solves", (0,), int),
+            failed_solves_by_kind=stack("failed_by_kind", (0, len(FAILURE_KINDS)), int),
         )

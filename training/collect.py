@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 
-from torch_gpmpc.data import check_suffix, collect_transitions
+from torch_gpmpc.data import MAX_COLLECT_ROWS, check_suffix, collect_transitions
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.systems import make_system
 
@@ -22,6 +22,9 @@ def _validate(args) -> None:
         raise GpmpcError(f"--agents must be >= 1, got {args.agents}")
     if args.samples < 2:
         raise GpmpcError(f"--samples must be >= 2 per agent, got {args.samples}")
+    if args.agents * args.samples > MAX_COLLECT_ROWS:
+        raise GpmpcError(f"--agents x --samples = {args.agents * args.samples} transitions is more than "
+                         f"{MAX_COLLECT_ROWS}; lower --agents or --samples (the paper uses 100 per agent)")
     if not (math.isfinite(args.noise_std) and args.noise_std >= 0):
         raise GpmpcError(f"--noise-std must be a finite number >= 0, got {args.noise_std}")
     for flag, value in (("--u-max", args.u_max), ("--box", args.box)):

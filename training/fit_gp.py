@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from torch_gpmpc.data import Transitions
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.gp import fit_residual_gp, holdout_metrics
+from torch_gpmpc.gp import check_training_size, fit_residual_gp, holdout_metrics
 from torch_gpmpc.systems import NominalModel, VortexWind
 from torch_gpmpc.tblog import TBLogger
 
@@ -85,6 +85,7 @@ def main(args) -> int:
     train, test = data.split(args.holdout, seed=args.seed) if args.holdout > 0 else (data, None)
     nominal = NominalModel(dim=data.state_dim)
     X, Y = train.residuals(nominal, inputs=args.inputs)
+    check_training_size(X.shape[0])  # before the progress bar and the TensorBoard directory
     last = {"loss": float("nan")}
     with TBLogger(args.logdir) as tb, tqdm(total=args.iters + 1, desc="fit-gp", unit="step",
                                            leave=False) as bar:
