@@ -174,6 +174,33 @@ def slot_risks(graph: Graph, eps: float | Tensor, risk_split: float | Tensor) ->
     return torch.where(graph.slot_side == 0, eps_lo, eps_hi)
 
 
+def consensus_update(copies: Tensor, z: Tensor, lam: Tensor, rho: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Consensus (eq. 28) and dual (eq. 29) updates of every edge.
+
+    Args:
+        copies: (E, 2 [holder], 2 [half], T+1, D) both ends' copies ``y_{e,a}`` of ``z_e``.
+        z: (E, 2, T+1, D) previous consensus.
+        lam: (E, 2, 2, T+1, D) previous duals, ``lam[e, a]`` held by end ``a``.
+        rho: ADMM penalty.
+
+    Returns:
+        ``(z_new (E, 2, T+1, D), lam_new (E, 2, 2, T+1, D), primal (E, 2), dual (E,))`` with
+        ``primal[e, a] = ||y_{e,a} - z_new_e||`` and ``dual[e] = rho ||z_new_e - z_e||``.
+    """
+    z_new = copies.mean(dim=1)
+    gap = copies - z_new.unsqueeze(1)
+    lam_new = lam + rho * gap
+    primal = gap.flatten(2).norm(dim=2)
+    dual = rho * (z_new - z).flatten(1).norm(dim=1)
+    return z_new, lam_new, primal, dual
+
+
+def should_stop(primal: float, dual: float, tol: float, dual_tol: float | None) -> bool:
+    """The stopping rule: largest primal residual below ``tol`` (the paper's criterion) and,
+    when ``dual_tol`` is set, largest dual residual below it too."""
+    return primal < tol and (dual_tol is None or dual < dual_tol)
+
+
 class ADMM:
     """Consensus ADMM for K agents' local MPC problems (Algorithm 1, all agents batched).
 
@@ -210,27 +237,42 @@ class ADMM:
         )
 
     def _problem_data(
-        self, x0: Tensor, xref: Tensor, state: ADMMState, graph: Graph, rho: Tensor, eps_self: Tensor
+        self, x0: Tensor, xref: Tensor, state: ADMMState, graph: Graph, rho: Tensor, eps_self: Tensor,
+        rows: slice = slice(None),
     ) -> tuple[LocalProblemData, Tensor]:
-        """Linearize around the current plans and assemble every agent's local problem."""
+        """Linearize around the current plans and assemble the local problems of agents ``rows``.
+
+        Args:
+            x0, xref: measured states and reference windows of the selected agents,
+                shapes (B, D) and (B, T+1, D).
+            state: current iterate; ``plans`` must hold the selected agents and their neighbours.
+            graph: communication graph.
+            rho: ADMM penalty.
+            eps_self: (B, M) own risk per slot of the selected agents.
+            rows: which agents (B of them): all by default; an agent process passes its own row.
+                ``self.gps`` is indexed by agent id (an agent process may hold ``None`` for others).
+
+        Returns:
+            ``(data with batch B, largest chance margin of an active row (scalar))``.
+        """
         cfg = self.cfg
-        xbar = state.plans
-        lin = linearize_plan(self.method, xbar, self.nominal, self.wind, self.gps,
+        xbar = state.plans[rows]
+        gps = None if self.gps is None else self.gps[rows]
+        lin = linearize_plan(self.method, xbar, self.nominal, self.wind, gps,
                              include_noise=cfg.gp_noise_in_margin)
-        nbr_plans = xbar[graph.slot_nbr]  # (K, M, T+1, D)
-        agent_ids = torch.arange(graph.num_agents)
-        normals = collision_normals(xbar, nbr_plans, agent_ids, graph.slot_nbr)
+        slot_nbr, side, active = graph.slot_nbr[rows], graph.slot_side[rows], graph.active[rows]
+        agent_ids = torch.arange(graph.num_agents)[rows]
+        normals = collision_normals(xbar, state.plans[slot_nbr], agent_ids, slot_nbr)
         if self.chance:
             sigma = state_covariances(cfg.uncertainty, lin.var, lin.dyn_A)
             margins = chance_margins(normals, sigma, eps_self)
         else:
             margins = normals.new_zeros(normals.shape[:3])
         bounds = cfg.r_safe + margins
-        rows = torch.arange(graph.num_agents)[:, None]
-        cols = torch.arange(graph.num_slots)[None, :]
-        side = graph.slot_side
-        z_slot = state.z[graph.slot_edge]  # (K, M, 2, T+1, D)
-        lam_mine = state.lam[graph.slot_edge][rows, cols, side]  # (K, M, 2, T+1, D): this agent's duals
+        r = torch.arange(agent_ids.shape[0])[:, None]
+        c = torch.arange(graph.num_slots)[None, :]
+        z_slot = state.z[graph.slot_edge[rows]]  # (B, M, 2, T+1, D)
+        lam_mine = state.lam[graph.slot_edge[rows]][r, c, side]  # (B, M, 2, T+1, D): this agent's duals
         data = LocalProblemData(
             x0=x0,
             xref=xref,
@@ -238,14 +280,14 @@ class ADMM:
             dyn_c=lin.dyn_c,
             normals=normals[:, :, 1:],
             bounds=bounds[:, :, 1:],
-            active=graph.active,
+            active=active,
             rho=rho,
-            z_own=z_slot[rows, cols, side],
-            z_nbr=z_slot[rows, cols, 1 - side],
-            lam_own=lam_mine[rows, cols, side],
-            lam_nbr=lam_mine[rows, cols, 1 - side],
+            z_own=z_slot[r, c, side],
+            z_nbr=z_slot[r, c, 1 - side],
+            lam_own=lam_mine[r, c, side],
+            lam_nbr=lam_mine[r, c, 1 - side],
         )
-        max_margin = margins[:, :, 1:][graph.active].max() if graph.active.any() else margins.new_zeros(())
+        max_margin = margins[:, :, 1:][active].max() if bool(active.any()) else margins.new_zeros(())
         return data, max_margin
 
     def _edge_copies(self, sol: LocalSolution, graph: Graph) -> Tensor:
@@ -361,22 +403,19 @@ class ADMM:
             sol = self._fallback(sol, state, graph)
             result.infeasible_solves += int((sol.slack_active | ~sol.ok).sum())
             if graph.num_edges:
-                copies = self._edge_copies(sol, graph)
-                z_new = copies.mean(dim=1)
-                gap = copies - z_new.unsqueeze(1)
-                lam = state.lam + rho_t * gap
-                primal = gap.flatten(2).norm(dim=2).max()
-                dual = rho_t * (z_new - state.z).flatten(1).norm(dim=1).max()
+                z_new, lam, gap_norms, dual_norms = consensus_update(
+                    self._edge_copies(sol, graph), state.z, state.lam, rho_t)
+                primal, dual = gap_norms.max(), dual_norms.max()
             else:
                 z_new, lam = state.z, state.lam
                 primal = dual = x0.new_zeros(())
             state = ADMMState(sol.X, sol.U, graph.edges, z_new, lam)
-            result.primal_residuals.append(float(primal))
-            result.dual_residuals.append(float(dual))
+            result.primal_residuals.append(float(primal.detach()))
+            result.dual_residuals.append(float(dual.detach()))
             result.iterations = it
             result.solution = sol
-            result.max_margin = float(max_margin)
-            if float(primal) < tol and (cfg.admm_dual_tol is None or float(dual) < cfg.admm_dual_tol):
+            result.max_margin = float(max_margin.detach())
+            if should_stop(result.primal_residuals[-1], result.dual_residuals[-1], tol, cfg.admm_dual_tol):
                 result.converged = True
                 break
         result.plans, result.inputs, result.state = state.plans, state.inputs, state

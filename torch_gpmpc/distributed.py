@@ -102,14 +102,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .admm import ADMM, ADMMState, StepResult, _shift, adapt_state, initial_state, slot_risks
+from .admm import (
+    ADMM, ADMMState, StepResult, _shift, adapt_state, consensus_update, initial_state, slot_risks,
+)
 from .config import Config, from_mapping
 from .errors import GpmpcError
 from .graph import Graph, communication_graph, graph_from_edges
-from .linearize import linearize_plan
 from .metrics import pair_distances
 from .mpc import FAILURE_KINDS, LocalProblemData, LocalSolution
-from .risk import chance_margins, collision_normals, state_covariances
 from .rollout import Rollout
 from .scenarios import Scenario, make_scenario
 from .systems import make_system
@@ -174,10 +174,10 @@ def agent_gp(cfg: Config, k: int, gp_model: str | None = None):
 
 def agent_problem_data(admm: ADMM, k: int, x0: Tensor, xref: Tensor, state: ADMMState, graph: Graph,
                        rho: Tensor, eps_self: Tensor) -> tuple[LocalProblemData, Tensor]:
-    """Agent k's local problem, row k of :meth:`ADMM._problem_data` computed alone.
+    """Agent k's local problem: row k of :meth:`ADMM._problem_data`, computed alone.
 
     Args:
-        admm: the agent's :class:`ADMM` (holds cfg, method, nominal, wind and ``gps = [gp_k]``).
+        admm: the agent's :class:`ADMM` (its ``gps`` holds only ``gps[k]``; others are ``None``).
         k: agent id.
         x0: measured state, shape (D,).
         xref: reference window, shape (1, T+1, D).
@@ -189,32 +189,7 @@ def agent_problem_data(admm: ADMM, k: int, x0: Tensor, xref: Tensor, state: ADMM
     Returns:
         ``(data with batch 1, largest chance margin (scalar))``.
     """
-    cfg = admm.cfg
-    xbar = state.plans[k:k + 1]
-    lin = linearize_plan(admm.method, xbar, admm.nominal, admm.wind, admm.gps,
-                         include_noise=cfg.gp_noise_in_margin)
-    slot_nbr = graph.slot_nbr[k:k + 1]
-    normals = collision_normals(xbar, state.plans[slot_nbr], torch.tensor([k]), slot_nbr)
-    if admm.chance:
-        sigma = state_covariances(cfg.uncertainty, lin.var, lin.dyn_A)
-        margins = chance_margins(normals, sigma, eps_self)
-    else:
-        margins = normals.new_zeros(normals.shape[:3])
-    bounds = cfg.r_safe + margins
-    rows = torch.arange(1)[:, None]
-    cols = torch.arange(graph.num_slots)[None, :]
-    side = graph.slot_side[k:k + 1]
-    active = graph.active[k:k + 1]
-    z_slot = state.z[graph.slot_edge[k:k + 1]]
-    lam_mine = state.lam[graph.slot_edge[k:k + 1]][rows, cols, side]
-    data = LocalProblemData(
-        x0=x0[None], xref=xref, dyn_A=lin.dyn_A, dyn_c=lin.dyn_c,
-        normals=normals[:, :, 1:], bounds=bounds[:, :, 1:], active=active, rho=rho,
-        z_own=z_slot[rows, cols, side], z_nbr=z_slot[rows, cols, 1 - side],
-        lam_own=lam_mine[rows, cols, side], lam_nbr=lam_mine[rows, cols, 1 - side],
-    )
-    max_margin = margins[:, :, 1:][active].max() if bool(active.any()) else margins.new_zeros(())
-    return data, max_margin
+    return admm._problem_data(x0[None], xref, state, graph, rho, eps_self, rows=slice(k, k + 1))
 
 
 def _rows_like(v: Tensor, num_rows: int) -> Tensor:
@@ -274,7 +249,9 @@ class AgentController:
         self.k, self.num_agents, self.cfg, self.mission = k, num_agents, cfg, mission
         system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
         wind = system.wind if cfg.method.startswith("nonlinear") else None
-        self.admm = ADMM(cfg, cfg.method, system.nominal, wind, [gp] if gp is not None else None)
+        # indexed by agent id; this process holds only its own GP
+        gps = None if gp is None else [gp if j == k else None for j in range(self.num_agents)]
+        self.admm = ADMM(cfg, cfg.method, system.nominal, wind, gps)
         self.rho = torch.as_tensor(cfg.rho, dtype=DTYPE)
         self.state: ADMMState | None = None
         self.known = torch.zeros(num_agents, dtype=torch.bool)
@@ -384,12 +361,10 @@ class AgentController:
                 else:
                     plans[j] = msg[1 - a]
                 copies[e, 1 - a] = msg
-            z_new = copies.mean(dim=1)
-            gap = copies - z_new.unsqueeze(1)
-            lam = state.lam + self.rho * gap
+            z_new, lam, gap_norms, dual_norms = consensus_update(copies, state.z, state.lam, self.rho)
             lam[self.slot_e, 1 - self.slot_a] = 0.0  # the neighbour's dual is the neighbour's
-            primal = gap.flatten(2).norm(dim=2)[self.slot_e, self.slot_a].max()
-            dual = self.rho * (z_new - state.z).flatten(1).norm(dim=1).max()
+            primal = gap_norms[self.slot_e, self.slot_a].max()
+            dual = dual_norms.max()
         else:
             z_new, lam = state.z, state.lam
             primal = dual = self.x0.new_zeros(())
