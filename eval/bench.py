@@ -18,7 +18,7 @@ import torch
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.fileio import write_json
 
-SECTIONS = ("gp", "local", "scale")
+SECTIONS = ("gp", "local", "fast", "scale")
 
 
 def _print_table(name: str, rows: list[dict]) -> None:

@@ -31,7 +31,9 @@ QUICK = {"method": "gp-chance", "max_steps": 3, "admm_max_iter": 5, "gp_iters": 
 def test_agent_controllers_reproduce_batched_admm_bit_for_bit():
     """No processes: K AgentControllers exchanging copies by hand give ADMM.solve_step's
     residuals and inputs exactly (the local step is the batched step's row k)."""
-    cfg = load_config(None, {"method": "nominal", "max_steps": 2, "admm_max_iter": 4})
+    # clarabel solves each problem alone, so batch 3 and batch 1 agree bit for bit; the fast
+    # solver iterates a batch until all of it converges (last bits depend on the batch)
+    cfg = load_config(None, {"method": "nominal", "max_steps": 2, "admm_max_iter": 4, "solver": "clarabel"})
     sc = make_scenario(cfg)
     K = sc.num_agents
     system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
@@ -82,7 +84,9 @@ def test_cli_distributed_equals_inprocess_and_counts_bytes(tmp_path):
         states, messages = r["states"], r["messages_per_iteration"]
         iterations = r["admm_iterations"]
     assert states.shape == ref.states.shape
-    assert np.abs(states - ref.states).max() <= 1e-9
+    diff = np.abs(states - ref.states).max()
+    print(f"distributed vs in-process max |state difference| = {diff:.3e}")
+    assert diff <= 1e-9
     assert np.array_equal(iterations, ref.admm_iterations)
     m = json.loads((out / "metrics.json").read_text())
     assert set(CONTRACT_KEYS) <= set(m)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import dataclasses
 import logging
 import os
 import pickle
@@ -762,7 +763,8 @@ def patched_solver(local_mpc, mode: str, k: int, when: set[int]):
         local_mpc.layer = real
 
 
-FAULT_CFG = dict(horizon=4, max_steps=6, admm_max_iter=4, method="nominal", noise_std=0.0)
+# the injector wraps the cvxpylayers layer (and its one-by-one retry); the fast path has its own test
+FAULT_CFG = dict(horizon=4, max_steps=6, admm_max_iter=4, method="nominal", noise_std=0.0, solver="clarabel")
 
 
 @pytest.mark.parametrize("mode, kind", [("exception", "exception"), ("nan", "non-finite"),
@@ -912,3 +914,35 @@ def test_interrupt_while_writing_leaves_no_partial_file(tmp_path, monkeypatch, c
     assert not (out / "rollout.npz").exists() and not (out / "metrics.json").exists()
     assert _leftovers(out) == []
     monkeypatch.setattr(np, "savez_compressed", real)
+
+
+def test_fast_solver_rejects_bad_problem_and_run_falls_back(monkeypatch, caplog):
+    """The default fast path: agent 1's problem data turns non-finite on some calls. The
+    solver flags that row (never raises), ADMM falls back, counts it and warns once."""
+    from torch_gpmpc.fastmpc import FastLocalMPC
+    from torch_gpmpc.sim import simulate
+
+    real_forward = FastLocalMPC.forward
+    calls = {"n": 0, "injected": 0}
+
+    def corrupting_forward(self, data):
+        calls["n"] += 1
+        if calls["n"] in {2, 3, 5}:
+            xref = data.xref.clone()
+            xref[1] = float("nan")
+            data = dataclasses.replace(data, xref=xref)
+            calls["injected"] += 1
+        return real_forward(self, data)
+
+    monkeypatch.setattr(FastLocalMPC, "forward", corrupting_forward)
+    cfg = Config(**{**FAULT_CFG, "solver": "fast"})
+    with caplog.at_level(logging.WARNING):
+        rollout = simulate(cfg)
+    assert rollout.num_steps == cfg.max_steps
+    m = compute_metrics(rollout)
+    assert calls["injected"] == 3
+    assert m["failed_local_solves"] == 3
+    assert m["failed_local_solves_by_kind"]["non-finite"] == 3
+    assert np.isfinite(rollout.states).all()
+    warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 1 and "non-finite" in warnings[0].getMessage()

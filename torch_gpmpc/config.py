@@ -21,7 +21,7 @@ from .errors import GpmpcError
 
 METHODS = ("nominal", "nominal-chance", "nonlinear", "nonlinear-chance", "gp", "gp-chance")
 UNCERTAINTY_MODES = ("pointwise", "propagated")
-SOLVERS = ("clarabel", "reference")
+SOLVERS = ("fast", "clarabel", "reference")
 REFERENCES = ("line", "target")
 SCENARIOS = ("paper", "circle", "random")
 
@@ -50,7 +50,8 @@ class Config:
         scenario: ``paper``, ``circle`` or ``random``.
         num_agents: K (the paper scenario has 3).
         seed: seed for data, noise and scenario generation.
-        solver: ``clarabel`` (diffcp with Clarabel) or ``reference`` (cvxpylayers' default).
+        solver: ``fast`` (structure-exploiting batched interior point, :mod:`~torch_gpmpc.fastmpc`),
+            ``clarabel`` (cvxpylayers + diffcp with Clarabel) or ``reference`` (cvxpylayers' default).
         method: one of :data:`METHODS`.
         dim: state dimension D (2 or 3); inputs have the same dimension.
         reference: ``line`` (straight line over ``ref_points`` steps, then hold) or ``target``.
@@ -85,7 +86,7 @@ class Config:
     scenario: str = "paper"
     num_agents: int = 3
     seed: int = 0
-    solver: str = "clarabel"
+    solver: str = "fast"
     method: str = "gp-chance"
     dim: int = 2
     reference: str = "line"

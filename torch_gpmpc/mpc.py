@@ -19,7 +19,6 @@ import torch
 from cvxpylayers.torch import CvxpyLayer
 from torch import Tensor, nn
 
-from .config import SOLVERS
 from .errors import GpmpcError
 from .systems import NominalModel
 
@@ -234,8 +233,8 @@ class LocalMPC(nn.Module):
         solver: str = "clarabel",
     ) -> None:
         super().__init__()
-        if solver not in SOLVERS:
-            raise GpmpcError(f"solver: unknown solver {solver!r}; choose from {', '.join(SOLVERS)}")
+        if solver not in SOLVER_ARGS:
+            raise GpmpcError(f"solver: {solver!r} is not a cvxpylayers path; choose from {', '.join(SOLVER_ARGS)}")
         if horizon < 1 or dim < 1 or num_neighbors < 0:
             raise GpmpcError(f"LocalMPC needs horizon >= 1, dim >= 1, num_neighbors >= 0; got "
                              f"{horizon}, {dim}, {num_neighbors}")
@@ -405,36 +404,8 @@ class LocalMPC(nn.Module):
                              failure=failure, failure_detail=detail)
 
     def _check(self, data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor) -> Tensor:
-        """Failure code per problem (0 accepted, else ``FAIL_NONFINITE`` or ``FAIL_INACCURATE``), (B,).
-
-        A finite answer is accepted when the initial condition, the dynamics, the input
-        bound, ``slack >= 0`` and the (softened) collision rows of active slots hold within
-        :data:`FEASIBILITY_TOL` relative to the plan's scale.
-        """
-        finite = torch.isfinite(X).flatten(1).all(1) & torch.isfinite(U).flatten(1).all(1) \
-            & torch.isfinite(slack).flatten(1).all(1) & torch.isfinite(Y).flatten(1).all(1)
-        Xs, Us = torch.nan_to_num(X), torch.nan_to_num(U)
-        scale = 1.0 + Xs.abs().flatten(1).amax(1)
-        pred = (data.dyn_A.detach() @ Xs[:, :-1, :, None]).squeeze(-1) + Us @ self.nominal.B(dtype=X.dtype).T \
-            + data.dyn_c.detach()
-        dyn_res = (Xs[:, 1:] - pred).abs().flatten(1).amax(1)
-        init_res = (Xs[:, 0] - data.x0.detach()).abs().amax(1)
-        u_res = (torch.linalg.vector_norm(Us, dim=-1) - self.u_max).clamp(min=0).amax(1)
-        s_res = (-torch.nan_to_num(slack)).clamp(min=0).flatten(1).amax(1) if slack.numel() else torch.zeros_like(u_res)
-        if self.num_neighbors > 0 and slack.numel():
-            # collision rows n^T (X_tau - Y_j,tau) + s_j,tau >= bound_j,tau, tau = 1..T, active slots only
-            gap = (data.normals.detach() * (Xs[:, None, 1:] - torch.nan_to_num(Y)[:, :, 1:])).sum(-1)
-            viol = (data.bounds.detach() - gap - torch.nan_to_num(slack)).clamp(min=0)
-            viol = torch.where(data.active.to(torch.bool)[:, :, None], viol, torch.zeros_like(viol))
-            c_res = viol.flatten(1).amax(1)
-        else:
-            c_res = torch.zeros_like(u_res)
-        tol = FEASIBILITY_TOL
-        feasible = (dyn_res <= tol * scale) & (init_res <= tol * scale) \
-            & (u_res <= tol * (1 + self.u_max)) & (s_res <= tol * scale) & (c_res <= tol * scale)
-        code = torch.full(finite.shape, FAIL_NONE, dtype=torch.int64)
-        code = torch.where(feasible, code, torch.full_like(code, FAIL_INACCURATE))
-        return torch.where(finite, code, torch.full_like(code, FAIL_NONFINITE))
+        """Failure code per problem, (B,): see :func:`acceptance_failures`."""
+        return acceptance_failures(data, X, U, Y, slack, self.nominal, self.u_max)
 
 
 @functools.lru_cache(maxsize=32)
@@ -448,10 +419,51 @@ def get_local_mpc(
     slack_penalty: float = 1e4,
     solver: str = "clarabel",
 ) -> LocalMPC:
-    """A shared :class:`LocalMPC` per (T, D, M, constants, solver) (building one is slow).
+    """A shared local-problem module per (T, D, M, constants, solver) (building one is slow).
 
-    Arguments are those of :class:`LocalMPC`; the returned module is shared, do not
-    modify it.
+    ``solver='fast'`` gives the structure-exploiting interior-point
+    :class:`~torch_gpmpc.fastmpc.FastLocalMPC` (same problem, same inputs and outputs);
+    ``clarabel`` and ``reference`` give the cvxpylayers :class:`LocalMPC`. Arguments are
+    those of :class:`LocalMPC`; the returned module is shared, do not modify it.
     """
+    if solver == "fast":
+        from .fastmpc import FastLocalMPC
+
+        return FastLocalMPC(horizon, dim, num_neighbors, nominal, float(u_max), float(alpha),
+                            float(slack_penalty))
     return LocalMPC(horizon, dim, num_neighbors, nominal, float(u_max), float(alpha),
                     float(slack_penalty), solver)
+
+
+def acceptance_failures(data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor,
+                        nominal: NominalModel, u_max: float) -> Tensor:
+    """Failure code per problem (0 accepted, else ``FAIL_NONFINITE`` or ``FAIL_INACCURATE``), (B,).
+
+    A finite answer is accepted when the initial condition, the dynamics, the input
+    bound, ``slack >= 0`` and the (softened) collision rows of active slots hold within
+    :data:`FEASIBILITY_TOL` relative to the plan's scale.
+    """
+    finite = torch.isfinite(X).flatten(1).all(1) & torch.isfinite(U).flatten(1).all(1) \
+        & torch.isfinite(slack).flatten(1).all(1) & torch.isfinite(Y).flatten(1).all(1)
+    Xs, Us = torch.nan_to_num(X), torch.nan_to_num(U)
+    scale = 1.0 + Xs.abs().flatten(1).amax(1)
+    pred = (data.dyn_A.detach() @ Xs[:, :-1, :, None]).squeeze(-1) + Us @ nominal.B(dtype=X.dtype).T \
+        + data.dyn_c.detach()
+    dyn_res = (Xs[:, 1:] - pred).abs().flatten(1).amax(1)
+    init_res = (Xs[:, 0] - data.x0.detach()).abs().amax(1)
+    u_res = (torch.linalg.vector_norm(Us, dim=-1) - u_max).clamp(min=0).amax(1)
+    s_res = (-torch.nan_to_num(slack)).clamp(min=0).flatten(1).amax(1) if slack.numel() else torch.zeros_like(u_res)
+    if Y.shape[1] > 0 and slack.numel():
+        # collision rows n^T (X_tau - Y_j,tau) + s_j,tau >= bound_j,tau, tau = 1..T, active slots only
+        gap = (data.normals.detach() * (Xs[:, None, 1:] - torch.nan_to_num(Y)[:, :, 1:])).sum(-1)
+        viol = (data.bounds.detach() - gap - torch.nan_to_num(slack)).clamp(min=0)
+        viol = torch.where(data.active.to(torch.bool)[:, :, None], viol, torch.zeros_like(viol))
+        c_res = viol.flatten(1).amax(1)
+    else:
+        c_res = torch.zeros_like(u_res)
+    tol = FEASIBILITY_TOL
+    feasible = (dyn_res <= tol * scale) & (init_res <= tol * scale) \
+        & (u_res <= tol * (1 + u_max)) & (s_res <= tol * scale) & (c_res <= tol * scale)
+    code = torch.full(finite.shape, FAIL_NONE, dtype=torch.int64)
+    code = torch.where(feasible, code, torch.full_like(code, FAIL_INACCURATE))
+    return torch.where(finite, code, torch.full_like(code, FAIL_NONFINITE))
