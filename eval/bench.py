@@ -8,7 +8,6 @@ Each section lives in its own module ``eval/bench_<name>.py`` exposing
 from __future__ import annotations
 
 import importlib
-import json
 import platform
 import time
 from pathlib import Path

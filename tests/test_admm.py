@@ -13,19 +13,9 @@ from torch_gpmpc.config import Config
 from torch_gpmpc.graph import communication_graph, graph_from_edges
 from torch_gpmpc.systems import NominalModel, VortexWind
 
+from tests.helpers import ConstantVarianceGP
+
 NDTRI_95 = 1.6448536269514722  # Phi^-1(0.95)
-
-
-class ConstantVarianceGP:
-    """A stand-in residual model: zero mean, constant latent variance ``v`` per dimension."""
-
-    def __init__(self, var: float, dim: int = 2) -> None:
-        self.var, self.input_dim, self.output_dim = var, dim, dim
-        self.noise = torch.zeros(dim)
-
-    def linearize(self, x):
-        n, d = x.shape
-        return x.new_zeros(n, d), x.new_zeros(n, d, d), x.new_full((n, d), self.var)
 
 
 def test_graph_slots_map_each_edge_to_both_ends():

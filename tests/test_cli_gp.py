@@ -12,15 +12,6 @@ from torch_gpmpc.gp import ResidualGP
 from torch_gpmpc.tblog import TBLogger, read_scalars
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small problems: intra-op threads only add contention on the shared 2-core box."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
-
-
 def _fails(argv, capsys) -> str:
     """Run the CLI expecting a user error: exit code 2 and exactly one line on stderr."""
     assert main(argv) == 2

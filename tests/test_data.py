@@ -14,15 +14,6 @@ from torch_gpmpc.gp import fit_from_transitions
 from torch_gpmpc.systems import NominalModel, make_system
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small problems: intra-op threads only add contention on the shared 2-core box."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
-
-
 @pytest.fixture(scope="module")
 def data() -> Transitions:
     return collect_transitions(make_system(), num_agents=3, samples=20, seed=1)

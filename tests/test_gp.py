@@ -22,15 +22,6 @@ SYSTEM = make_system(noise_std=0.1)
 RMSE_BOUND = 0.05
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small problems: intra-op threads only add contention on the shared 2-core box."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
-
-
 @pytest.fixture(scope="module")
 def train():
     """The paper's data for one agent: N = 100, noise std 0.1, seed 0."""

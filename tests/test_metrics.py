@@ -18,7 +18,7 @@ def make_rollout(states, targets, *, config=None, admm_iterations=None, converge
     """A Rollout around given states (S+1, K, D) and targets (K, D); other arrays filled simply."""
     states = np.asarray(states, dtype=np.float64)
     targets = np.asarray(targets, dtype=np.float64)
-    s, k, d = states.shape[0] - 1, states.shape[1], states.shape[2]
+    s, k = states.shape[0] - 1, states.shape[1]
     iters = 3
     plans = np.repeat(states[:-1, :, None, :], horizon + 1, axis=2)  # (S, K, T+1, D)
     primal = np.full((s, iters), np.nan)

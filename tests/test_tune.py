@@ -20,6 +20,7 @@ from torch_gpmpc.config import Config, load_config
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.systems import NominalModel
 from torch_gpmpc.tblog import read_scalars
+from tests.helpers import ConstantVarianceGP
 from torch_gpmpc.tuning import (
     ObjectiveWeights,
     Tuner,
@@ -33,18 +34,6 @@ from torch_gpmpc.tuning import (
     make_instances,
     with_warm_starts,
 )
-
-
-class ConstantVarianceGP:
-    """Zero-mean residual model with constant latent variance ``var`` per dimension."""
-
-    def __init__(self, var: float, dim: int = 2) -> None:
-        self.var, self.input_dim, self.output_dim = var, dim, dim
-        self.noise = torch.zeros(dim)
-
-    def linearize(self, x):
-        n, d = x.shape
-        return x.new_zeros(n, d), x.new_zeros(n, d, d), x.new_full((n, d), self.var)
 
 
 # a small crossing: 3 agents on a circle of radius 2, started ~1 unit from the centre

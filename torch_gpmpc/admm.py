@@ -36,7 +36,7 @@ from .config import Config
 from .graph import Graph
 from .linearize import linearize_plan
 from .errors import GpmpcError
-from .mpc import FAILURE_KINDS, FAIL_EXCEPTION, FAIL_INACCURATE, FAIL_NONFINITE, LocalProblemData, \
+from .local_problem import FAILURE_KINDS, FAIL_EXCEPTION, FAIL_INACCURATE, FAIL_NONFINITE, LocalProblemData, \
     LocalSolution, get_local_mpc
 from .risk import chance_margins, collision_normals, pair_risks, state_covariances
 from .systems import NominalModel, VortexWind

@@ -24,7 +24,6 @@ import csv
 import io
 import logging
 import math
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 

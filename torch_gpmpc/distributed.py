@@ -109,7 +109,7 @@ from .config import Config, from_mapping
 from .errors import GpmpcError
 from .graph import Graph, communication_graph, graph_from_edges
 from .metrics import pair_distances
-from .mpc import FAILURE_KINDS, LocalProblemData, LocalSolution
+from .local_problem import FAILURE_KINDS, LocalProblemData, LocalSolution
 from .rollout import Rollout
 from .scenarios import Scenario, make_scenario
 from .systems import make_system

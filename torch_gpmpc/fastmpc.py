@@ -21,7 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from .errors import GpmpcError
-from .mpc import (
+from .local_problem import (
     FAIL_INACCURATE, FAIL_NONFINITE, SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures,
 )
 from .systems import NominalModel

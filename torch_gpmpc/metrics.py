@@ -154,7 +154,7 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
 
 def _failures(rollout: Rollout) -> dict[str, Any]:
     """``failed_local_solves`` and its split by kind (zeros when the rollout lacks them)."""
-    from .mpc import FAILURE_KINDS
+    from .local_problem import FAILURE_KINDS
 
     by_kind = getattr(rollout, "failed_solves_by_kind", None)
     total = getattr(rollout, "failed_solves", None)

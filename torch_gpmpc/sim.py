@@ -25,7 +25,7 @@ from .admm import ADMM, StepResult
 from .config import Config
 from .errors import GpmpcError
 from .graph import communication_graph
-from .mpc import FAILURE_KINDS
+from .local_problem import FAILURE_KINDS
 from .rollout import Rollout
 from .scenarios import Scenario, make_scenario
 from .systems import TrueSystem, make_system
