@@ -860,7 +860,11 @@ def _check_output_dir(out: Path) -> None:
 
 
 def _start_run(out: Path) -> subprocess.Popen:
-    code = "import sys; from torch_gpmpc.cli import main; sys.exit(main(sys.argv[1:]))"
+    # A runner started in the background (nohup, `cmd &`) passes SIGINT on as *ignored*, and
+    # Python then installs no KeyboardInterrupt handler; give the child the default handler
+    # so the test does not depend on how its runner was launched.
+    code = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+            "from torch_gpmpc.cli import main; sys.exit(main(sys.argv[1:]))")
     return subprocess.Popen(
         [sys.executable, "-c", code, "run", "--method", "nominal", "--out", str(out), "--no-figures",
          "--set", "max_steps=150", "--set", "horizon=13"],

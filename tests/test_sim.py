@@ -105,3 +105,14 @@ def test_tensorboard_serves_our_scalar_tags(tmp_path):
     finally:
         proc.terminate()
         proc.wait(timeout=20)
+
+
+def test_three_dimensional_paper_scenario_runs(tmp_path):
+    """D = 3: starts on the circle in the x1-x2 plane, the wind's vertical component acts."""
+    out = tmp_path / "d3"
+    assert main(["run", "--set", "dim=3", "--out", str(out)] + QUICK) == 0
+    with np.load(out / "rollout.npz", allow_pickle=False) as r:
+        states, plans = r["states"], r["plans"]
+    assert states.shape == (3, 3, 3) and plans.shape == (2, 3, 14, 3)
+    assert np.all(states[0, :, 2] == 0.0)
+    assert np.any(states[1:, :, 2] != 0.0)  # g_3 = 0.1 sin(x1) cos(x2) and noise move it
