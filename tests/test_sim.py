@@ -116,3 +116,13 @@ def test_three_dimensional_paper_scenario_runs(tmp_path):
     assert states.shape == (3, 3, 3) and plans.shape == (2, 3, 14, 3)
     assert np.all(states[0, :, 2] == 0.0)
     assert np.any(states[1:, :, 2] != 0.0)  # g_3 = 0.1 sin(x1) cos(x2) and noise move it
+
+
+def test_single_agent_run_summarizes_without_pairs(tmp_path, capsys):
+    """K = 1 has no pairs (min distance null); the summary line still prints."""
+    scen = tmp_path / "one.json"
+    scen.write_text(json.dumps({"starts": [[0.0, 0.0]], "targets": [[1.0, 0.0]]}))
+    out = tmp_path / "one"
+    assert main(["run", "--method", "nominal", "--scenario", str(scen), "--out", str(out)] + QUICK) == 0
+    assert "min distance -" in capsys.readouterr().out
+    assert json.loads((out / "metrics.json").read_text())["min_pair_distance"] is None
