@@ -29,7 +29,7 @@ def main(args) -> int:
     from torch_gpmpc.gp import ResidualGP
     from torch_gpmpc.metrics import compute_metrics
     from torch_gpmpc.scenarios import make_scenario
-    from torch_gpmpc.sim import needs_gp, simulate
+    from torch_gpmpc.sim import check_gp_inputs, needs_gp, simulate
     from torch_gpmpc.tblog import TBLogger
 
     distributed = args.backend == "distributed"
@@ -43,8 +43,8 @@ def main(args) -> int:
     scenario = make_scenario(cfg, args.scenario)
     gps = [ResidualGP.load(args.gp_model, expected_dim=cfg.dim, expected_input_dim=cfg.dim)] \
         if args.gp_model else None
-    if gps is None and needs_gp(cfg.method) and cfg.gp_inputs != "state":
-        raise GpmpcError("config key 'gp_inputs': the controller needs state-input GPs; use gp_inputs=state")
+    if gps is None and needs_gp(cfg.method):
+        check_gp_inputs(cfg)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise GpmpcError(f"--out {str(out)!r} is an existing file; give a directory path")

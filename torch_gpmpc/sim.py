@@ -46,6 +46,16 @@ def noise_sequence(cfg: Config, num_agents: int) -> Tensor:
     return torch.randn(cfg.max_steps, num_agents, cfg.dim, generator=gen)
 
 
+def check_gp_inputs(cfg: Config) -> None:
+    """The controller linearizes GPs of the state alone (paper eq. 12).
+
+    Raises:
+        GpmpcError: ``gp_inputs`` is not ``state``.
+    """
+    if cfg.gp_inputs != "state":
+        raise GpmpcError("config key 'gp_inputs': the controller needs state-input GPs; use gp_inputs=state")
+
+
 def train_agent_gps(cfg: Config, system: TrueSystem, num_agents: int) -> list:
     """Fit one residual GP per agent from the paper's data recipe (design.md §3).
 
@@ -58,8 +68,7 @@ def train_agent_gps(cfg: Config, system: TrueSystem, num_agents: int) -> list:
     from .data import collect_transitions
     from .gp import fit_residual_gp
 
-    if cfg.gp_inputs != "state":
-        raise GpmpcError("config key 'gp_inputs': the controller needs state-input GPs; use gp_inputs=state")
+    check_gp_inputs(cfg)
     data = collect_transitions(system, num_agents=num_agents, samples=cfg.gp_samples,
                                seed=2 * cfg.seed + 1, u_max=cfg.u_max, box=cfg.circle_radius)
     gps = []
