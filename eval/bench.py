@@ -17,7 +17,9 @@ import torch
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.fileio import write_json
 
-SECTIONS = ("gp", "local", "fast", "scale")
+SECTIONS = ("gp", "local", "scale", "run")
+#: Former section names, still accepted (``fast`` was merged into ``local``).
+ALIASES = {"fast": "local"}
 
 
 def _print_table(name: str, rows: list[dict]) -> None:
@@ -38,7 +40,8 @@ def _fmt(v) -> str:
 
 
 def main(args) -> int:
-    names = [s.strip() for s in args.sections.split(",") if s.strip()]
+    names = [ALIASES.get(s.strip(), s.strip()) for s in args.sections.split(",") if s.strip()]
+    names = list(dict.fromkeys(names))  # drop repeats, keep order
     for name in names:
         if name not in SECTIONS:
             raise GpmpcError(f"--sections: unknown section {name!r}; choose from {', '.join(SECTIONS)}")

@@ -1,17 +1,25 @@
-"""``gpmpc bench`` section ``local``: time per agent-local MPC problem (design.md section 6).
+"""``gpmpc bench`` section ``local``: time per agent-local MPC problem (issue 7, design.md section 6).
 
-Paper size (D = 2, T = 13, M = 2 neighbours), realistic crossing instances, batch 1, 3
-and 32 (8 with ``quick``). Paths, all measured in the same run on the same instances:
+Paper size (D = 2, T = 13, M = 2 neighbours), realistic crossing instances, batch 3 (one
+ADMM iteration of the paper scenario) and 64. Paths, all measured in the same run on the
+same instances, forward and forward+backward (backward of ``X.sum() + Y.sum()`` with
+respect to rho, z and bounds):
 
-- ``clarabel``: our default, :class:`~torch_gpmpc.mpc.LocalMPC` (cvxpylayers + diffcp
-  with Clarabel), forward and forward+backward;
-- ``reference``: the same layer with cvxpylayers' default solver (diffcp + SCS);
-- ``reference-scs-default-eps``: the same, at SCS's default tolerances 1e-4 (faster,
-  plans only accurate to ~1e-3);
+- ``fast``: the default, :class:`~torch_gpmpc.fastmpc.FastLocalMPC` (compiled interior
+  point per problem, implicit-KKT backward, tol 1e-10);
+- ``cvxpylayers-default``: the :class:`~torch_gpmpc.mpc.LocalMPC` CvxpyLayer called with
+  no solver arguments, i.e. cvxpylayers' default solver (diffcp + SCS at SCS's default
+  tolerances; plans ~1e-3 accurate) and diffcp's default backward;
+- ``reference``: ``solver=reference``, the same default solver tightened to eps 1e-9;
+- ``clarabel``: ``solver=clarabel`` (diffcp + Clarabel, tol 1e-12);
 - ``cvxpy+clarabel``: the same DPP problem solved by plain cvxpy with Clarabel, one
   problem after another (forward only, not differentiable).
 
-``speedup_vs_reference`` = reference time / path time for the same batch and pass.
+``speedup_vs_default`` = cvxpylayers-default time / path time (the issue's ratio: at
+least 20x forward and 10x forward+backward for ``fast`` at batch 64);
+``speedup_vs_reference`` = reference time / path time. ``checks`` compares the fast
+path's plans and gradients with the reference and clarabel paths on the same instances.
+Timings use one torch thread.
 """
 
 from __future__ import annotations
@@ -19,10 +27,12 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
+from typing import Callable
 
 import cvxpy as cp
 import torch
 
+from torch_gpmpc.fastmpc import FastLocalMPC
 from torch_gpmpc.linearize import linearize_plan
 from torch_gpmpc.mpc import LocalMPC, LocalProblemData, collision_rows
 from torch_gpmpc.risk import chance_margins, collision_normals, pair_risks, state_covariances
@@ -88,26 +98,41 @@ def _with_grad(data: LocalProblemData) -> LocalProblemData:
     return LocalProblemData(**fields)
 
 
-#: SCS's own default tolerances (the ``reference`` path uses 1e-9 for accurate plans).
-SCS_DEFAULT_EPS = {"eps_abs": 1e-4, "eps_rel": 1e-4}
+#: Batch sizes: one ADMM iteration of the paper scenario, and a large batch.
+BATCHES = (3, 64)
+#: The issue-7 targets: ``fast`` at batch 64 against cvxpylayers' default path.
+TARGETS = {"forward": 20.0, "forward+backward": 10.0}
 
 
-def _time_layer(mpc: LocalMPC, data: LocalProblemData, backward: bool, repeats: int,
-                solver_args: dict | None = None) -> tuple[float, float]:
-    """Best-of-``repeats`` seconds per batch and the fraction of ok solves."""
-    best, ok = float("inf"), 1.0
+def _solve_default(mpc: LocalMPC, data: LocalProblemData) -> tuple[torch.Tensor, torch.Tensor]:
+    """cvxpylayers' default path: the layer called with no solver arguments; returns (X, Y)."""
+    outputs = mpc.layer(*mpc.layer_parameters(data))
+    return outputs[0], torch.stack(list(outputs[2:2 + NEIGHBORS]), dim=1)
+
+
+def _solve_layer(layer) -> Callable[[LocalProblemData], tuple[torch.Tensor, torch.Tensor]]:
+    """A layer's ``(X, Y)`` as a function of the data."""
+    def solve(data: LocalProblemData) -> tuple[torch.Tensor, torch.Tensor]:
+        sol = layer(data)
+        return sol.X, sol.Y
+
+    return solve
+
+
+def _time(solve, data: LocalProblemData, backward: bool, repeats: int) -> float:
+    """Best-of-``repeats`` seconds per batch."""
+    best = float("inf")
     for _ in range(repeats):
         inputs = _with_grad(data) if backward else data
         start = time.perf_counter()
         if backward:
-            sol = mpc(inputs, solver_args=solver_args)
-            (sol.X.sum() + sol.Y.sum()).backward()
+            X, Y = solve(inputs)
+            (X.sum() + Y.sum()).backward()
         else:
             with torch.no_grad():
-                sol = mpc(inputs, solver_args=solver_args)
+                solve(inputs)
         best = min(best, time.perf_counter() - start)
-        ok = min(ok, float(sol.ok.double().mean()))
-    return best, ok
+    return best
 
 
 def _time_plain_cvxpy(mpc: LocalMPC, data: LocalProblemData, repeats: int) -> float:
@@ -124,46 +149,88 @@ def _time_plain_cvxpy(mpc: LocalMPC, data: LocalProblemData, repeats: int) -> fl
     return best
 
 
+def _plans_and_grads(solve, data: LocalProblemData) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """Plans ``[X | Y]`` flattened per problem, and the gradients of ``X.sum() + Y.sum()``
+    with respect to rho, z_own, z_nbr and bounds."""
+    inputs = _with_grad(data)
+    X, Y = solve(inputs)
+    (X.sum() + Y.sum()).backward()
+    plans = torch.cat([X.detach().flatten(1), Y.detach().flatten(1)], dim=1)
+    return plans, [inputs.rho.grad, inputs.z_own.grad, inputs.z_nbr.grad, inputs.bounds.grad]
+
+
+def _compare(fast, other) -> dict:
+    """Largest plan difference and largest relative gradient difference (per input)."""
+    (p_fast, g_fast), (p_other, g_other) = fast, other
+    rel = max(float((a - b).norm() / b.norm().clamp_min(1e-12)) for a, b in zip(g_fast, g_other))
+    return {"max_abs_plan_diff": float((p_fast - p_other).abs().max()), "max_rel_grad_diff": rel}
+
+
 def run(quick: bool = False, out: Path | str | None = None) -> dict:
-    """Measure the local-problem paths; returns ``{"table": [...], ...}`` (JSON-ready).
+    """Measure the paths; returns ``{"table": [...], "checks": [...], "targets": {...}}`` (JSON-ready).
 
     Args:
-        quick: fewer repeats and batch 8 instead of 32.
+        quick: fewer repeats, and the slow ``reference`` path only at batch 3.
         out: output directory (unused: the caller writes ``bench.json``).
     """
-    batches = (1, 3, 8 if quick else 32)
-    repeats = 2 if quick else 5
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return _run(quick)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run(quick: bool) -> dict:
+    fast_repeats, slow_repeats = (3, 1) if quick else (10, 2)
     nominal = NominalModel(DIM)
+    fast = FastLocalMPC(HORIZON, DIM, NEIGHBORS, nominal, U_MAX, ALPHA)
     layers = {name: LocalMPC(HORIZON, DIM, NEIGHBORS, nominal, U_MAX, ALPHA, solver=name)
               for name in ("clarabel", "reference")}
-    rows = []
-    for batch in batches:
+    rows, checks = [], []
+    for batch in BATCHES:
         data = crossing_instances(batch, seed=batch)
-        layers["clarabel"](data)  # warm-up (first call pays one-off costs)
-        timings = {}
-        for path, mpc in layers.items():
-            for backward in (False, True):
-                seconds, ok = _time_layer(mpc, data, backward, repeats)
-                timings[(path, backward)] = (seconds, ok)
-            if path == "reference":
-                for backward in (False, True):
-                    timings[("reference-scs-default-eps", backward)] = _time_layer(
-                        mpc, data, backward, repeats, SCS_DEFAULT_EPS)
-        timings[("cvxpy+clarabel", False)] = (_time_plain_cvxpy(layers["clarabel"], data, repeats), 1.0)
-        for (path, backward), (seconds, ok) in sorted(timings.items(), key=lambda kv: kv[0][1]):
-            reference = timings[("reference", backward)][0]
+        paths = {
+            "fast": (_solve_layer(fast), fast_repeats),
+            "cvxpylayers-default": (lambda d: _solve_default(layers["clarabel"], d), slow_repeats),
+            "clarabel": (_solve_layer(layers["clarabel"]), slow_repeats),
+        }
+        if not quick or batch <= 3:
+            paths["reference"] = (_solve_layer(layers["reference"]), 1)
+        # warm-up (first calls pay one-off costs) and the accuracy checks on the same instances
+        answers = {name: _plans_and_grads(paths[name][0], data) for name in ("fast", "clarabel", "reference")
+                   if name in paths}
+        check = {"batch": batch, "fast_ok_fraction": float(fast(data).ok.double().mean()),
+                 "fast_vs_clarabel": _compare(answers["fast"], answers["clarabel"])}
+        if "reference" in answers:
+            check["fast_vs_reference"] = _compare(answers["fast"], answers["reference"])
+        checks.append(check)
+        timings = {(name, backward): _time(solve, data, backward, repeats)
+                   for name, (solve, repeats) in paths.items() for backward in (False, True)}
+        timings[("cvxpy+clarabel", False)] = _time_plain_cvxpy(layers["clarabel"], data, slow_repeats)
+        for (name, backward), seconds in sorted(timings.items(), key=lambda kv: kv[0][1]):
+            reference = timings.get(("reference", backward))
             rows.append({
                 "workload": f"local T={HORIZON} D={DIM} M={NEIGHBORS}",
-                "path": path,
+                "path": name,
                 "batch": batch,
                 "pass": "forward+backward" if backward else "forward",
                 "ms_per_problem": 1e3 * seconds / batch,
-                "speedup_vs_reference": reference / seconds,
-                "ok_fraction": ok,
+                "speedup_vs_default": timings[("cvxpylayers-default", backward)] / seconds,
+                "speedup_vs_reference": None if reference is None else reference / seconds,
             })
             logger.info("local bench %s", rows[-1])
-    return {
-        "table": rows,
-        "notes": "best of %d repeats; reference = cvxpylayers default solver (diffcp + SCS, eps 1e-9); "
-                 "cvxpy+clarabel solves the same DPP problem one by one, forward only" % repeats,
-    }
+    return {"table": rows, "checks": checks, "targets": _targets(rows),
+            "notes": f"best of {fast_repeats} (fast) / {slow_repeats} (cvxpylayers) repeats, one torch thread; "
+                     "cvxpylayers-default = diffcp + SCS with default settings; reference = the same at eps 1e-9"}
+
+
+def _targets(rows: list[dict]) -> dict:
+    """Each target with the measured ratio (at the largest batch) and whether it is met."""
+    batch = max(BATCHES)
+    result = {}
+    for pass_name, target in TARGETS.items():
+        row = next(r for r in rows if r["path"] == "fast" and r["batch"] == batch and r["pass"] == pass_name)
+        result[f"fast_batch{batch}_{pass_name}"] = {"speedup_vs_default": row["speedup_vs_default"],
+                                                    "target": target, "met": row["speedup_vs_default"] >= target}
+    return result

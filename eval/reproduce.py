@@ -57,6 +57,9 @@ def _execute_all(tasks: list[Task], workers: int) -> None:
                 execute(task)
                 bar.update(1)
             return
+        from torch_gpmpc import ipm
+
+        ipm.warm_up()  # compile the fast solver's kernel once here, not in every worker
         ctx = multiprocessing.get_context("spawn")
         with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
             for fut in cf.as_completed([pool.submit(execute, t) for t in todo]):

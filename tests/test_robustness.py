@@ -844,6 +844,25 @@ def test_layer_exception_escaping_the_layer_fails_all_agents_not_the_run(monkeyp
     assert "layer exploded" in caplog.text
 
 
+def test_interrupt_wrapped_by_c_code_stops_the_run_instead_of_falling_back(monkeypatch):
+    """Ctrl-C that arrives while compiled code calls back into Python comes out as
+    ``SystemError(...) from KeyboardInterrupt`` (seen with numba); it must stop the run."""
+    import torch_gpmpc.admm as admm_mod
+    from torch_gpmpc.sim import simulate
+
+    def interrupted_factory(*args, **kwargs):
+        def call(data):
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as interrupt:
+                raise SystemError("returned a result with an exception set") from interrupt
+        return call
+
+    monkeypatch.setattr(admm_mod, "get_local_mpc", interrupted_factory)
+    with pytest.raises(KeyboardInterrupt):
+        simulate(Config(**{**FAULT_CFG, "max_steps": 2}))
+
+
 # ===================================================================== interrupted runs
 def _check_output_dir(out: Path) -> None:
     """Every file in ``out`` is complete: metrics.json parses, rollout.npz loads, no temp files."""

@@ -195,6 +195,21 @@ def consensus_update(copies: Tensor, z: Tensor, lam: Tensor, rho: Tensor) -> tup
     return z_new, lam_new, primal, dual
 
 
+def _wrapped_interrupt(exc: BaseException) -> BaseException | None:
+    """The KeyboardInterrupt (or other non-``Exception``) in ``exc``'s cause/context chain, if any.
+
+    C extensions can turn a signal that arrives while they call back into Python into an
+    ordinary error (CPython: "SystemError: ... returned a result with an exception set").
+    """
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if not isinstance(exc, Exception):
+            return exc
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def should_stop(primal: float, dual: float, tol: float, dual_tol: float | None) -> bool:
     """The stopping rule: largest primal residual below ``tol`` (the paper's criterion) and,
     when ``dual_tol`` is set, largest dual residual below it too."""
@@ -308,6 +323,9 @@ class ADMM:
         except GpmpcError:
             raise
         except Exception as exc:  # noqa: BLE001 - counted and warned by _fallback
+            interrupt = _wrapped_interrupt(exc)
+            if interrupt is not None:  # Ctrl-C that C code turned into an error: stop, do not fall back
+                raise interrupt
             batch, T, D = data.xref.shape[0], data.xref.shape[1] - 1, data.xref.shape[2]
             M = data.active.shape[1]
             nan = data.xref.new_full((), float("nan"))

@@ -107,7 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="performance workloads, ratios against baselines")
     p.add_argument("--out", default="runs/bench")
-    p.add_argument("--sections", default="gp,local,fast,scale", help="comma-separated: gp, local, fast, scale")
+    p.add_argument("--sections", default="gp,local,scale,run", help="comma-separated: gp, local, scale, run")
     p.add_argument("--quick", action="store_true", help="fewer repetitions (for CI smoke runs)")
     return parser
 

@@ -50,7 +50,7 @@ class Config:
         scenario: ``paper``, ``circle`` or ``random``.
         num_agents: K (the paper scenario has 3).
         seed: seed for data, noise and scenario generation.
-        solver: ``fast`` (structure-exploiting batched interior point, :mod:`~torch_gpmpc.fastmpc`),
+        solver: ``fast`` (structure-exploiting interior point compiled with numba, :mod:`~torch_gpmpc.fastmpc`),
             ``clarabel`` (cvxpylayers + diffcp with Clarabel) or ``reference`` (cvxpylayers' default).
         method: one of :data:`METHODS`.
         dim: state dimension D (2 or 3); inputs have the same dimension.

@@ -979,6 +979,10 @@ def simulate_distributed(
             log_dir = tmp_logs
         Path(log_dir).mkdir(parents=True, exist_ok=True)
         report.log_dir = str(log_dir)
+        if cfg.solver == "fast":  # compile the kernel once here, not in every agent process
+            from . import ipm
+
+            ipm.warm_up()
         port = _free_port()
         env = {**os.environ, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port),
                "WORLD_SIZE": str(world_size), "GPMPC_SETUP_TIMEOUT": str(setup_timeout_s),

@@ -2,13 +2,11 @@
 
 :class:`FastLocalMPC` solves exactly the problem of :class:`torch_gpmpc.mpc.LocalMPC`
 (same :class:`~torch_gpmpc.mpc.LocalProblemData` in, same
-:class:`~torch_gpmpc.mpc.LocalSolution` out) with a batched primal-dual interior-point method,
+:class:`~torch_gpmpc.mpc.LocalSolution` out) with a primal-dual interior-point method
 and differentiates it implicitly through its KKT conditions (a ``torch.autograd.Function``).
-It exploits the structure of the problem (condensed dynamics, diagonal neighbour copies,
-one scalar collision row per neighbour and step), so each Newton step costs one dense LU
-factorization of size T*D + T per agent. The data preparation and the gradients are
-torch; the iteration itself runs in NumPy on zero-copy views (CPU), where per-operation
-overhead on these tiny arrays is several times lower.
+Data flow: :func:`canonicalize` (torch, differentiable: condensed dynamics, so only the
+inputs, the neighbour copies and the collision slacks remain) -> the compiled kernel
+:mod:`torch_gpmpc.ipm` (NumPy arrays, CPU) -> outputs and gradients back in torch.
 """
 
 from __future__ import annotations
@@ -20,6 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from . import ipm
 from .errors import GpmpcError
 from .local_problem import (
     FAIL_INACCURATE, FAIL_NONFINITE, SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures,
@@ -28,17 +27,15 @@ from .systems import NominalModel
 
 logger = logging.getLogger(__name__)
 
-#: Fraction of the step to the boundary of the positive orthant taken by the corrector.
-STEP_FRACTION = 0.99
-
 #: The backward pass differentiates at a point polished to ``POLISH_FACTOR * tol``
 #: (at most ``POLISH_ITERATIONS`` extra iterations).
 POLISH_FACTOR = 1e-2
 POLISH_ITERATIONS = 6
 
-#: After each step every U_t is projected onto the ball of this multiple of u_max
-#: (globalization of the input bounds, see :func:`_project_inputs`).
-TRUST_RADIUS = 1.0
+
+def _mv(mat: Tensor, vec: Tensor) -> Tensor:
+    """Batched matrix-vector product, (B, p, q) x (B, q) -> (B, p)."""
+    return torch.bmm(mat, vec.unsqueeze(-1)).squeeze(-1)
 
 
 # --------------------------------------------------------------------------- problem data
@@ -60,15 +57,14 @@ def condense_dynamics(x0: Tensor, dyn_A: Tensor, dyn_c: Tensor, b: float) -> tup
     """
     batch, horizon, dim = dyn_c.shape
     n = horizon * dim
-    eye_b = b * torch.eye(dim, dtype=dyn_c.dtype, device=dyn_c.device).expand(batch, dim, dim)
-    # Augmented block row [G_t | h_t] of shape (B, D, n + 1), propagated step by step.
+    # What step t adds to the augmented block row [G_t | h_t]: b I in block column t and
+    # c_t in the last column; built once, shape (B, T, D, n + 1).
+    eye_blocks = b * torch.eye(n, dtype=dyn_c.dtype, device=dyn_c.device).view(horizon, dim, n)
+    inject = torch.cat([eye_blocks.expand(batch, horizon, dim, n), dyn_c[..., None]], dim=3)
     row = torch.cat([x0.new_zeros(batch, dim, n), x0[:, :, None]], dim=2)
     rows = []
     for t in range(horizon):
-        row = torch.bmm(dyn_A[:, t], row)
-        inject = torch.cat([x0.new_zeros(batch, dim, t * dim), eye_b,
-                            x0.new_zeros(batch, dim, n - (t + 1) * dim), dyn_c[:, t, :, None]], dim=2)
-        row = row + inject
+        row = torch.baddbmm(inject[:, t], dyn_A[:, t], row)  # A_t [G_{t-1} | h_{t-1}] + inject_t
         rows.append(row)
     stacked = torch.cat(rows, dim=1)  # (B, n, n + 1)
     return stacked[:, :, :n], stacked[:, :, n]
@@ -133,308 +129,6 @@ def canonicalize(data: LocalProblemData, b: float) -> CanonicalData:
                          normals=normals, bounds=bounds)
 
 
-# ------------------------------------------------------------------------ interior point
-# The iteration runs in NumPy (float64, zero-copy views of the CPU tensors): the arrays
-# are tiny, so the cost is per-operation overhead, which is several times lower in NumPy
-# than in torch. Autograd never enters the iteration (see _LocalQpFunction).
-def _mv(mat: Tensor, vec: Tensor) -> Tensor:
-    """Batched matrix-vector product, (B, p, q) x (B, q) -> (B, p)."""
-    return torch.bmm(mat, vec.unsqueeze(-1)).squeeze(-1)
-
-
-def _npmv(mat: np.ndarray, vec: np.ndarray) -> np.ndarray:
-    """Batched matrix-vector product in NumPy, (B, p, q) x (B, q) -> (B, p)."""
-    return np.matmul(mat, vec[:, :, None])[:, :, 0]
-
-
-class _Kkt:
-    """Per-call constants and the structured Newton solve of the interior-point method.
-
-    Inequalities ``g(v) >= 0`` with slacks ``w`` and multipliers ``z`` (both (B, m),
-    ``m = 2K + T``, ``K = M T``), stored in the order
-    ``[collision rows (K) | slacks s >= 0 (K) | input bounds (T)]``; for ``s >= 0`` the
-    slack *is* ``s``. Input bounds are the smooth convex constraints
-    ``g_q = (u_max^2 - ||U_t||^2) / 2 >= 0``. All arrays are NumPy float64.
-
-    Args:
-        G, h, c_x, l_x, rho_y, w_y, normals, bounds: the :class:`CanonicalData` arrays.
-        alpha, u_max, slack_penalty: problem constants.
-    """
-
-    def __init__(self, G: np.ndarray, h: np.ndarray, c_x: np.ndarray, l_x: np.ndarray, rho_y: np.ndarray,
-                 w_y: np.ndarray, normals: np.ndarray, bounds: np.ndarray, alpha: float, u_max: float,
-                 slack_penalty: float) -> None:
-        batch, n = h.shape
-        M, T, D = normals.shape[1:]
-        K = M * T
-        self.batch, self.n, self.T, self.D, self.K, self.m = batch, n, T, D, K, 2 * K + T
-        self.u_max2, self.penalty = u_max * u_max, slack_penalty
-        self.radius = TRUST_RADIUS * u_max
-        self.N = normals.reshape(batch, K, D)
-        # Collision rows in u: a_k = G_t^T n_k, shape (B, K, n); g_c = A u - N.y + s - bt.
-        self.A = (normals[..., None] * G.reshape(batch, 1, T, D, n)).sum(3).reshape(batch, K, n)
-        self.At = self.A.transpose(0, 2, 1)
-        self.bt = (bounds - (normals * h.reshape(batch, 1, T, D)).sum(-1)).reshape(batch, K)
-        self.rho = np.repeat(rho_y, T, axis=1)
-        self.nn_rho = (self.N * self.N).sum(-1) / self.rho
-        self.wy = w_y.reshape(batch, K, D)
-        c2 = 2.0 * c_x[:, None, None]
-        self.H = c2 * np.matmul(G.transpose(0, 2, 1), G) + 2.0 * alpha * np.eye(n)
-        self.g0 = np.matmul((c2[:, :, 0] * h - l_x)[:, None, :], G)[:, 0]
-        self.scale_u = 1.0 + np.abs(self.g0).max(1)
-        self.scale_y = 1.0 + np.abs(self.wy).reshape(batch, -1).max(1, initial=0.0)
-        self.scale_p = 1.0 + np.maximum(np.abs(self.bt).max(1, initial=0.0), self.u_max2)
-        self.diag_n = np.arange(n)
-        self.diag_t = np.arange(T)
-        self.col_t = n + np.repeat(self.diag_t, D)  # column of the input bound of u entry i
-
-    # ---- residuals
-    def residuals(self, u: np.ndarray, y: np.ndarray, w: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Dual and primal residuals at ``(u, y, w, z)``.
-
-        Returns:
-            ``(r_u (B, n), r_y (B, K, D), r_s (B, K), r_pc (B, K), r_pq (B, T))``.
-        """
-        K, B, T, D = self.K, self.batch, self.T, self.D
-        U = u.reshape(B, T, D)
-        zc, zs, zq = z[:, :K], z[:, K:2 * K], z[:, 2 * K:]
-        wc, s, wq = w[:, :K], w[:, K:2 * K], w[:, 2 * K:]
-        r_u = _npmv(self.H, u) + self.g0 - _npmv(self.At, zc) + (zq[:, :, None] * U).reshape(B, -1)
-        r_y = self.rho[:, :, None] * y - self.wy + zc[:, :, None] * self.N
-        r_s = self.penalty - zc - zs
-        r_pc = _npmv(self.A, u) - (self.N * y).sum(-1) + s - self.bt - wc
-        r_pq = 0.5 * (self.u_max2 - (U * U).sum(-1)) - wq
-        return r_u, r_y, r_s, r_pc, r_pq
-
-    def kkt_error(self, res: tuple[np.ndarray, ...], w: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """KKT error per problem, (B,): the largest of the relative dual residuals, the
-        relative primal residuals and the absolute complementarity ``sum(w z)`` (absolute
-        because nearly degenerate collision rows need it: their copies Y follow z)."""
-        r_u, r_y, r_s, r_pc, r_pq = res
-        B = self.batch
-        err = np.abs(r_u).max(1) / self.scale_u
-        if self.K:
-            err = np.maximum(err, np.abs(r_y).reshape(B, -1).max(1) / self.scale_y)
-            err = np.maximum(err, np.abs(r_s).max(1) / (1.0 + self.penalty))
-            err = np.maximum(err, np.abs(r_pc).max(1) / self.scale_p)
-        err = np.maximum(err, np.abs(r_pq).max(1) / self.scale_p)
-        return np.maximum(err, (w * z).sum(1))
-
-    # ---- Newton system
-    def factor(self, u: np.ndarray, w: np.ndarray, z: np.ndarray) -> "_Factor":
-        """Factor the reduced Newton system at the iterate ``(u, w, z)``.
-
-        Per collision row, ``Y`` and ``s`` are eliminated in closed form: the row adds
-        ``deff_k a_k a_k^T`` to the u-block with the bounded weight
-        ``deff_k = 1 / (w_c/z_c + |n_k|^2/rho_k + s/z_s)``. The input bounds stay in
-        augmented form: with ``E`` the (T, n) Jacobian of ``g_q`` (row t is ``-U_t`` in
-        block t) and ``S0 = H + blockdiag(z_q I) + A^T diag(deff) A``, the step solves::
-
-            [ S0   E^T            ] [du]   [ r0     ]
-            [ E   -diag(w_q/z_q)  ] [y ] = [ -rho_q ],      dz_q = -y,
-
-        a quasi-definite matrix without 1/mu-sized entries (w_q/z_q only grows on
-        inactive bounds, on the diagonal). Eliminating ``dz_q`` instead would add
-        ``(z_q/w_q) U_t U_t^T`` to S0 and ruin the factorization near the solution.
-
-        The matrix is factored by LU with partial pivoting (it is symmetric but
-        indefinite).
-
-        Returns:
-            The factorization, with ``deff`` (B, K) and ``failed`` (B,) (singular matrix).
-        """
-        K, B, T, D, n = self.K, self.batch, self.T, self.D, self.n
-        zc, zs, zq = z[:, :K], z[:, K:2 * K], z[:, 2 * K:]
-        wc, s, wq = w[:, :K], w[:, K:2 * K], w[:, 2 * K:]
-        deff = 1.0 / (wc / zc + self.nn_rho + s / zs)
-        kmat = np.empty((B, n + T, n + T))
-        torch.bmm(torch.from_numpy(self.At * deff[:, None, :]), torch.from_numpy(self.A),
-                  out=torch.from_numpy(kmat)[:, :n, :n])
-        kmat[:, :n, :n] += self.H
-        kmat[:, self.diag_n, self.diag_n] += np.repeat(zq, D, axis=1)
-        kmat[:, :n, n:] = 0.0
-        kmat[:, n:, :] = 0.0
-        kmat[:, self.diag_n, self.col_t] = -u
-        kmat[:, self.col_t, self.diag_n] = -u
-        kmat[:, n + self.diag_t, n + self.diag_t] = -wq / zq
-        lu, pivots, info = torch.linalg.lu_factor_ex(torch.from_numpy(kmat))
-        return _Factor(lu=lu, pivots=pivots, deff=deff, failed=info.numpy() != 0)
-
-    @staticmethod
-    def solve(fac: "_Factor", rhs: np.ndarray) -> np.ndarray:
-        """Solve with the factored Newton matrix, (B, n+T) -> (B, n+T); failed rows give 0."""
-        sol = torch.linalg.lu_solve(fac.lu, fac.pivots, torch.from_numpy(rhs)[:, :, None]).numpy()[:, :, 0]
-        if fac.failed.any():
-            sol[fac.failed] = 0.0
-        return sol
-
-    def direction(self, fac: "_Factor", u: np.ndarray, w: np.ndarray, z: np.ndarray,
-                  res: tuple[np.ndarray, ...], rc: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Newton direction for the complementarity residual ``rc`` (``z dw + w dz = -rc``).
-
-        Args:
-            fac: from :meth:`factor`.
-            u, w, z: the iterate.
-            res: from :meth:`residuals`.
-            rc: complementarity residual ``w z - sigma mu (+ corrector)``, shape (B, m).
-
-        Returns:
-            ``(du (B, n), dy (B, K, D), dw (B, m), dz (B, m))``.
-        """
-        K, B, T, D, n = self.K, self.batch, self.T, self.D, self.n
-        deff = fac.deff
-        r_u, r_y, r_s, r_pc, r_pq = res
-        zc, zs, zq = z[:, :K], z[:, K:2 * K], z[:, 2 * K:]
-        wc, s = w[:, :K], w[:, K:2 * K]
-        rcc, rcs, rcq = rc[:, :K], rc[:, K:2 * K], rc[:, 2 * K:]
-        rho_c = r_pc + rcc / zc
-        s_zs = s / zs
-        rt_s = -r_s - rcs / s
-        gam = (self.N * r_y).sum(-1) / self.rho + rt_s * s_zs
-        rhs = np.concatenate([-r_u - _npmv(self.At, deff * (gam + rho_c)), -r_pq - rcq / zq], 1)
-        sol = self.solve(fac, rhs)
-        du = sol[:, :n]
-        xi = deff * (gam + rho_c + _npmv(self.A, du))
-        dy = (self.N * xi[:, :, None] - r_y) / self.rho[:, :, None]
-        ds = s_zs * (rt_s - xi)
-        dwq = r_pq - (u.reshape(B, T, D) * du.reshape(B, T, D)).sum(-1)
-        dw = np.concatenate([(wc * xi - rcc) / zc, ds, dwq], 1)
-        dz = np.concatenate([-xi, r_s + xi, -sol[:, n:]], 1)
-        return du, dy, dw, dz
-
-    def adjoint(self, fac: "_Factor", w: np.ndarray, z: np.ndarray,
-                g_u: np.ndarray, g_y: np.ndarray, g_s: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Solve the (symmetric) reduced KKT system for a right-hand side ``(g_u, g_y, g_s)``.
-
-        Returns:
-            ``(a_u (B, n), a_y (B, K, D), xi (B, K))`` where ``xi`` is the scaled
-            multiplier ``(z_c / w_c) (grad g_c . a)`` of the collision rows.
-        """
-        K, n, deff = self.K, self.n, fac.deff
-        s_zs = w[:, K:2 * K] / z[:, K:2 * K]
-        gam = -(self.N * g_y).sum(-1) / self.rho + g_s * s_zs
-        rhs = np.concatenate([g_u - _npmv(self.At, deff * gam), np.zeros((self.batch, self.T))], 1)
-        a_u = self.solve(fac, rhs)[:, :n]
-        xi = deff * (gam + _npmv(self.A, a_u))
-        a_y = (g_y + self.N * xi[:, :, None]) / self.rho[:, :, None]
-        return a_u, a_y, xi
-
-
-@dataclass
-class _Factor:
-    """LU factorization of the reduced Newton matrix (see :meth:`_Kkt.factor`)."""
-
-    lu: Tensor
-    pivots: Tensor
-    deff: np.ndarray
-    failed: np.ndarray
-
-
-def _max_step(w: np.ndarray, z: np.ndarray, dw: np.ndarray, dz: np.ndarray) -> np.ndarray:
-    """Largest step in [0, 1] keeping ``w + a dw >= 0`` and ``z + a dz >= 0``, shape (B, 1)."""
-    ratio = np.minimum((dw / w).min(1), (dz / z).min(1))
-    return (1.0 / np.maximum(-ratio, 1.0))[:, None]
-
-
-def _project_inputs(u: np.ndarray, T: int, D: int, radius: float) -> np.ndarray:
-    """Scale every ``U_t`` with ``||U_t|| > radius`` back onto that sphere, shape (B, T*D).
-
-    Globalization of the input bounds: a pure Newton step on ``||U_t||^2 <= u_max^2``
-    can overshoot by orders of magnitude in the first iterations. The method starts
-    infeasible and recomputes all residuals from the iterate, so moving the iterate is
-    allowed; near the solution ``||U_t|| <= u_max`` and the projection is inactive.
-    """
-    U = u.reshape(u.shape[0], T, D)
-    norm = np.sqrt((U * U).sum(-1, keepdims=True))
-    return (U * (radius / np.maximum(norm, radius))).reshape(u.shape)
-
-
-@dataclass
-class IpmResult:
-    """Primal-dual solution of the batched interior-point method (NumPy arrays).
-
-    Attributes:
-        u: inputs, shape (B, T*D).
-        y: neighbour copies at tau = 1..T, shape (B, K, D) with K = M*T.
-        w: slacks ``[g_c | s | g_q]``, shape (B, 2K + T).
-        z: multipliers in the same order, shape (B, 2K + T).
-        converged: KKT error below tolerance, shape (B,).
-        iterations: number of iterations run.
-        kkt_error: final KKT error, shape (B,).
-    """
-
-    u: np.ndarray
-    y: np.ndarray
-    w: np.ndarray
-    z: np.ndarray
-    converged: np.ndarray
-    iterations: int
-    kkt_error: np.ndarray
-
-
-def _initial_point(kkt: _Kkt) -> tuple[np.ndarray, ...]:
-    """Infeasible start: ``u = 0``, unconstrained copies, ``z_c + z_s = P`` (dual feasible in
-    s) and ``s z_s = 1``, so that every complementarity product starts near 1."""
-    B, K, T = kkt.batch, kkt.K, kkt.T
-    zc0 = min(1.0, 0.5 * kkt.penalty)
-    zs0 = kkt.penalty - zc0
-    y = kkt.wy / kkt.rho[:, :, None]
-    s = np.full((B, K), 1.0 / zs0)
-    gc = -(kkt.N * y).sum(-1) + s - kkt.bt
-    w = np.concatenate([np.maximum(gc, 1.0), s, np.full((B, T), 0.5 * kkt.u_max2)], 1)
-    z = np.concatenate([np.full((B, K), zc0), np.full((B, K), zs0), np.ones((B, T))], 1)
-    return np.zeros((B, kkt.n)), y, w, z
-
-
-def interior_point(kkt: _Kkt, tol: float, max_iter: int,
-                   start: tuple[np.ndarray, ...] | None = None) -> IpmResult:
-    """Mehrotra predictor-corrector interior-point method on the batched problem.
-
-    Problems that converge are frozen (zero step) while the others continue; problems
-    whose Newton system cannot be inverted are frozen as failed.
-
-    Args:
-        kkt: the problem.
-        tol: stopping tolerance on :meth:`_Kkt.kkt_error`.
-        max_iter: iteration limit.
-        start: optional ``(u, y, w, z)`` to continue from (``w, z > 0``).
-    """
-    B = kkt.batch
-    u, y, w, z = _initial_point(kkt) if start is None else start
-    done = np.zeros(B, dtype=bool)
-    failed = np.zeros(B, dtype=bool)
-    err = np.full(B, np.inf)
-    it = 0
-    with np.errstate(all="ignore"):
-        for it in range(max_iter + 1):
-            res = kkt.residuals(u, y, w, z)
-            err = kkt.kkt_error(res, w, z)
-            done |= err <= tol
-            if (done | failed).all() or it == max_iter:
-                break
-            fac = kkt.factor(u, w, z)
-            failed |= fac.failed & ~done
-            wz = w * z
-            mu = wz.mean(1, keepdims=True)
-            # predictor (affine scaling)
-            du, dy, dw, dz = kkt.direction(fac, u, w, z, res, wz)
-            a_aff = _max_step(w, z, dw, dz)
-            mu_aff = ((w + a_aff * dw) * (z + a_aff * dz)).mean(1, keepdims=True)
-            sigma = np.minimum(mu_aff / mu, 1.0) ** 3
-            # corrector
-            du, dy, dw, dz = kkt.direction(fac, u, w, z, res, wz + dw * dz - sigma * mu)
-            step = np.minimum(STEP_FRACTION * _max_step(w, z, dw, dz), 1.0)
-            finite = np.isfinite(step[:, 0] + du.sum(1) + dw.sum(1) + dz.sum(1) + dy.reshape(B, -1).sum(1))
-            step[done | failed | ~finite] = 0.0
-            if not finite.all():
-                du, dy, dw, dz = (np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0) for d in (du, dy, dw, dz))
-            u = _project_inputs(u + step * du, kkt.T, kkt.D, kkt.radius)
-            y = y + step[:, :, None] * dy
-            w = w + step * dw
-            z = z + step * dz
-    return IpmResult(u=u, y=y, w=w, z=z, converged=done & ~failed, iterations=it, kkt_error=err)
-
-
 # ------------------------------------------------------------------------ differentiation
 def _stationarity_pairing(G: Tensor, h: Tensor, c_x: Tensor, l_x: Tensor, rho_y: Tensor, w_y: Tensor,
                           normals: Tensor, bounds: Tensor, u: Tensor, y: Tensor, zc: Tensor,
@@ -460,6 +154,24 @@ def _stationarity_pairing(G: Tensor, h: Tensor, c_x: Tensor, l_x: Tensor, rho_y:
     return obj + (xi * ((N * (x_rows - y)).sum(-1) - bounds.reshape(B, -1))).sum()
 
 
+def _kernel_arrays(tensors: tuple[Tensor, ...]) -> list[np.ndarray]:
+    """The canonical tensors as C-contiguous float64 NumPy arrays (zero-copy when possible)."""
+    return [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64) for t in tensors]
+
+
+@dataclass
+class _Iterate:
+    """Primal-dual point of B problems (NumPy): u (B, n), y (B, K, D), w and z (B, 2K + T)."""
+
+    u: np.ndarray
+    y: np.ndarray
+    w: np.ndarray
+    z: np.ndarray
+
+    def copy(self) -> "_Iterate":
+        return _Iterate(self.u.copy(), self.y.copy(), self.w.copy(), self.z.copy())
+
+
 class _LocalQpFunction(torch.autograd.Function):
     """Batched interior-point solve with implicit differentiation of its KKT conditions.
 
@@ -471,34 +183,39 @@ class _LocalQpFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, G, h, c_x, l_x, rho_y, w_y, normals, bounds, settings):  # noqa: D102
         alpha, u_max, penalty, tol, max_iter, stats = settings
-        arrays = [t.detach().cpu().numpy().astype(np.float64, copy=False) for t in
-                  (G, h, c_x, l_x, rho_y, w_y, normals, bounds)]
-        kkt = _Kkt(*arrays, alpha, u_max, penalty)
-        result = interior_point(kkt, tol, max_iter)
-        stats["iterations"] = result.iterations
-        ctx.kkt, ctx.result, ctx.tol = kkt, result, tol
-        ctx.save_for_backward(G, h, c_x, l_x, rho_y, w_y, normals, bounds)
+        arrays = _kernel_arrays((G, h, c_x, l_x, rho_y, w_y, normals, bounds))
         B, M, T, D = normals.shape
+        K, n = M * T, T * D
+        point = _Iterate(np.empty((B, n)), np.empty((B, K, D)), np.empty((B, 2 * K + T)), np.empty((B, 2 * K + T)))
+        converged, iterations, kkt_error = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
+        ipm.solve_batch(*arrays, alpha, u_max, penalty, tol, max_iter, point.u, point.y, point.w, point.z, False,
+                        converged, iterations, kkt_error)
+        stats["iterations"] = int(iterations.max(initial=0))
+        ctx.point, ctx.converged, ctx.kkt_error = point, converged, kkt_error
+        ctx.settings = (alpha, u_max, penalty, tol)
+        ctx.save_for_backward(G, h, c_x, l_x, rho_y, w_y, normals, bounds)
 
         def out(a: np.ndarray, *shape: int) -> Tensor:
             return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=h.dtype, device=h.device).reshape(*shape)
 
-        converged = torch.from_numpy(result.converged).to(h.device)
-        ctx.mark_non_differentiable(converged)
-        return (out(result.u, B, T * D), out(result.y, B, M, T, D), out(result.w[:, kkt.K:2 * kkt.K], B, M, T),
-                converged)
+        converged_t = torch.from_numpy(converged).to(h.device)
+        ctx.mark_non_differentiable(converged_t)
+        return (out(point.u, B, n), out(point.y, B, M, T, D), out(point.w[:, K:2 * K], B, M, T), converged_t)
 
     @staticmethod
     def backward(ctx, g_u, g_y, g_s, _g_conv):  # noqa: D102
-        kkt, res = ctx.kkt, ctx.result
-        inputs = ctx.saved_tensors
-        B, K, D = res.y.shape
+        point = ctx.point
+        alpha, u_max, penalty, tol = ctx.settings
+        inputs = ctx.saved_tensors  # (autograd checks these were not modified in place)
+        arrays = _kernel_arrays(inputs)
+        B, K, D = point.y.shape
+        n = point.u.shape[1]
         ref = inputs[1]
 
         def arr(g: Tensor | None, *shape: int) -> np.ndarray:
             if g is None:
                 return np.zeros(shape)
-            return g.detach().cpu().numpy().astype(np.float64, copy=False).reshape(shape)
+            return np.ascontiguousarray(g.detach().cpu().numpy(), dtype=np.float64).reshape(shape)
 
         def ten(a: np.ndarray) -> Tensor:
             return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=ref.dtype, device=ref.device)
@@ -506,22 +223,21 @@ class _LocalQpFunction(torch.autograd.Function):
         # Gradients are more sensitive than solutions to the barrier perturbation (a
         # nearly degenerate row counts as half active): continue from the returned point
         # to a tighter tolerance before differentiating (usually one or two iterations).
-        polished = interior_point(kkt, POLISH_FACTOR * ctx.tol, POLISH_ITERATIONS,
-                                  start=(res.u, res.y, res.w, res.z))
-        keep = ~res.converged | polished.converged | (polished.kkt_error <= res.kkt_error)
-        res = IpmResult(u=np.where(keep[:, None], polished.u, res.u),
-                        y=np.where(keep[:, None, None], polished.y, res.y),
-                        w=np.where(keep[:, None], polished.w, res.w), z=np.where(keep[:, None], polished.z, res.z),
-                        converged=res.converged, iterations=res.iterations, kkt_error=polished.kkt_error)
-        with np.errstate(all="ignore"):
-            fac = kkt.factor(res.u, res.w, res.z)
-            a_u, a_y, xi = kkt.adjoint(fac, res.w, res.z, arr(g_u, B, kkt.n), arr(g_y, B, K, D),
-                                       arr(g_s, B, K))
+        polished = point.copy()
+        p_conv, p_iter, p_err = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
+        ipm.solve_batch(*arrays, alpha, u_max, penalty, POLISH_FACTOR * tol, POLISH_ITERATIONS,
+                        polished.u, polished.y, polished.w, polished.z, True, p_conv, p_iter, p_err)
+        keep = ~ctx.converged | p_conv | (p_err <= ctx.kkt_error)
+        at = _Iterate(*(np.where(keep.reshape(-1, *[1] * (a.ndim - 1)), a, b) for a, b in
+                        zip((polished.u, polished.y, polished.w, polished.z), (point.u, point.y, point.w, point.z))))
+        a_u, a_y, xi, failed = np.empty((B, n)), np.empty((B, K, D)), np.empty((B, K)), np.empty(B, dtype=np.bool_)
+        ipm.adjoint_batch(*arrays, alpha, at.u, at.w, at.z, arr(g_u, B, n), arr(g_y, B, K, D), arr(g_s, B, K),
+                          a_u, a_y, xi, failed)
         a_u, a_y, xi = (ten(np.nan_to_num(a)) for a in (a_u, a_y, xi))
         needs = ctx.needs_input_grad[:8]
         with torch.enable_grad():
             leaves = [t.detach().requires_grad_(n) for t, n in zip(inputs, needs)]
-            pairing = _stationarity_pairing(*leaves, ten(res.u), ten(res.y), ten(res.z[:, :K]), a_u, a_y, xi)
+            pairing = _stationarity_pairing(*leaves, ten(at.u), ten(at.y), ten(at.z[:, :K]), a_u, a_y, xi)
             wanted = [leaf for leaf, n in zip(leaves, needs) if n]
             grads = iter(torch.autograd.grad(pairing, wanted, allow_unused=True)) if wanted else iter(())
         out = []
@@ -560,15 +276,15 @@ class FastLocalMPC(nn.Module):
       does not). Globalization: after each step every ``U_t`` is projected onto the
       ball of radius ``u_max`` (the iterate may be moved since all residuals are
       recomputed; near the solution the projection is inactive).
-    * **Linear algebra.** Per collision row, ``Y_{j,t}`` and ``s_{j,t}`` are eliminated in
-      closed form (diagonal Hessian ``rho_j``), leaving ``S0 = H + blockdiag(z_q I) +
-      A^T diag(deff) A`` (T D x T D) with bounded weights; the input-bound multipliers
-      stay in the system (augmented, quasi-definite, size T D + T), so no 1/mu-sized
-      term is ever factored (see :meth:`_Kkt.factor`). One LU per iteration serves the
-      predictor and the corrector.
+    * **Linear algebra** (:mod:`torch_gpmpc.ipm`, compiled per problem). Per collision
+      row, ``Y_{j,t}`` and ``s_{j,t}`` are eliminated in closed form (diagonal Hessian
+      ``rho_j``), leaving ``S0 = H + blockdiag(z_q I) + A^T diag(deff) A`` (T D x T D) with
+      bounded weights; the input-bound multipliers stay in the system (augmented,
+      quasi-definite, size T D + T) and are solved through their T x T Schur complement,
+      so no 1/mu-sized term is ever factored. Two Cholesky factorizations per iteration
+      serve the predictor and the corrector.
     * **Stopping.** Relative dual residuals, relative primal residuals and the absolute
-      complementarity ``sum(w z)`` all below ``tol``. Converged problems are frozen
-      while the rest of the batch continues.
+      complementarity ``sum(w z)`` all below ``tol``, per problem.
     * **Gradients.** Implicit differentiation of the KKT conditions at the returned
       primal-dual point: one adjoint solve with the same reduced matrix, then the
       data-dependent part of the KKT residual is differentiated by autograd, so every

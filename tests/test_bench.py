@@ -1,0 +1,61 @@
+"""Short versions of the ``gpmpc bench`` sections ``local`` and ``scale`` (the full ones are
+measurements, run by hand; see the README's performance section)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from torch_gpmpc.cli import main
+
+
+def test_bench_local_short(monkeypatch):
+    import eval.bench_local as bench_local
+
+    monkeypatch.setattr(bench_local, "BATCHES", (2, 4))
+    result = bench_local.run(quick=True)
+    paths = {(r["path"], r["batch"], r["pass"]) for r in result["table"]}
+    for path in ("fast", "cvxpylayers-default", "clarabel"):
+        for batch in (2, 4):
+            assert {(path, batch, "forward"), (path, batch, "forward+backward")} <= paths
+    assert ("reference", 2, "forward") in paths and ("reference", 4, "forward") not in paths  # quick
+    for check in result["checks"]:  # the fast path agrees with the cvxpylayers paths
+        assert check["fast_ok_fraction"] == 1.0
+        assert check["fast_vs_clarabel"]["max_abs_plan_diff"] < 1e-6
+        assert check["fast_vs_clarabel"]["max_rel_grad_diff"] < 1e-5
+    assert result["checks"][0]["fast_vs_reference"]["max_abs_plan_diff"] < 1e-6
+    targets = result["targets"]
+    assert set(targets) == {"fast_batch4_forward", "fast_batch4_forward+backward"}
+    assert all(t["speedup_vs_default"] > 0 and isinstance(t["met"], bool) for t in targets.values())
+
+
+def test_bench_cli_scale_short(tmp_path, monkeypatch):
+    import eval.bench_scale as bench_scale
+
+    monkeypatch.setattr(bench_scale, "TEAM_SIZES", (3, 6))
+    assert main(["bench", "--sections", "scale", "--quick", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "bench.json").read_text())
+    rows = result["sections"]["scale"]["table"]
+    assert [r["agents"] for r in rows] == [3, 6]
+    assert all(r["ms_per_step_per_agent"] > 0 for r in rows)
+    assert (tmp_path / "figures" / "bench_scale.png").stat().st_size > 0
+
+
+def test_bench_unknown_section_and_alias(tmp_path, capsys):
+    assert main(["bench", "--sections", "nope", "--out", str(tmp_path)]) == 2
+    assert "unknown section 'nope'" in capsys.readouterr().err
+    assert not (tmp_path / "bench.json").exists()
+
+
+def test_bench_run_short_breakdown_adds_up():
+    import eval.bench_run as bench_run
+
+    result = bench_run.run(quick=True)  # 10 steps, no child process
+    rows = {r["part"]: r for r in result["table"]}
+    assert result["steps"] == 10 and result["admm_iterations"] >= 10
+    loop = rows.pop("closed loop")
+    rows.pop("GP fit (3 agents)")
+    assert all(r["total_s"] >= 0 for r in rows.values())
+    assert sum(r["total_s"] for r in rows.values()) == pytest.approx(loop["total_s"], rel=1e-9)
+    assert rows["solve: kernel"]["total_s"] > 0 and rows["linearize"]["total_s"] > 0
