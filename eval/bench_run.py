@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import pkgutil
 import subprocess
 import sys
 import time
@@ -41,21 +42,6 @@ TIMED = (
 )
 
 
-def _resolve(path: str):
-    import importlib
-
-    parts = path.split(".")
-    for cut in range(len(parts), 0, -1):
-        try:
-            obj = importlib.import_module(".".join(parts[:cut]))
-        except ModuleNotFoundError:
-            continue
-        for name in parts[cut:]:
-            obj = getattr(obj, name)
-        return obj
-    raise ImportError(path)
-
-
 @contextlib.contextmanager
 def _timers():
     """Wrap every :data:`TIMED` function with a timer; yields ``{label: [seconds, calls]}``."""
@@ -73,7 +59,7 @@ def _timers():
         return timed
 
     for owner_path, attr, label in TIMED:
-        owner = _resolve(owner_path)
+        owner = pkgutil.resolve_name(owner_path)
         original = owner.__dict__[attr] if isinstance(owner, type) else getattr(owner, attr)
         saved.append((owner, attr, original))
         setattr(owner, attr, wrap(original, label))
@@ -118,7 +104,7 @@ def run(quick: bool = False, out: Path | str | None = None) -> dict:
     finally:
         torch.set_num_threads(threads)
     seconds = {label: t for label, (t, _) in totals.items()}
-    iterations = totals["solve"][1]
+    iterations = int(rollout.admm_iterations.sum())
     loop = total - seconds["gp_fit"]
     parts = {
         "linearize": seconds["linearize"],
@@ -140,5 +126,6 @@ def run(quick: bool = False, out: Path | str | None = None) -> dict:
                   "ms_per_step": 1e3 * loop / rollout.num_steps, "ms_per_admm_iteration": 1e3 * loop / iterations,
                   "share_of_loop": 1.0})
     result.update({"table": table, "steps": rollout.num_steps, "admm_iterations": iterations,
+                   "calls": {label: count for label, (_, count) in totals.items()},
                    "notes": "in-process closed loop with timers; gpmpc_run_wall_s is the whole command"})
     return result

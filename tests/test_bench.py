@@ -1,11 +1,9 @@
-"""Short versions of the ``gpmpc bench`` sections ``local`` and ``scale`` (the full ones are
+"""Short versions of the ``gpmpc bench`` sections ``local``, ``scale`` and ``run`` (the full ones are
 measurements, run by hand; see the README's performance section)."""
 
 from __future__ import annotations
 
 import json
-
-import pytest
 
 from torch_gpmpc.cli import main
 
@@ -48,14 +46,19 @@ def test_bench_unknown_section_and_alias(tmp_path, capsys):
     assert not (tmp_path / "bench.json").exists()
 
 
-def test_bench_run_short_breakdown_adds_up():
+def test_bench_run_short_breakdown_times_every_iteration_once():
     import eval.bench_run as bench_run
 
     result = bench_run.run(quick=True)  # 10 steps, no child process
     rows = {r["part"]: r for r in result["table"]}
     assert result["steps"] == 10 and result["admm_iterations"] >= 10
-    loop = rows.pop("closed loop")
+    # the timers saw exactly the rollout's own ADMM iteration count (one solve, one kernel
+    # call, one assembly per iteration; one ADMM step per closed-loop step) and fit 1 time
+    calls = result["calls"]
+    for label in ("solve", "kernel", "assembly", "linearize", "canonicalize"):
+        assert calls[label] == result["admm_iterations"], label
+    assert calls["admm_step"] == 10 and calls["gp_fit"] == 1
+    rows.pop("closed loop")
     rows.pop("GP fit (3 agents)")
-    assert all(r["total_s"] >= 0 for r in rows.values())
-    assert sum(r["total_s"] for r in rows.values()) == pytest.approx(loop["total_s"], rel=1e-9)
+    assert all(r["total_s"] >= 0 for r in rows.values())  # nested timers: remainders are not negative
     assert rows["solve: kernel"]["total_s"] > 0 and rows["linearize"]["total_s"] > 0

@@ -88,3 +88,16 @@ def test_absmax_propagates_nan():
     assert np.isnan(ipm._absmax(np.array([1.0, np.nan, 2.0])))
     assert np.isnan(ipm._absmax2(np.array([[1.0], [np.nan]])))
     assert ipm._absmax(np.zeros(0)) == 0.0
+
+
+def test_kkt_error_hand_computed_and_nan_anywhere_is_inf():
+    r_u, r_y, r_s = np.array([0.5, -2.0]), np.array([[0.1, 0.2]]), np.array([3.0])
+    r_pc, r_pq, w, z = np.array([0.0]), np.array([-4.0]), np.array([1.0, 2.0]), np.array([0.5, 0.25])
+    # max(2/2, 0.2/1, 3/(1+2), 0/4, 4/4, w.z = 1.0) = 1.0; then make the u residual dominate
+    assert ipm._kkt_error(r_u, r_y, r_s, r_pc, r_pq, w, z, 2.0, 1.0, 4.0, 2.0) == 1.0
+    assert ipm._kkt_error(r_u, r_y, r_s, r_pc, r_pq, w, z, 0.5, 1.0, 4.0, 2.0) == 4.0
+    for bad in (r_y, r_s, r_pc, r_pq):  # a NaN in any residual, not only the first one checked
+        saved = bad.flat[0]
+        bad.flat[0] = np.nan
+        assert ipm._kkt_error(r_u, r_y, r_s, r_pc, r_pq, w, z, 2.0, 1.0, 4.0, 2.0) == np.inf
+        bad.flat[0] = saved

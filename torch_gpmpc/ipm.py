@@ -235,17 +235,18 @@ def _kkt_error(r_u, r_y, r_s, r_pc, r_pq, w, z, scale_u, scale_y, scale_p, penal
     """Largest of the relative dual residuals, the relative primal residuals and the
     absolute complementarity ``sum(w z)`` (absolute because nearly degenerate collision
     rows need it: their copies y follow z)."""
-    err = _absmax(r_u) / scale_u
-    err = max(err, _absmax2(r_y) / scale_y)
-    err = max(err, _absmax(r_s) / (1.0 + penalty))
-    err = max(err, _absmax(r_pc) / scale_p)
-    err = max(err, _absmax(r_pq) / scale_p)
+    e_u = _absmax(r_u) / scale_u
+    e_y = _absmax2(r_y) / scale_y
+    e_s = _absmax(r_s) / (1.0 + penalty)
+    e_c = _absmax(r_pc) / scale_p
+    e_q = _absmax(r_pq) / scale_p
     gap = 0.0
     for i in range(w.shape[0]):
         gap += w[i] * z[i]
-    if not (err == err and gap == gap):
+    # checked on the sum: max() drops a NaN that is not its first argument
+    if not np.isfinite(e_u + e_y + e_s + e_c + e_q + gap):
         return np.inf
-    return max(err, gap)
+    return max(e_u, e_y, e_s, e_c, e_q, gap)
 
 
 @_jit
