@@ -1,95 +1,12 @@
-"""``gpmpc run``: one closed-loop scenario -> metrics.json, rollout.npz, figures/, tb/."""
+"""Research script: one closed-loop scenario -> metrics.json, rollout.npz, figures, TensorBoard.
 
-from __future__ import annotations
+Thin over the library: the same as `gpmpc run ...`. Run from the repository root,
+e.g. `python eval/run.py --help`.
+"""
 
-import logging
 import sys
-from pathlib import Path
 
-from tqdm import tqdm
+from torch_gpmpc.cli import main
 
-from torch_gpmpc.config import load_config, parse_overrides
-from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.fileio import write_json
-
-log = logging.getLogger(__name__)
-
-
-def config_from_args(args):
-    """Defaults < --config file < --set overrides < explicit flags (--method, --seed)."""
-    overrides = parse_overrides(args.set)
-    if getattr(args, "method", None):
-        overrides["method"] = args.method
-    if getattr(args, "seed", None) is not None:
-        overrides["seed"] = args.seed
-    return load_config(args.config, overrides)
-
-
-def main(args) -> int:
-    from torch_gpmpc.gp import ResidualGP
-    from torch_gpmpc.metrics import compute_metrics
-    from torch_gpmpc.scenarios import make_scenario
-    from torch_gpmpc.sim import check_gp_inputs, needs_gp, simulate
-    from torch_gpmpc.tblog import TBLogger
-
-    distributed = args.backend == "distributed"
-    if distributed:
-        from torch_gpmpc import distributed as dist_backend
-
-        if dist_backend.is_agent_rank():  # torchrun / env launch: ranks > 0 serve agents, rank 0 writes
-            return dist_backend.agent_main(threads=getattr(args, "threads", 1))
-    # validate everything (config, scenario, model, output path) before any work or output
-    cfg = config_from_args(args)
-    scenario = make_scenario(cfg, args.scenario)
-    gps = [ResidualGP.load(args.gp_model, expected_dim=cfg.dim, expected_input_dim=cfg.dim)] \
-        if args.gp_model else None
-    if gps is None and needs_gp(cfg.method):
-        check_gp_inputs(cfg)
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise GpmpcError(f"--out {str(out)!r} is an existing file; give a directory path")
-    tb = TBLogger(out / "tb")
-    bar = tqdm(total=cfg.max_steps, desc=f"{cfg.method} seed {cfg.seed}", unit="step", leave=False)
-
-    def on_step(t: int, info: dict) -> None:
-        bar.update(1)
-        bar.set_postfix(admm_it=info["iterations"], min_dist=f"{info['min_distance']:.3f}")
-
-    try:
-        if distributed:  # every agent process loads --gp-model (or trains its own GP) itself
-            rollout, report = dist_backend.simulate_distributed(
-                cfg, scenario, gp_model=args.gp_model, on_step=on_step, tb=tb,
-                agents_per_process=getattr(args, "agents_per_process", 1),
-                timeout_s=getattr(args, "timeout", dist_backend.DEFAULT_TIMEOUT_S), log_dir=out / "agent_logs")
-        else:
-            rollout = simulate(cfg, scenario, gps=gps, on_step=on_step, tb=tb)
-    finally:
-        bar.close()
-        tb.close()
-    metrics = compute_metrics(rollout)
-    if distributed:
-        metrics.update(report.metrics(rollout, cfg))
-    rollout.save(out / "rollout.npz")
-    write_json(out / "metrics.json", metrics)
-    if not args.no_figures:
-        from torch_gpmpc.plots import save_run_figures
-
-        save_run_figures(rollout, out / "figures", reference_paths=scenario.reference_path().numpy())
-    print(_summary(metrics, out))
-    if distributed and report.lost_agents:
-        print(f"gpmpc run: warning: {report.summary()}", file=sys.stderr)
-        return 3
-    return 0
-
-
-def _summary(m: dict, out: Path) -> str:
-    def num(value, fmt: str) -> str:  # null when K = 1 (no pairs) or no step was taken
-        return "-" if value is None else format(value, fmt)
-
-    ttt = m["time_to_target"]
-    return (
-        f"{m['method']} seed {m['seed']}: {'reached at t = ' + str(ttt) if m['reached'] else 'not reached'} "
-        f"in {m['steps']} steps; min distance {num(m['min_pair_distance'], '.3f')} "
-        f"({m['violations']} violations of r_safe); ADMM iterations mean {num(m['admm_iterations_mean'], '.1f')} "
-        f"max {num(m['admm_iterations_max'], 'd')}; wall {m['wall_time_s']:.1f} s -> {out}"
-    )
+if __name__ == "__main__":
+    sys.exit(main(["run", *sys.argv[1:]]))

@@ -4,3 +4,6 @@ overhead and make timings on a shared 2-core machine erratic)."""
 import torch
 
 torch.set_num_threads(1)
+
+import torch as _t
+_t.set_default_dtype(_t.float64)  # TEMP

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from torch_gpmpc.admm import ADMM, initial_state
-from torch_gpmpc.config import Config
-from torch_gpmpc.graph import communication_graph, graph_from_edges
-from torch_gpmpc.systems import NominalModel, VortexWind
+from torch_gpmpc.coordination.admm import ADMM, initial_state
+from torch_gpmpc.config.schema import Config
+from torch_gpmpc.coordination.graph import communication_graph, graph_from_edges
+from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 
 from tests.helpers import ConstantVarianceGP
 

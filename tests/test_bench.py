@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import json
 
-from torch_gpmpc.cli import main
+from torch_gpmpc.cli.parser import main
 
 
 def test_bench_local_short(monkeypatch):
-    import eval.bench_local as bench_local
+    import torch_gpmpc.bench.local as bench_local
 
     monkeypatch.setattr(bench_local, "BATCHES", (2, 4))
     result = bench_local.run(quick=True)
@@ -29,7 +29,7 @@ def test_bench_local_short(monkeypatch):
 
 
 def test_bench_cli_scale_short(tmp_path, monkeypatch):
-    import eval.bench_scale as bench_scale
+    import torch_gpmpc.bench.scale as bench_scale
 
     monkeypatch.setattr(bench_scale, "TEAM_SIZES", (3, 6))
     assert main(["bench", "--sections", "scale", "--quick", "--out", str(tmp_path)]) == 0
@@ -47,7 +47,7 @@ def test_bench_unknown_section_and_alias(tmp_path, capsys):
 
 
 def test_bench_run_short_breakdown_times_every_iteration_once():
-    import eval.bench_run as bench_run
+    import torch_gpmpc.bench.run as bench_run
 
     result = bench_run.run(quick=True)  # 10 steps, no child process
     rows = {r["part"]: r for r in result["table"]}

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from torch_gpmpc.cli import main
-from torch_gpmpc.data import Transitions
-from torch_gpmpc.gp import ResidualGP
-from torch_gpmpc.tblog import TBLogger, read_scalars
+from torch_gpmpc.cli.parser import main
+from torch_gpmpc.data.transitions import Transitions
+from torch_gpmpc.gp.model import ResidualGP
+from torch_gpmpc.report.tensorboard import TBLogger, read_scalars
 
 
 def _fails(argv, capsys) -> str:
@@ -110,7 +110,7 @@ def test_tblogger_noop_and_nested_dicts(tmp_path):
 
 
 def test_bench_gp_smoke(monkeypatch):
-    import eval.bench_gp as bench_gp
+    import torch_gpmpc.bench.gp as bench_gp
 
     monkeypatch.setattr(bench_gp, "SIZES", (100,))
     result = bench_gp.run(quick=True, out=None)

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from torch_gpmpc.data import Transitions, collect_transitions
+from torch_gpmpc.data.transitions import Transitions, collect_transitions
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.gp import fit_from_transitions
-from torch_gpmpc.systems import NominalModel, make_system
+from torch_gpmpc.gp.model import fit_from_transitions
+from torch_gpmpc.dynamics.systems import NominalModel, make_system
 
 
 @pytest.fixture(scope="module")
@@ -236,7 +236,7 @@ def test_too_few_samples(tmp_path):
 
 def test_duplicates_dropped_noise_kept(tmp_path, caplog):
     text = "x0,u0,x_next0\n1,2,3\n1,2,3\n1,2,3.5\n4,5,6\n"
-    with caplog.at_level(logging.WARNING, logger="torch_gpmpc.data"):
+    with caplog.at_level(logging.WARNING, logger="torch_gpmpc.data.transitions"):
         tr = Transitions.load(_csv(tmp_path, text))
     assert tr.x_next[:, 0].tolist() == [3.0, 3.5, 6.0]  # exact duplicate gone, noisy repeat kept
     assert "dropped 1 exact duplicate" in caplog.text

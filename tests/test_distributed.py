@@ -14,16 +14,16 @@ import numpy as np
 import pytest
 import torch
 
-from torch_gpmpc.admm import ADMM
-from torch_gpmpc.cli import main
-from torch_gpmpc.config import Config, load_config
-from torch_gpmpc.distributed import AgentController, simulate_distributed
+from torch_gpmpc.coordination.admm import ADMM
+from torch_gpmpc.cli.parser import main
+from torch_gpmpc.config.schema import Config, load_config
+from torch_gpmpc.coordination.distributed.world import AgentController, simulate_distributed
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.graph import communication_graph
-from torch_gpmpc.metrics import CONTRACT_KEYS, pair_distances
-from torch_gpmpc.scenarios import Scenario, make_scenario
-from torch_gpmpc.sim import _clip_norm, noise_sequence, simulate
-from torch_gpmpc.systems import make_system
+from torch_gpmpc.coordination.graph import communication_graph
+from torch_gpmpc.sim.metrics import CONTRACT_KEYS, pair_distances
+from torch_gpmpc.sim.scenarios import Scenario, make_scenario
+from torch_gpmpc.sim.closed_loop import _clip_norm, noise_sequence, simulate
+from torch_gpmpc.dynamics.systems import make_system
 
 QUICK = {"method": "gp-chance", "max_steps": 3, "admm_max_iter": 5, "gp_iters": 5}
 

@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.fastmpc import FastLocalMPC
-from torch_gpmpc.config import METHODS
-from torch_gpmpc.mpc import LocalMPC, LocalProblemData, get_local_mpc
-from torch_gpmpc.systems import NominalModel
+from torch_gpmpc.control.solvers.interior_point import FastLocalMPC
+from torch_gpmpc.config.schema import METHODS
+from torch_gpmpc.control.solvers.conic import LocalMPC, LocalProblemData, get_local_mpc
+from torch_gpmpc.dynamics.systems import NominalModel
 
 T, D, U_MAX, ALPHA, B_GAIN = 8, 2, 2.0, 1e-3, 0.1
 NOMINAL = NominalModel(dim=D, a=1.0, b=B_GAIN)

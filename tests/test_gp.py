@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from torch_gpmpc.data import collect_transitions
+from torch_gpmpc.data.transitions import collect_transitions
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.gp import FORMAT, ResidualGP, _safe_cholesky, fit_per_agent, fit_residual_gp, holdout_metrics
-from torch_gpmpc.systems import NominalModel, make_system
+from torch_gpmpc.gp.model import FORMAT, ResidualGP, _safe_cholesky, fit_per_agent, fit_residual_gp, holdout_metrics
+from torch_gpmpc.dynamics.systems import NominalModel, make_system
 
 SYSTEM = make_system(noise_std=0.1)
 #: grid RMSE of the seed-0 fit measured at 0.0379 (10 seeds: 0.021-0.044); the bound

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from torch_gpmpc import ipm
+from torch_gpmpc.control.solvers import ipm_kernel as ipm
 
 
 def _random_problem(seed: int, T: int = 5, D: int = 2, M: int = 2):

@@ -1,4 +1,4 @@
-"""Tests of torch_gpmpc.linearize: Table 1 methods, finite differences, errors."""
+"""Tests of torch_gpmpc.control.linearize: Table 1 methods, finite differences, errors."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.linearize import linearize_plan
-from torch_gpmpc.systems import NominalModel, VortexWind
+from torch_gpmpc.control.linearize import linearize_plan
+from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 
 torch.set_default_dtype(torch.float64)
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.metrics import CONTRACT_KEYS, compute_metrics, pair_distances, pair_index, time_to_target
-from torch_gpmpc.rollout import Rollout
+from torch_gpmpc.sim.metrics import CONTRACT_KEYS, compute_metrics, pair_distances, pair_index, time_to_target
+from torch_gpmpc.sim.rollout import Rollout
 
 
 def make_rollout(states, targets, *, config=None, admm_iterations=None, converged=None,

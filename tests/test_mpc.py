@@ -1,4 +1,4 @@
-"""Tests of torch_gpmpc.mpc.LocalMPC against independent cvxpy solves and finite differences."""
+"""Tests of torch_gpmpc.control.solvers.conic.LocalMPC against independent cvxpy solves and finite differences."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.linearize import linearize_plan
-from torch_gpmpc.mpc import LocalMPC, LocalProblemData, collision_rows, get_local_mpc
-from torch_gpmpc.risk import chance_margins, collision_normals, pair_risks, state_covariances
-from torch_gpmpc.systems import NominalModel, VortexWind
+from torch_gpmpc.control.linearize import linearize_plan
+from torch_gpmpc.control.solvers.conic import LocalMPC, LocalProblemData, collision_rows, get_local_mpc
+from torch_gpmpc.control.risk import chance_margins, collision_normals, pair_risks, state_covariances
+from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 
 torch.set_default_dtype(torch.float64)
 
@@ -239,7 +239,7 @@ def test_solver_exception_is_isolated(layers, caplog, monkeypatch):
         return real_forward(*params, solver_args=solver_args)
 
     monkeypatch.setattr(layer.layer, "forward", flaky)
-    with caplog.at_level(logging.DEBUG, logger="torch_gpmpc.mpc"):  # ADMM warns once per kind
+    with caplog.at_level(logging.DEBUG, logger="torch_gpmpc.control.solvers.conic"):  # ADMM warns once per kind
         sol = layer(data)
     assert sol.ok.tolist() == [True, False, True]
     assert torch.isnan(sol.X[1]).all() and torch.isfinite(sol.X[[0, 2]]).all()

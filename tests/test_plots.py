@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from torch_gpmpc import plots
+from torch_gpmpc.report import figures as plots
 from torch_gpmpc.errors import GpmpcError
 from tests.test_metrics import HAND_STATES, HAND_TARGETS, make_rollout
 

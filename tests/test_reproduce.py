@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import csv
 
-from torch_gpmpc.cli import main
-from torch_gpmpc.config import METHODS
-from torch_gpmpc.experiments import summarize, table_markdown
+from torch_gpmpc.cli.parser import main
+from torch_gpmpc.config.schema import METHODS
+from torch_gpmpc.sim.experiments import summarize, table_markdown
 from tests.test_metrics import make_rollout
 
 SHORT = ["--runs", "1", "--workers", "1", "--set", "max_steps=2", "--set", "admm_max_iter=2",
@@ -57,11 +57,11 @@ def test_killed_reproduction_leaves_only_complete_files_and_resumes(tmp_path, ca
     import sys
     import time
 
-    from torch_gpmpc.rollout import Rollout
+    from torch_gpmpc.sim.rollout import Rollout
 
     out = tmp_path / "repro"
     args = ["reproduce", "--out", str(out), "--methods", "nominal,nominal-chance"] + SHORT
-    proc = subprocess.Popen([sys.executable, "-m", "torch_gpmpc.cli", *args],
+    proc = subprocess.Popen([sys.executable, "-m", "torch_gpmpc.cli.parser", *args],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     cache = out / "cache"
 

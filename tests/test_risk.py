@@ -1,4 +1,4 @@
-"""Tests of torch_gpmpc.risk against closed forms and hand-unrolled computations."""
+"""Tests of torch_gpmpc.control.risk against closed forms and hand-unrolled computations."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.risk import (
+from torch_gpmpc.control.risk import (
     chance_margins,
     chance_quantile,
     collision_normals,

@@ -30,16 +30,16 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from torch_gpmpc.cli import main
-from torch_gpmpc.config import Config, load_config
-from torch_gpmpc.data import Transitions, collect_transitions
+from torch_gpmpc.cli.parser import main
+from torch_gpmpc.config.schema import Config, load_config
+from torch_gpmpc.data.transitions import Transitions, collect_transitions
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.gp import ResidualGP, fit_residual_gp
-from torch_gpmpc.metrics import compute_metrics
-from torch_gpmpc.mpc import FAILURE_KINDS, LocalProblemData, get_local_mpc
-from torch_gpmpc.rollout import Rollout
-from torch_gpmpc.scenarios import Scenario, make_scenario
-from torch_gpmpc.systems import NominalModel, make_system
+from torch_gpmpc.gp.model import ResidualGP, fit_residual_gp
+from torch_gpmpc.sim.metrics import compute_metrics
+from torch_gpmpc.control.solvers.conic import FAILURE_KINDS, LocalProblemData, get_local_mpc
+from torch_gpmpc.sim.rollout import Rollout
+from torch_gpmpc.sim.scenarios import Scenario, make_scenario
+from torch_gpmpc.dynamics.systems import NominalModel, make_system
 
 F64 = torch.float64
 
@@ -174,7 +174,7 @@ def malicious_raw_pickle(tmp: Path) -> Path:
 
 def edited_model(tmp: Path, src: Path, edit, rehash: bool = True) -> Path:
     """A copy of a model file with ``edit`` applied to its payload (checksum updated if ``rehash``)."""
-    from torch_gpmpc.gp import _checksum
+    from torch_gpmpc.gp.model import _checksum
 
     payload = torch.load(src, weights_only=True)
     edit(payload)
@@ -480,7 +480,7 @@ API_CASES = [
     ("api-scenario-random-crowded", lambda a: make_scenario(Config(scenario="random", num_agents=30,
                                                                    min_separation=3.0, circle_radius=2.0)),
      "could not place"),
-    ("api-simulate-gp-dim", lambda a: __import__("torch_gpmpc.sim", fromlist=["simulate"]).simulate(
+    ("api-simulate-gp-dim", lambda a: __import__("torch_gpmpc.sim.closed_loop", fromlist=["simulate"]).simulate(
         Config(method="gp", max_steps=1), gps=[ResidualGP.load(a.gp3)]), "dimension 3/3"),
     ("api-local-problem-shape", lambda a: _small_layer()(
         _problem(torch.zeros(1, 2, dtype=F64), PT, PM)._replace_x0(torch.zeros(1, 3, dtype=F64))),
@@ -770,9 +770,9 @@ FAULT_CFG = dict(horizon=4, max_steps=6, admm_max_iter=4, method="nominal", nois
 @pytest.mark.parametrize("mode, kind", [("exception", "exception"), ("nan", "non-finite"),
                                         ("inaccurate", "inaccurate")])
 def test_solver_faults_fall_back_count_and_warn_once(mode, kind, caplog, tmp_path):
-    from torch_gpmpc.sim import simulate
+    from torch_gpmpc.sim.closed_loop import simulate
 
-    from torch_gpmpc.admm import ADMM
+    from torch_gpmpc.coordination.admm import ADMM
 
     cfg = Config(**FAULT_CFG)
     layer = ADMM(cfg)._layer(2)  # the cached layer simulate() will use (3 agents, 2 neighbours each)
@@ -799,8 +799,8 @@ def test_solver_faults_fall_back_count_and_warn_once(mode, kind, caplog, tmp_pat
 
 def test_failed_agent_keeps_its_previous_shifted_plan():
     """The first ADMM iteration of step 2 fails for agent 1: it uses step 1's plan shifted."""
-    from torch_gpmpc.admm import ADMM
-    from torch_gpmpc.graph import communication_graph
+    from torch_gpmpc.coordination.admm import ADMM
+    from torch_gpmpc.coordination.graph import communication_graph
 
     cfg = Config(**{**FAULT_CFG, "admm_max_iter": 1})
     scen = make_scenario(cfg)
@@ -820,8 +820,8 @@ def test_failed_agent_keeps_its_previous_shifted_plan():
 
 def test_layer_exception_escaping_the_layer_fails_all_agents_not_the_run(monkeypatch, caplog):
     """A fault outside the solver call (the whole layer raises): every agent falls back."""
-    import torch_gpmpc.admm as admm_mod
-    from torch_gpmpc.sim import simulate
+    import torch_gpmpc.coordination.admm as admm_mod
+    from torch_gpmpc.sim.closed_loop import simulate
 
     real = admm_mod.get_local_mpc
     calls = {"n": 0}
@@ -847,8 +847,8 @@ def test_layer_exception_escaping_the_layer_fails_all_agents_not_the_run(monkeyp
 def test_interrupt_wrapped_by_c_code_stops_the_run_instead_of_falling_back(monkeypatch):
     """Ctrl-C that arrives while compiled code calls back into Python comes out as
     ``SystemError(...) from KeyboardInterrupt`` (seen with numba); it must stop the run."""
-    import torch_gpmpc.admm as admm_mod
-    from torch_gpmpc.sim import simulate
+    import torch_gpmpc.coordination.admm as admm_mod
+    from torch_gpmpc.sim.closed_loop import simulate
 
     def interrupted_factory(*args, **kwargs):
         def call(data):
@@ -873,7 +873,7 @@ def _check_output_dir(out: Path) -> None:
     for png in (out / "figures").glob("*.png") if (out / "figures").exists() else ():
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     if (out / "tb").exists():
-        from torch_gpmpc.tblog import read_scalars
+        from torch_gpmpc.report.tensorboard import read_scalars
 
         read_scalars(out / "tb")  # events are append-only records; a short file still reads
 
@@ -883,7 +883,7 @@ def _start_run(out: Path) -> subprocess.Popen:
     # Python then installs no KeyboardInterrupt handler; give the child the default handler
     # so the test does not depend on how its runner was launched.
     code = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-            "from torch_gpmpc.cli import main; sys.exit(main(sys.argv[1:]))")
+            "from torch_gpmpc.cli.parser import main; sys.exit(main(sys.argv[1:]))")
     return subprocess.Popen(
         [sys.executable, "-c", code, "run", "--method", "nominal", "--out", str(out), "--no-figures",
          "--set", "max_steps=150", "--set", "horizon=13"],
@@ -942,8 +942,8 @@ def test_interrupt_while_writing_leaves_no_partial_file(tmp_path, monkeypatch, c
 def test_fast_solver_rejects_bad_problem_and_run_falls_back(monkeypatch, caplog):
     """The default fast path: agent 1's problem data turns non-finite on some calls. The
     solver flags that row (never raises), ADMM falls back, counts it and warns once."""
-    from torch_gpmpc.fastmpc import FastLocalMPC
-    from torch_gpmpc.sim import simulate
+    from torch_gpmpc.control.solvers.interior_point import FastLocalMPC
+    from torch_gpmpc.sim.closed_loop import simulate
 
     real_forward = FastLocalMPC.forward
     calls = {"n": 0, "injected": 0}

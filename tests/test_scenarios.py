@@ -8,9 +8,9 @@ import math
 import pytest
 import torch
 
-from torch_gpmpc.config import Config
+from torch_gpmpc.config.schema import Config
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.scenarios import Scenario, make_scenario
+from torch_gpmpc.sim.scenarios import Scenario, make_scenario
 
 SQ3 = math.sqrt(3.0)
 

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 import torch
 
-from torch_gpmpc.cli import main
-from torch_gpmpc.config import METHODS, Config
-from torch_gpmpc.metrics import compute_metrics
-from torch_gpmpc.scenarios import make_scenario
-from torch_gpmpc.sim import noise_sequence, simulate
+from torch_gpmpc.cli.parser import main
+from torch_gpmpc.config.schema import METHODS, Config
+from torch_gpmpc.sim.metrics import compute_metrics
+from torch_gpmpc.sim.scenarios import make_scenario
+from torch_gpmpc.sim.closed_loop import noise_sequence, simulate
 
 QUICK = ["--set", "max_steps=2", "--set", "admm_max_iter=3", "--set", "gp_iters=5", "--no-figures"]
 

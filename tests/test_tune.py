@@ -1,4 +1,4 @@
-"""Gradient tuning of rho and the risk split (torch_gpmpc.tuning, ``gpmpc tune``).
+"""Gradient tuning of rho and the risk split (torch_gpmpc.tuning.tuner, ``gpmpc tune``).
 
 Independent answers: central finite differences (Richardson-extrapolated) for the
 gradient, the closed-form margin-equalizing split for the two-agent test, a grid search
@@ -14,14 +14,14 @@ import pytest
 import torch
 
 import torch_gpmpc  # noqa: F401  (float64 default)
-from torch_gpmpc.admm import ADMM
-from torch_gpmpc.cli import main
-from torch_gpmpc.config import Config, load_config
+from torch_gpmpc.coordination.admm import ADMM
+from torch_gpmpc.cli.parser import main
+from torch_gpmpc.config.schema import Config, load_config
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.systems import NominalModel
-from torch_gpmpc.tblog import read_scalars
+from torch_gpmpc.dynamics.systems import NominalModel
+from torch_gpmpc.report.tensorboard import read_scalars
 from tests.helpers import ConstantVarianceGP
-from torch_gpmpc.tuning import (
+from torch_gpmpc.tuning.tuner import (
     ObjectiveWeights,
     Tuner,
     TuneSettings,

@@ -2,7 +2,8 @@
 
 Public API (design.md §2): ``Transitions``, ``ResidualGP``, ``fit_residual_gp``,
 ``LocalMPC``, ``ADMM``, ``simulate``, ``Rollout``, ``compute_metrics``, ``Config``.
-Imports are lazy so that ``gpmpc --help`` and light modules stay fast.
+Imports are lazy so that ``gpmpc --help`` and light modules stay fast. Importing the
+package changes no global state: every tensor the package creates is float64 explicitly.
 """
 
 from __future__ import annotations
@@ -10,28 +11,23 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-import torch
-
 __version__ = "0.1.0"
 
-# float64 by default: the MPC data, GP solves and finite-difference checks need it.
-torch.set_default_dtype(torch.float64)
-
 _EXPORTS = {
-    "Config": "config",
-    "load_config": "config",
+    "Config": "config.schema",
+    "load_config": "config.schema",
     "GpmpcError": "errors",
-    "Transitions": "data",
-    "ResidualGP": "gp",
-    "fit_residual_gp": "gp",
-    "LocalMPC": "mpc",
-    "ADMM": "admm",
-    "simulate": "sim",
-    "Rollout": "rollout",
-    "compute_metrics": "metrics",
-    "NominalModel": "systems",
-    "VortexWind": "systems",
-    "TrueSystem": "systems",
+    "Transitions": "data.transitions",
+    "ResidualGP": "gp.model",
+    "fit_residual_gp": "gp.model",
+    "LocalMPC": "control.solvers.conic",
+    "ADMM": "coordination.admm",
+    "simulate": "sim.closed_loop",
+    "Rollout": "sim.rollout",
+    "compute_metrics": "sim.metrics",
+    "NominalModel": "dynamics.systems",
+    "VortexWind": "dynamics.systems",
+    "TrueSystem": "dynamics.systems",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -1,45 +1,12 @@
-"""``gpmpc collect``: log transitions of the true system (paper data recipe, design.md §3).
+"""Research script: log transitions of the true system (the paper's data recipe).
 
-Thin over :func:`torch_gpmpc.data.collect_transitions`; writes ``.npz`` or ``.csv``
-by the suffix of ``--out``, atomically.
+Thin over the library: the same as `gpmpc collect ...`. Run from the repository root,
+e.g. `python training/collect.py --help`.
 """
 
-from __future__ import annotations
+import sys
 
-import math
+from torch_gpmpc.cli import main
 
-from torch_gpmpc.data import MAX_COLLECT_ROWS, check_suffix, collect_transitions
-from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.systems import make_system
-
-
-def _validate(args) -> None:
-    """Check every argument before any work (raises GpmpcError)."""
-    check_suffix(args.out)
-    if args.dim not in (2, 3):
-        raise GpmpcError(f"--dim must be 2 or 3 (the vortex wind is defined for those), got {args.dim}")
-    if args.agents < 1:
-        raise GpmpcError(f"--agents must be >= 1, got {args.agents}")
-    if args.samples < 2:
-        raise GpmpcError(f"--samples must be >= 2 per agent, got {args.samples}")
-    if args.agents * args.samples > MAX_COLLECT_ROWS:
-        raise GpmpcError(f"--agents x --samples = {args.agents * args.samples} transitions is more than "
-                         f"{MAX_COLLECT_ROWS}; lower --agents or --samples (the paper uses 100 per agent)")
-    if not (math.isfinite(args.noise_std) and args.noise_std >= 0):
-        raise GpmpcError(f"--noise-std must be a finite number >= 0, got {args.noise_std}")
-    for flag, value in (("--u-max", args.u_max), ("--box", args.box)):
-        if not (math.isfinite(value) and value > 0):
-            raise GpmpcError(f"{flag} must be a positive number, got {value}")
-
-
-def main(args) -> int:
-    """Collect ``--agents x --samples`` transitions and write them to ``--out``."""
-    _validate(args)
-    system = make_system(dim=args.dim, noise_std=args.noise_std)
-    data = collect_transitions(system, num_agents=args.agents, samples=args.samples, seed=args.seed,
-                               u_max=args.u_max, box=args.box)
-    data.save(args.out)
-    print(f"wrote {args.out}: {data.num_samples} transitions ({args.agents} agents x {args.samples}), "
-          f"D={args.dim}, noise_std={args.noise_std:g}, u_max={args.u_max:g}, box={args.box:g}, "
-          f"seed={args.seed}")
-    return 0
+if __name__ == "__main__":
+    sys.exit(main(["collect", *sys.argv[1:]]))

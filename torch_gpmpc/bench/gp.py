@@ -1,0 +1,147 @@
+"""``gpmpc bench --sections gp``: the residual GP's hot paths against GPyTorch's own.
+
+Workloads (synthetic data from the paper recipe, one agent, seed 0):
+
+* ``linearize`` of 42 points (3 agents x 14 horizon points, one ADMM iteration) with
+  N = 100, 1000, 5000 training points: our cached closed form
+  (:meth:`ResidualGP.linearize`: mean, Jacobian, latent variance) vs GPyTorch's
+  predictive path in eval mode (``model(x)`` mean/variance, exact variances, Cholesky
+  forced via ``max_cholesky_size``) plus the Jacobian by ``torch.autograd`` (one
+  backward pass per output dimension). Both run warm (caches built by a first call).
+* ``fit``: L-BFGS, 50 iterations, N = 100.
+
+Only N = 100 is fitted; the N = 1000 / 5000 models reuse its hyperparameters and
+normalization on their own data and only build the prediction cache (fitting them is
+not what the controller pays per iteration). Numbers are medians of repeated calls;
+``quick`` uses fewer repetitions. Ratios are measured in the same run.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from typing import Callable
+
+import torch
+
+from torch_gpmpc.data.transitions import collect_transitions
+from torch_gpmpc.gp.model import ResidualGP, fit_residual_gp
+from torch_gpmpc.dynamics.systems import NominalModel, make_system
+
+NUM_POINTS = 42
+SIZES = (100, 1000, 5000)
+
+
+def _median_time(fn: Callable[[], object], reps: int) -> tuple[float, object]:
+    """Median wall time of ``fn()`` in seconds over ``reps`` calls (after one warm-up call).
+
+    Returns:
+        ``(seconds, result of the last call)``.
+    """
+    result = fn()
+    times = []
+    for _ in range(max(1, reps)):
+        t0 = time.perf_counter()
+        result = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), result
+
+
+def _data(n: int, seed: int):
+    tr = collect_transitions(make_system(), num_agents=1, samples=n, seed=seed)
+    return tr.residuals(NominalModel())
+
+
+def _reuse_hyperparameters(base: ResidualGP, X: torch.Tensor, Y: torch.Tensor) -> ResidualGP:
+    """A model on (X, Y) with ``base``'s hyperparameters and normalization (cache only)."""
+    gp = ResidualGP(X, Y, normalization=(base.x_mean, base.x_std, base.y_mean, base.y_std))
+    gp.model.load_state_dict(base.model.state_dict())
+    return gp.refresh()
+
+
+def gpytorch_linearize(gp: ResidualGP, x: torch.Tensor):
+    """Baseline: GPyTorch predictive mean/variance + autograd Jacobian of the mean.
+
+    Returns:
+        ``(mean (n, D), jac (n, D, Din), var (n, D))``.
+    """
+    x = x.detach().clone().requires_grad_(True)
+    mean, var = gp.gpytorch_predict(x)
+    rows = [torch.autograd.grad(mean[:, d].sum(), x, retain_graph=d + 1 < gp.output_dim)[0]
+            for d in range(gp.output_dim)]
+    return mean.detach(), torch.stack(rows, dim=1), var.detach()
+
+
+def _default_threads_row(gp: ResidualGP, xq: torch.Tensor, quick: bool, default_threads: int) -> dict:
+    """N = 100 again, at the thread count the process started with."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(default_threads)
+    try:
+        reps_ours, reps_base = _reps(100, quick)
+        t_ours, _ = _median_time(lambda: gp.linearize(xq), reps_ours)
+        t_base, _ = _median_time(lambda: gpytorch_linearize(gp, xq), reps_base)
+    finally:
+        torch.set_num_threads(threads)
+    return {"workload": f"linearize {NUM_POINTS} pts, N=100, {default_threads} threads",
+            "ours_ms": 1e3 * t_ours, "gpytorch_ms": 1e3 * t_base, "ratio": t_base / t_ours,
+            "max_abs_diff": None}
+
+
+def _reps(n: int, quick: bool) -> tuple[int, int]:
+    """(ours, baseline) repetitions for N = n."""
+    table = {100: (200, 30), 1000: (30, 5), 5000: (5, 2)}
+    ours, base = table.get(n, (5, 2))
+    return (max(1, ours // 10), 1) if quick else (ours, base)
+
+
+def run(quick: bool, out=None) -> dict:
+    """Run the GP workloads single-threaded (plus one row at the default thread count).
+
+    The workloads are tiny; on a shared 2-core machine intra-op threading made them
+    up to 30x slower and very noisy, so the table is measured with
+    ``torch.set_num_threads(1)`` (restored afterwards).
+
+    Args:
+        quick: fewer repetitions (CI smoke run).
+        out: output directory (unused; results are returned).
+
+    Returns:
+        ``{"table": [rows], "threads": int, ...}``; rows have ``workload``, ``ours_ms``,
+        ``gpytorch_ms``, ``ratio`` (gpytorch / ours) and ``max_abs_diff``.
+    """
+    default_threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        result = _run(quick, default_threads)
+    finally:
+        torch.set_num_threads(default_threads)
+    result["default_threads"] = default_threads
+    return result
+
+
+def _run(quick: bool, default_threads: int) -> dict:
+    gen = torch.Generator().manual_seed(123)
+    xq = (torch.rand(NUM_POINTS, 2, generator=gen, dtype=torch.float64) * 2 - 1) * 4.0
+    X100, Y100 = _data(100, seed=0)
+    fit_residual_gp(X100, Y100, iters=2)  # warm-up: first-call overheads of gpytorch/torch
+    t0 = time.perf_counter()
+    base = fit_residual_gp(X100, Y100, optimizer="lbfgs", iters=50, seed=0)
+    fit_s = time.perf_counter() - t0
+    rows = [{"workload": "fit N=100 (L-BFGS, 50 iters)", "ours_ms": 1e3 * fit_s,
+             "gpytorch_ms": None, "ratio": None, "max_abs_diff": None}]
+    for n in SIZES:
+        gp = base if n == 100 else _reuse_hyperparameters(base, *_data(n, seed=1))
+        reps_ours, reps_base = _reps(n, quick)
+        t_ours, ours = _median_time(lambda gp=gp: gp.linearize(xq), reps_ours)
+        t_base, ref = _median_time(lambda gp=gp: gpytorch_linearize(gp, xq), reps_base)
+        diff = max(float((a - b).abs().max()) for a, b in zip(ours, ref, strict=True))
+        rows.append({"workload": f"linearize {NUM_POINTS} pts, N={n}", "ours_ms": 1e3 * t_ours,
+                     "gpytorch_ms": 1e3 * t_base, "ratio": t_base / t_ours, "max_abs_diff": diff})
+    rows.append(_default_threads_row(base, xq, quick, default_threads))
+    return {
+        "table": rows,
+        "threads": 1,
+        "num_points": NUM_POINTS,
+        "note": "N=1000/5000 reuse the N=100 hyperparameters (cache only); gpytorch baseline: "
+                "eval-mode model(x) with exact variances + autograd Jacobian, warm",
+    }

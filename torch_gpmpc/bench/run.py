@@ -1,0 +1,131 @@
+"""``gpmpc bench`` section ``run``: the paper scenario end to end, and where its time goes.
+
+Two measurements of the main job (paper scenario, proposed method ``gp-chance``, seed 0,
+default config):
+
+1. ``gpmpc run --out DIR/run`` as a child process, timed from outside: the wall time a
+   user sees (imports, GP fitting, closed loop, rollout, figures, TensorBoard).
+2. The same closed loop in this process with timers wrapped around its parts:
+   GP fitting; per ADMM iteration the linearization (GP mean, Jacobian and variance),
+   the rest of the problem assembly (normals, margins, consensus slots), the local
+   solve (split into canonicalization, the compiled kernel and the rest of the layer:
+   acceptance check, outputs) and the consensus/dual update; "ADMM other" is the rest of
+   each ADMM iteration (fallback, bookkeeping) and "loop other" the rest of each step
+   (graph, true system, recording, logging).
+
+The closed loop needs no backward pass (gradients are only used by ``gpmpc tune``);
+the ``local`` section times forward+backward.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import pkgutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+#: (module, attribute, label) of the functions timed inside the closed loop.
+TIMED = (
+    ("torch_gpmpc.sim.closed_loop", "train_agent_gps", "gp_fit"),
+    ("torch_gpmpc.coordination.admm.ADMM", "solve_step", "admm_step"),
+    ("torch_gpmpc.coordination.admm.ADMM", "_problem_data", "assembly"),
+    ("torch_gpmpc.coordination.admm", "linearize_plan", "linearize"),
+    ("torch_gpmpc.coordination.admm.ADMM", "_solve", "solve"),
+    ("torch_gpmpc.control.solvers.interior_point", "canonicalize", "canonicalize"),
+    ("torch_gpmpc.control.solvers.ipm_kernel", "solve_batch", "kernel"),
+    ("torch_gpmpc.coordination.admm", "consensus_update", "consensus"),
+)
+
+
+@contextlib.contextmanager
+def _timers():
+    """Wrap every :data:`TIMED` function with a timer; yields ``{label: [seconds, calls]}``."""
+    totals: dict[str, list] = {label: [0.0, 0] for *_, label in TIMED}
+    saved = []
+
+    def wrap(fn, label):
+        def timed(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                totals[label][0] += time.perf_counter() - start
+                totals[label][1] += 1
+        return timed
+
+    for owner_path, attr, label in TIMED:
+        owner = pkgutil.resolve_name(owner_path)
+        original = owner.__dict__[attr] if isinstance(owner, type) else getattr(owner, attr)
+        saved.append((owner, attr, original))
+        setattr(owner, attr, wrap(original, label))
+    try:
+        yield totals
+    finally:
+        for owner, attr, original in reversed(saved):
+            setattr(owner, attr, original)
+
+
+def _command_wall(out: Path) -> float:
+    """Seconds of ``gpmpc run --out out`` in a child process (the README's main job)."""
+    start = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "torch_gpmpc.cli.parser", "run", "--out", str(out)], check=True,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    return time.perf_counter() - start
+
+
+def run(quick: bool = False, out: Path | str | None = None) -> dict:
+    """Time the main job and break its closed loop down; returns the table (JSON-ready).
+
+    Args:
+        quick: 10 closed-loop steps and no child-process run (CI smoke).
+        out: output directory of the bench (the child run writes to ``out/run``).
+    """
+    from torch_gpmpc.control.solvers import ipm_kernel as ipm
+    from torch_gpmpc.config.schema import Config
+    from torch_gpmpc.sim.closed_loop import simulate
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        ipm.warm_up()  # compile or load the kernel before timing (a one-off per installation)
+        result: dict = {}
+        if not quick and out is not None:
+            result["gpmpc_run_wall_s"] = _command_wall(Path(out) / "run")
+        cfg = Config(max_steps=10) if quick else Config()
+        with _timers() as totals:
+            start = time.perf_counter()
+            rollout = simulate(cfg)
+            total = time.perf_counter() - start
+    finally:
+        torch.set_num_threads(threads)
+    seconds = {label: t for label, (t, _) in totals.items()}
+    iterations = int(rollout.admm_iterations.sum())
+    loop = total - seconds["gp_fit"]
+    parts = {
+        "linearize": seconds["linearize"],
+        "assembly other": seconds["assembly"] - seconds["linearize"],
+        "solve: canonicalize": seconds["canonicalize"],
+        "solve: kernel": seconds["kernel"],
+        "solve: layer other": seconds["solve"] - seconds["canonicalize"] - seconds["kernel"],
+        "consensus": seconds["consensus"],
+        "ADMM other": seconds["admm_step"] - seconds["assembly"] - seconds["solve"] - seconds["consensus"],
+        "loop other": loop - seconds["admm_step"],
+    }
+    table = [{"workload": "gp-chance seed 0", "part": "GP fit (3 agents)", "total_s": seconds["gp_fit"],
+              "ms_per_step": None, "ms_per_admm_iteration": None, "share_of_loop": None}]
+    for name, value in parts.items():
+        table.append({"workload": "gp-chance seed 0", "part": name, "total_s": value,
+                      "ms_per_step": 1e3 * value / rollout.num_steps,
+                      "ms_per_admm_iteration": 1e3 * value / iterations, "share_of_loop": value / loop})
+    table.append({"workload": "gp-chance seed 0", "part": "closed loop", "total_s": loop,
+                  "ms_per_step": 1e3 * loop / rollout.num_steps, "ms_per_admm_iteration": 1e3 * loop / iterations,
+                  "share_of_loop": 1.0})
+    result.update({"table": table, "steps": rollout.num_steps, "admm_iterations": iterations,
+                   "calls": {label: count for label, (_, count) in totals.items()},
+                   "notes": "in-process closed loop with timers; gpmpc_run_wall_s is the whole command"})
+    return result

@@ -1,0 +1,94 @@
+"""``gpmpc bench`` section ``scale``: controller cost per agent as the team grows.
+
+The ``circle`` scenario with K = 3, 10, 30, 100 agents, starts spaced ``SPACING`` apart
+on the circle (radius grows with K) and neighbours limited to ``COMM_RADIUS``, so each
+agent keeps a bounded number of neighbours. Method ``nonlinear`` (no GP fitting, so
+only the controller is timed), a few closed-loop steps with a fixed number of ADMM
+iterations, the default solver (``fast``). Reported: seconds per closed-loop step per
+agent; the paper's claim is that this stays roughly flat in K (cost linear in the
+number of edges). One untimed step first pays one-off costs (layer construction,
+loading the compiled kernel).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from torch_gpmpc.config.schema import Config
+from torch_gpmpc.sim.scenarios import make_scenario
+from torch_gpmpc.sim.closed_loop import simulate
+
+SPACING = 1.0
+COMM_RADIUS = 2.5
+TEAM_SIZES = (3, 10, 30, 100)
+
+
+def _config(num_agents: int, steps: int, iterations: int, solver: str) -> Config:
+    radius = SPACING / (2 * math.sin(math.pi / num_agents))  # neighbours on the circle SPACING apart
+    return Config(scenario="circle", num_agents=num_agents, circle_radius=radius, method="nonlinear",
+                  comm_radius=COMM_RADIUS, max_steps=steps, admm_max_iter=iterations, admm_tol=1e-300,
+                  noise_std=0.0, solver=solver)
+
+
+def measure(num_agents: int, steps: int, iterations: int, solver: str = "fast") -> dict:
+    """Time ``steps`` closed-loop steps of ``num_agents`` agents (after one warm-up step)."""
+    cfg = _config(num_agents, steps, iterations, solver)
+    scenario = make_scenario(cfg)
+    simulate(cfg.replace(max_steps=1), scenario)  # one-off costs
+    rollout = simulate(cfg, scenario)
+    degrees = rollout.adjacency.sum(axis=2)
+    per_step = rollout.wall_time_s / rollout.num_steps
+    return {
+        "workload": f"circle K={num_agents}",
+        "agents": num_agents,
+        "edges_mean": float(degrees.sum(axis=1).mean() / 2),
+        "neighbours_max": int(degrees.max()),
+        "steps": rollout.num_steps,
+        "admm_iterations": iterations,
+        "s_per_step": per_step,
+        "ms_per_step_per_agent": 1000.0 * per_step / num_agents,
+        "solve_share": float(rollout.solve_time.sum() / rollout.wall_time_s),
+    }
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    """Time per step per agent vs K (log-x), written atomically."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from torch_gpmpc.fileio import atomic_path
+
+    fig = Figure(figsize=(5, 3.5))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    ks = [r["agents"] for r in rows]
+    ax.plot(ks, [r["ms_per_step_per_agent"] for r in rows], "o-")
+    ax.set_xscale("log")
+    ax.set_ylim(bottom=0)
+    ax.set_xlabel("agents K")
+    ax.set_ylabel("ms per step per agent")
+    ax.set_title(f"circle scenario, comm radius {COMM_RADIUS}, {rows[0]['admm_iterations']} ADMM it/step")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+
+
+def run(quick: bool = False, out: Path | str | None = None) -> dict:
+    """Measure each team size; write ``out/figures/bench_scale.png``.
+
+    Args:
+        quick: K = 3, 10 only, 2 steps of 3 iterations (CI smoke).
+        out: output directory of the bench.
+    """
+    sizes = TEAM_SIZES[:2] if quick else TEAM_SIZES
+    steps, iterations = (2, 3) if quick else (3, 10)
+    rows = [measure(k, steps, iterations) for k in sizes]
+    per_agent = np.array([r["ms_per_step_per_agent"] for r in rows])
+    result = {"table": rows, "flatness_max_over_min": float(per_agent.max() / per_agent.min())}
+    if out is not None:
+        plot(rows, Path(out) / "figures" / "bench_scale.png")
+    return result

@@ -1,0 +1,153 @@
+"""The ``gpmpc`` command line (contract: design.md §2).
+
+This module only parses arguments and turns user errors into one clear line on
+stderr; each command's work is a ``main(args)`` in ``training/`` or ``eval/``,
+which are thin over the library.
+"""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import importlib
+import logging
+import sys
+
+from torch_gpmpc.config.schema import METHODS
+from torch_gpmpc.errors import GpmpcError
+
+#: OSError numbers without a file name that are still the user's storage: disk full, quota, read-only.
+_STORAGE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
+
+# command -> module holding its main(args)
+_COMMANDS = {
+    "collect": "torch_gpmpc.cli.collect",
+    "fit-gp": "torch_gpmpc.cli.fit_gp",
+    "tune": "torch_gpmpc.cli.tune",
+    "run": "torch_gpmpc.cli.run",
+    "reproduce": "torch_gpmpc.cli.reproduce",
+    "bench": "torch_gpmpc.cli.bench",
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports a usage error as one line (no usage dump)."""
+
+    def error(self, message: str) -> None:  # noqa: D102 - argparse API
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", help="TOML/JSON/YAML file of flat config keys (or a tuned.json)")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="override one config key; repeatable (e.g. --set rho=5)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The full ``gpmpc`` argument parser."""
+    parser = _Parser(prog="gpmpc", description="Cooperative GP-MPC for safe multi-agent navigation")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch intra-op threads (default 1: the problems are small, so more "
+                             "threads only add overhead; parallel work uses processes)")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    p = sub.add_parser("collect", help="log transitions of the true system (paper data recipe)")
+    p.add_argument("--out", required=True, help="output file, .npz or .csv")
+    p.add_argument("--agents", type=int, default=3, help="number of agents K (default 3)")
+    p.add_argument("--samples", type=int, default=100, help="samples per agent N (default 100)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--dim", type=int, default=2, help="state dimension D (2 or 3)")
+    p.add_argument("--noise-std", type=float, default=0.1, help="process noise std s (default 0.1)")
+    p.add_argument("--u-max", type=float, default=2.0, help="input norm bound (default 2)")
+    p.add_argument("--box", type=float, default=4.0, help="states uniform in [-box, box]^D (default 4)")
+
+    p = sub.add_parser("fit-gp", help="fit one residual GP per state dimension")
+    p.add_argument("--transitions", required=True, help="transitions file (.npz or .csv)")
+    p.add_argument("--out", required=True, help="model file to write (.pt)")
+    p.add_argument("--logdir", help="TensorBoard directory")
+    p.add_argument("--holdout", type=float, default=0.0, help="fraction held out for RMSE/coverage")
+    p.add_argument("--agent", type=int, help="fit only rows of this agent id")
+    p.add_argument("--inputs", choices=("state", "state_input"), default="state")
+    p.add_argument("--optimizer", choices=("lbfgs", "adam"), default="lbfgs")
+    p.add_argument("--iters", type=int, default=50)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--figure", help="also write a PNG of the learned mean vs. the wind field (2D)")
+
+    p = sub.add_parser("run", help="one closed-loop scenario")
+    _add_config_args(p)
+    p.add_argument("--scenario", help="scenario file (JSON/TOML with starts, targets[, reference])")
+    p.add_argument("--method", help="nominal, nominal-chance, nonlinear, nonlinear-chance, gp, gp-chance")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--gp-model", help="a model file from fit-gp (used by every agent)")
+    p.add_argument("--backend", choices=("inprocess", "distributed"), default="inprocess")
+    p.add_argument("--agents-per-process", type=int, default=1,
+                   help="distributed backend: agents hosted by one process (default 1)")
+    p.add_argument("--timeout", type=float, default=30.0,
+                   help="distributed backend: seconds to wait for a peer before treating it as lost")
+    p.add_argument("--out", default="runs/run", help="output directory (default runs/run)")
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+
+    p = sub.add_parser("tune", help="gradient tuning of rho and the risk split")
+    _add_config_args(p)
+    p.add_argument("--out", default="runs/tune")
+    p.add_argument("--iters", type=int, default=20)
+    p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt")
+
+    p = sub.add_parser("reproduce", help="the paper's six methods, figures 1-6 and a table")
+    _add_config_args(p)
+    p.add_argument("--runs", type=int, default=10)
+    p.add_argument("--out", default="runs/reproduce")
+    p.add_argument("--workers", type=int, help="parallel processes (default: number of cores)")
+    p.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset of the six methods")
+    p.add_argument("--rho-values", default="1,5,20,50,100", help="rho values of the Fig. 4 study")
+    p.add_argument("--rho-steps", type=int, default=10, help="closed-loop steps per Fig. 4 run")
+    p.add_argument("--rho-iterations", type=int, default=60, help="ADMM iterations per step in Fig. 4 runs")
+
+    p = sub.add_parser("bench", help="performance workloads, ratios against baselines")
+    p.add_argument("--out", default="runs/bench")
+    p.add_argument("--sections", default="gp,local,scale,run", help="comma-separated: gp, local, scale, run")
+    p.add_argument("--quick", action="store_true", help="fewer repetitions (for CI smoke runs)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``gpmpc`` console script; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    if args.threads < 1:
+        print(f"gpmpc: error: --threads must be >= 1, got {args.threads}", file=sys.stderr)
+        return 2
+    import torch
+
+    torch.set_num_threads(args.threads)
+    try:
+        module = importlib.import_module(_COMMANDS[args.command])
+        code = module.main(args)
+    except GpmpcError as exc:
+        if args.debug:
+            raise
+        print(f"gpmpc {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # unwritable/unreadable path, disk full: the user's environment, not a bug
+        if args.debug or (exc.filename is None and exc.errno not in _STORAGE_ERRNOS):
+            raise  # e.g. a network error of the distributed backend: keep its traceback
+        where = f" {exc.filename!r}" if exc.filename else ""
+        why = ("a part of the path is an existing file, not a directory"
+               if isinstance(exc, (FileExistsError, NotADirectoryError)) else exc.strerror or str(exc))
+        print(f"gpmpc {args.command}: error: cannot access{where}: {why}; "
+              "check the path and its permissions", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"gpmpc {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return int(code or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

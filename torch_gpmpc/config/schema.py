@@ -1,0 +1,304 @@
+"""Run configuration: one frozen dataclass with flat keys, strict loading.
+
+Keys work the same in a TOML/YAML/JSON file and as ``--set NAME=VALUE``. Unknown
+keys and wrong types raise :class:`~torch_gpmpc.errors.GpmpcError` naming the
+nearest valid key; out-of-range values raise naming the allowed range.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import json
+import math
+import tomllib
+import typing
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any, Mapping
+
+from torch_gpmpc.dynamics.methods import METHOD_NAMES
+from torch_gpmpc.errors import GpmpcError
+
+METHODS = METHOD_NAMES
+UNCERTAINTY_MODES = ("pointwise", "propagated")
+SOLVERS = ("fast", "clarabel", "reference")
+REFERENCES = ("line", "target")
+SCENARIOS = ("paper", "circle", "random")
+
+
+@dataclass(frozen=True)
+class Config:
+    """All tunable settings of a run. Defaults are the paper scenario (design.md §3).
+
+    Attributes:
+        horizon: MPC horizon T (plans have T+1 states, T inputs).
+        rho: ADMM penalty rho > 0.
+        r_safe: minimum allowed distance between two agents.
+        eps: total collision risk per pair, in (0, 1); split between the two agents.
+        risk_split: share of ``eps`` taken by the lower-indexed agent of each pair, in (0, 1).
+        u_max: bound on the Euclidean norm of each input.
+        alpha: control-effort weight in the cost.
+        noise_std: standard deviation s of the process noise w ~ N(0, s^2 I).
+        admm_tol: stop when the largest per-edge primal residual ||y - z|| is below this.
+        admm_dual_tol: if set, also require the dual residual rho ||z - z_prev|| below this.
+        admm_max_iter: ADMM iteration cap per time step.
+        comm_radius: agents closer than this communicate; ``None`` = all pairs.
+        goal_tol: an agent has arrived when within this distance of its target.
+        max_steps: closed-loop step cap.
+        uncertainty: ``pointwise`` (paper: GP variance at the linearization point) or
+            ``propagated`` (covariance pushed through the linearized dynamics).
+        scenario: ``paper``, ``circle`` or ``random``.
+        num_agents: K (the paper scenario has 3).
+        seed: seed for data, noise and scenario generation.
+        solver: ``fast`` (structure-exploiting interior point compiled with numba, :mod:`~torch_gpmpc.control.solvers.interior_point`),
+            ``clarabel`` (cvxpylayers + diffcp with Clarabel) or ``reference`` (cvxpylayers' default).
+        method: one of :data:`METHODS`.
+        dim: state dimension D (2 or 3); inputs have the same dimension.
+        reference: ``line`` (straight line over ``ref_points`` steps, then hold) or ``target``.
+        ref_points: number of points of the straight-line reference.
+        circle_radius: radius of the start circle of ``paper``/``circle`` scenarios.
+        min_separation: minimum start (and target) separation of ``random`` scenarios.
+        gp_samples: training transitions per agent (paper: 100).
+        gp_inputs: ``state`` (paper) or ``state_input``.
+        gp_optimizer: ``lbfgs`` (paper) or ``adam``.
+        gp_iters: optimizer iterations for GP fitting.
+        gp_noise_in_margin: add the learned observation noise to the margin's variance.
+        slack_penalty: exact-penalty weight on collision slacks.
+        relinearize: re-set linearization points from each ADMM iterate (Algorithm 1, step 9).
+        wind_scale: amplitude of the vortex wind g (paper: 0.1).
+    """
+
+    horizon: int = 13
+    rho: float = 20.0
+    r_safe: float = 0.5
+    eps: float = 0.1
+    risk_split: float = 0.5
+    u_max: float = 2.0
+    alpha: float = 1e-3
+    noise_std: float = 0.1
+    admm_tol: float = 1e-3
+    admm_dual_tol: float | None = None
+    admm_max_iter: int = 100
+    comm_radius: float | None = None
+    goal_tol: float = 0.1
+    max_steps: int = 150
+    uncertainty: str = "pointwise"
+    scenario: str = "paper"
+    num_agents: int = 3
+    seed: int = 0
+    solver: str = "fast"
+    method: str = "gp-chance"
+    dim: int = 2
+    reference: str = "line"
+    ref_points: int = 50
+    circle_radius: float = 4.0
+    min_separation: float = 1.0
+    gp_samples: int = 100
+    gp_inputs: str = "state"
+    gp_optimizer: str = "lbfgs"
+    gp_iters: int = 50
+    gp_noise_in_margin: bool = False
+    slack_penalty: float = 1e4
+    relinearize: bool = True
+    wind_scale: float = 0.1
+
+    def __post_init__(self) -> None:
+        _validate(self)
+
+    def replace(self, **changes: Any) -> "Config":
+        """Return a copy with ``changes`` applied (same checks as loading)."""
+        return from_mapping({**self.to_dict(), **changes})
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict of all keys (JSON-serializable)."""
+        return dataclasses.asdict(self)
+
+
+_CHOICES = {
+    "uncertainty": UNCERTAINTY_MODES,
+    "scenario": SCENARIOS,
+    "solver": SOLVERS,
+    "method": METHODS,
+    "reference": REFERENCES,
+    "gp_inputs": ("state", "state_input"),
+    "gp_optimizer": ("lbfgs", "adam"),
+}
+
+# (predicate, description of the allowed range); checked in __post_init__.
+_RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
+    "horizon": (lambda v: 1 <= v <= 1000, "an integer in [1, 1000]"),
+    "rho": (lambda v: v > 0, "a number > 0"),
+    "r_safe": (lambda v: v >= 0, "a number >= 0"),
+    "eps": (lambda v: 0 < v < 1, "a number in (0, 1)"),
+    "risk_split": (lambda v: 0 < v < 1, "a number in (0, 1)"),
+    "u_max": (lambda v: v > 0, "a number > 0"),
+    "alpha": (lambda v: v >= 0, "a number >= 0"),
+    "noise_std": (lambda v: v >= 0, "a number >= 0"),
+    "admm_tol": (lambda v: v > 0, "a number > 0"),
+    "admm_dual_tol": (lambda v: v is None or v > 0, "a number > 0 or null"),
+    "admm_max_iter": (lambda v: 1 <= v <= 100_000, "an integer in [1, 100000]"),
+    "comm_radius": (lambda v: v is None or v > 0, "a number > 0 or null (all pairs)"),
+    "goal_tol": (lambda v: v > 0, "a number > 0"),
+    "max_steps": (lambda v: 1 <= v <= 1_000_000, "an integer in [1, 1000000]"),
+    "num_agents": (lambda v: 1 <= v <= 1000, "an integer in [1, 1000]"),
+    "seed": (lambda v: v >= 0, "an integer >= 0"),
+    "dim": (lambda v: v in (2, 3), "2 or 3"),
+    "ref_points": (lambda v: v >= 2, "an integer >= 2"),
+    # the same bound as scenario-file coordinates (scenarios.MAX_COORDINATE)
+    "circle_radius": (lambda v: 0 < v <= 1e4, "a number in (0, 10000]"),
+    "min_separation": (lambda v: v >= 0, "a number >= 0"),
+    # an exact GP costs O(N^3) time and O(N^2) memory per agent
+    "gp_samples": (lambda v: 2 <= v <= 5000, "an integer in [2, 5000]"),
+    "gp_iters": (lambda v: v >= 1, "an integer >= 1"),
+    "slack_penalty": (lambda v: v > 0, "a number > 0"),
+    "wind_scale": (lambda v: v >= 0, "a number >= 0"),
+}
+
+
+def _field_types() -> dict[str, Any]:
+    hints = typing.get_type_hints(Config)
+    return {f.name: hints[f.name] for f in fields(Config)}
+
+
+def _validate(cfg: Config) -> None:
+    for name, typ in _field_types().items():
+        value = getattr(cfg, name)
+        _check_type(name, value, typ)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise GpmpcError(f"config key '{name}': {value!r} is not finite; give a finite number")
+    for name, choices in _CHOICES.items():
+        if getattr(cfg, name) not in choices:
+            raise GpmpcError(
+                f"config key '{name}': {getattr(cfg, name)!r} is not one of {', '.join(choices)}"
+            )
+    for name, (ok, allowed) in _RANGES.items():
+        if not ok(getattr(cfg, name)):
+            raise GpmpcError(f"config key '{name}': {getattr(cfg, name)!r} is out of range; use {allowed}")
+    if cfg.scenario == "paper" and cfg.num_agents != 3:
+        raise GpmpcError(
+            f"config key 'num_agents': the paper scenario has 3 agents, got {cfg.num_agents}; "
+            "use scenario=circle or scenario=random for other team sizes"
+        )
+
+
+def _check_type(name: str, value: Any, typ: Any) -> None:
+    allowed = typing.get_args(typ) or (typ,)
+    if value is None and type(None) in allowed:
+        return
+    base = [t for t in allowed if t is not type(None)][0]
+    ok = (
+        (base is bool and isinstance(value, bool))
+        or (base is int and isinstance(value, int) and not isinstance(value, bool))
+        or (base is float and isinstance(value, (int, float)) and not isinstance(value, bool))
+        or (base is str and isinstance(value, str))
+    )
+    if not ok:
+        raise GpmpcError(
+            f"config key '{name}': expected {base.__name__}, got {type(value).__name__} {value!r}"
+        )
+
+
+def nearest_key(name: str) -> str:
+    """The valid config key closest to ``name`` (for error messages)."""
+    keys = [f.name for f in fields(Config)]
+    match = difflib.get_close_matches(name, keys, n=1, cutoff=0.0)
+    return match[0] if match else keys[0]
+
+
+def _coerce(name: str, value: Any) -> Any:
+    """Accept ints for float keys; leave everything else for the type check."""
+    typ = _field_types()[name]
+    allowed = typing.get_args(typ) or (typ,)
+    if float in allowed and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
+
+
+def from_mapping(data: Mapping[str, Any]) -> Config:
+    """Build a :class:`Config` from a flat mapping; unknown keys raise.
+
+    Raises:
+        GpmpcError: unknown key (with the nearest valid key), wrong type or range.
+    """
+    known = {f.name for f in fields(Config)}
+    values = {}
+    for key, value in data.items():
+        if key not in known:
+            raise GpmpcError(f"unknown config key '{key}'; did you mean '{nearest_key(key)}'?")
+        values[key] = _coerce(key, value)
+    return Config(**values)
+
+
+def parse_value(text: str) -> Any:
+    """Parse the VALUE of ``--set NAME=VALUE``: JSON literals (numbers, true/false, null) or a bare string."""
+    lowered = text.strip().lower()
+    if lowered in ("none", "null"):
+        return None
+    if lowered in ("true", "false"):
+        return lowered == "true"
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def parse_overrides(items: list[str] | None) -> dict[str, Any]:
+    """Turn ``["rho=5", "method=gp"]`` into ``{"rho": 5, "method": "gp"}``."""
+    out: dict[str, Any] = {}
+    for item in items or []:
+        if "=" not in item:
+            raise GpmpcError(f"--set {item!r}: expected NAME=VALUE, e.g. --set rho=20")
+        key, text = item.split("=", 1)
+        out[key.strip()] = parse_value(text)
+    return out
+
+
+def read_mapping(path: str | Path) -> dict[str, Any]:
+    """Read a flat mapping from a ``.toml``, ``.json``, ``.yaml`` or ``.yml`` file.
+
+    Raises:
+        GpmpcError: missing file, unknown suffix, or unparsable content.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise GpmpcError(f"config file {str(path)!r} does not exist; check the path")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".toml":
+            data = tomllib.loads(path.read_text())
+        elif suffix == ".json":
+            data = json.loads(path.read_text())
+        elif suffix in (".yaml", ".yml"):
+            try:
+                import yaml  # optional dependency
+            except ImportError as exc:  # pragma: no cover - depends on environment
+                raise GpmpcError(
+                    f"config file {str(path)!r}: YAML needs PyYAML (pip install pyyaml), or use TOML/JSON"
+                ) from exc
+            data = yaml.safe_load(path.read_text())
+        else:
+            raise GpmpcError(f"config file {str(path)!r}: unknown suffix {suffix!r}; use .toml, .json or .yaml")
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise GpmpcError(f"config file {str(path)!r} cannot be parsed: {exc}") from exc
+    except Exception as exc:
+        if exc.__class__.__name__ == "YAMLError" or "yaml" in type(exc).__module__:
+            raise GpmpcError(f"config file {str(path)!r} cannot be parsed: {exc}") from exc
+        raise
+    if not isinstance(data, dict):
+        raise GpmpcError(f"config file {str(path)!r}: expected a table of NAME = VALUE pairs")
+    return data
+
+
+def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:
+    """Defaults, then the file's keys, then ``overrides`` (later wins).
+
+    A ``tuned.json`` written by ``gpmpc tune`` is accepted: its ``config`` table is used.
+    """
+    data: dict[str, Any] = {}
+    if path is not None:
+        file_data = read_mapping(path)
+        # a tuned.json from `gpmpc tune` keeps its keys under "config"
+        data.update(file_data["config"] if isinstance(file_data.get("config"), dict) else file_data)
+    data.update(overrides or {})
+    return from_mapping(data)

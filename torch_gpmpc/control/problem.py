@@ -1,0 +1,205 @@
+"""The agent-local MPC problem's data contract, shared by every solver.
+
+:class:`LocalProblemData` (inputs) and :class:`LocalSolution` (outputs) of the
+agent-local problem (paper eq. 27), the acceptance rule for a returned answer, and
+:func:`get_local_mpc`, which picks the solver: the structure-exploiting
+:class:`~torch_gpmpc.control.solvers.interior_point.FastLocalMPC` (default) or the cvxpylayers
+:class:`~torch_gpmpc.control.solvers.conic.LocalMPC`. Importing this module does not import cvxpy.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, fields
+
+import torch
+from torch import Tensor, nn
+
+from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.dynamics.systems import NominalModel
+
+#: A slack above this counts as a softened (violated) collision row.
+SLACK_ACTIVE_TOL = 1e-6
+
+#: Relative residual above which a returned solution is not accepted as a solution.
+FEASIBILITY_TOL = 1e-5
+
+#: Why a local solve was rejected; :attr:`LocalSolution.failure` holds ``1 + index``
+#: into this tuple (0 = accepted): the solver raised, returned NaN/inf, or returned a
+#: finite answer that violates a constraint by more than :data:`FEASIBILITY_TOL`.
+FAILURE_KINDS = ("exception", "non-finite", "inaccurate")
+FAIL_NONE, FAIL_EXCEPTION, FAIL_NONFINITE, FAIL_INACCURATE = 0, 1, 2, 3
+
+@dataclass
+class LocalProblemData:
+    """Inputs of B local problems with horizon T, dimension D and M neighbour slots.
+
+    Slot j of agent b is the edge to one neighbour; unused slots (agents with fewer
+    than M neighbours) have ``active[b, j] = False`` and their other entries are ignored.
+
+    Attributes:
+        x0: measured states, shape (B, D).
+        xref: references, shape (B, T+1, D).
+        dyn_A: linearized state matrices, shape (B, T, D, D).
+        dyn_c: linearized offsets, shape (B, T, D).
+        normals: collision normals for steps tau = 1..T, shape (B, M, T, D).
+        bounds: right-hand sides ``r_safe + margin`` for tau = 1..T, shape (B, M, T).
+        active: which slots hold a neighbour, shape (B, M), bool.
+        rho: ADMM penalty, scalar tensor or shape (B, M); must be > 0.
+        z_own: consensus value of the agent's own trajectory per edge, shape (B, M, T+1, D).
+        z_nbr: consensus value of the neighbour's trajectory per edge, shape (B, M, T+1, D).
+        lam_own: multiplier of the agent's own copy per edge, shape (B, M, T+1, D).
+        lam_nbr: multiplier of the neighbour copy per edge, shape (B, M, T+1, D).
+    """
+
+    x0: Tensor
+    xref: Tensor
+    dyn_A: Tensor
+    dyn_c: Tensor
+    normals: Tensor
+    bounds: Tensor
+    active: Tensor
+    rho: Tensor
+    z_own: Tensor
+    z_nbr: Tensor
+    lam_own: Tensor
+    lam_nbr: Tensor
+
+    def validate(self, horizon: int, dim: int, num_neighbors: int) -> int:
+        """Check all shapes against (T, D, M); return the batch size B.
+
+        Raises:
+            GpmpcError: naming the first field with a wrong shape.
+        """
+        batch = int(self.x0.shape[0]) if self.x0.dim() == 2 else -1
+        T, D, M = horizon, dim, num_neighbors
+        expected = {
+            "x0": (batch, D), "xref": (batch, T + 1, D), "dyn_A": (batch, T, D, D),
+            "dyn_c": (batch, T, D), "normals": (batch, M, T, D), "bounds": (batch, M, T),
+            "active": (batch, M), "z_own": (batch, M, T + 1, D), "z_nbr": (batch, M, T + 1, D),
+            "lam_own": (batch, M, T + 1, D), "lam_nbr": (batch, M, T + 1, D),
+        }
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name == "rho":
+                if value.dim() != 0 and tuple(value.shape) != (batch, M):
+                    raise GpmpcError(f"LocalProblemData.rho must be a scalar or have shape {(batch, M)}, "
+                                     f"got {tuple(value.shape)}")
+                continue
+            if batch < 0 or tuple(value.shape) != expected[f.name]:
+                raise GpmpcError(f"LocalProblemData.{f.name} must have shape (T={T}, D={D}, M={M}) "
+                                 f"{expected[f.name]}, got {tuple(value.shape)}")
+        return batch
+
+
+@dataclass
+class LocalSolution:
+    """Solutions of B local problems.
+
+    Attributes:
+        X: planned states, shape (B, T+1, D).
+        U: planned inputs, shape (B, T, D).
+        Y: the agent's copies of its neighbours' trajectories, shape (B, M, T+1, D).
+        slack: collision-row slacks for tau = 1..T, shape (B, M, T).
+        slack_active: some slack of the agent exceeds 1e-6 (a softened row), shape (B,).
+        ok: finite solution, no solver error, constraints met, shape (B,); rows with
+            ``ok = False`` are NaN.
+        cost: planned tracking + control cost ``||X - Xref||^2 + alpha ||U||^2``, shape (B,).
+        failure: why a row was rejected, int64 shape (B,): 0 if ``ok``, else ``1 + i`` for
+            ``FAILURE_KINDS[i]`` (exception, non-finite, inaccurate); ``None`` if unknown.
+        failure_detail: the first solver exception message of the batch, if any.
+    """
+
+    X: Tensor
+    U: Tensor
+    Y: Tensor
+    slack: Tensor
+    slack_active: Tensor
+    ok: Tensor
+    cost: Tensor
+    failure: Tensor | None = None
+    failure_detail: str | None = None
+
+
+def collision_rows(normals: Tensor, margins: Tensor, r_safe: float, active: Tensor) -> tuple[Tensor, Tensor]:
+    """Collision rows for :class:`LocalProblemData` from full-horizon normals and margins.
+
+    Drops step 0 (the measured state cannot move) and neutralises inactive slots
+    (normal 0, bound -1: the row is trivially satisfied).
+
+    Args:
+        normals: unit normals, shape (B, M, T+1, D).
+        margins: chance margins, shape (B, M, T+1) (zeros for deterministic rows).
+        r_safe: safety radius.
+        active: which slots hold a neighbour, shape (B, M), bool.
+
+    Returns:
+        ``(normals (B, M, T, D), bounds (B, M, T))``.
+    """
+    act = active[:, :, None]
+    rows = torch.where(act[..., None], normals[:, :, 1:], torch.zeros_like(normals[:, :, 1:]))
+    bounds = torch.where(act, r_safe + margins[:, :, 1:], -torch.ones_like(margins[:, :, 1:]))
+    return rows, bounds
+
+
+@functools.lru_cache(maxsize=32)
+def get_local_mpc(
+    horizon: int,
+    dim: int,
+    num_neighbors: int,
+    nominal: NominalModel,
+    u_max: float,
+    alpha: float,
+    slack_penalty: float = 1e4,
+    solver: str = "clarabel",
+) -> nn.Module:
+    """A shared local-problem module per (T, D, M, constants, solver) (building one is slow).
+
+    ``solver='fast'`` gives the structure-exploiting interior-point
+    :class:`~torch_gpmpc.control.solvers.interior_point.FastLocalMPC` (same problem, same inputs and outputs);
+    ``clarabel`` and ``reference`` give the cvxpylayers :class:`~torch_gpmpc.control.solvers.conic.LocalMPC`. Arguments are
+    those of :class:`~torch_gpmpc.control.solvers.conic.LocalMPC`; the returned module is shared, do not modify it.
+    """
+    if solver == "fast":
+        from torch_gpmpc.control.solvers.interior_point import FastLocalMPC
+
+        return FastLocalMPC(horizon, dim, num_neighbors, nominal, float(u_max), float(alpha),
+                            float(slack_penalty))
+    from torch_gpmpc.control.solvers.conic import LocalMPC  # imports cvxpy/cvxpylayers only when a cvxpylayers path is asked for
+
+    return LocalMPC(horizon, dim, num_neighbors, nominal, float(u_max), float(alpha),
+                    float(slack_penalty), solver)
+
+
+def acceptance_failures(data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor,
+                        nominal: NominalModel, u_max: float) -> Tensor:
+    """Failure code per problem (0 accepted, else ``FAIL_NONFINITE`` or ``FAIL_INACCURATE``), (B,).
+
+    A finite answer is accepted when the initial condition, the dynamics, the input
+    bound, ``slack >= 0`` and the (softened) collision rows of active slots hold within
+    :data:`FEASIBILITY_TOL` relative to the plan's scale.
+    """
+    finite = torch.isfinite(X).flatten(1).all(1) & torch.isfinite(U).flatten(1).all(1) \
+        & torch.isfinite(slack).flatten(1).all(1) & torch.isfinite(Y).flatten(1).all(1)
+    Xs, Us = torch.nan_to_num(X), torch.nan_to_num(U)
+    scale = 1.0 + Xs.abs().flatten(1).amax(1)
+    pred = (data.dyn_A.detach() @ Xs[:, :-1, :, None]).squeeze(-1) + Us @ nominal.B(dtype=X.dtype).T \
+        + data.dyn_c.detach()
+    dyn_res = (Xs[:, 1:] - pred).abs().flatten(1).amax(1)
+    init_res = (Xs[:, 0] - data.x0.detach()).abs().amax(1)
+    u_res = (torch.linalg.vector_norm(Us, dim=-1) - u_max).clamp(min=0).amax(1)
+    s_res = (-torch.nan_to_num(slack)).clamp(min=0).flatten(1).amax(1) if slack.numel() else torch.zeros_like(u_res)
+    if Y.shape[1] > 0 and slack.numel():
+        # collision rows n^T (X_tau - Y_j,tau) + s_j,tau >= bound_j,tau, tau = 1..T, active slots only
+        gap = (data.normals.detach() * (Xs[:, None, 1:] - torch.nan_to_num(Y)[:, :, 1:])).sum(-1)
+        viol = (data.bounds.detach() - gap - torch.nan_to_num(slack)).clamp(min=0)
+        viol = torch.where(data.active.to(torch.bool)[:, :, None], viol, torch.zeros_like(viol))
+        c_res = viol.flatten(1).amax(1)
+    else:
+        c_res = torch.zeros_like(u_res)
+    tol = FEASIBILITY_TOL
+    feasible = (dyn_res <= tol * scale) & (init_res <= tol * scale) \
+        & (u_res <= tol * (1 + u_max)) & (s_res <= tol * scale) & (c_res <= tol * scale)
+    code = torch.full(finite.shape, FAIL_NONE, dtype=torch.int64)
+    code = torch.where(feasible, code, torch.full_like(code, FAIL_INACCURATE))
+    return torch.where(finite, code, torch.full_like(code, FAIL_NONFINITE))

@@ -1,0 +1,289 @@
+"""The agent-local MPC problem (paper eq. 27) as one differentiable, batched layer.
+
+The cvxpy problem is written once, in DPP form, and wrapped in a
+:class:`cvxpylayers.torch.CvxpyLayer`; all agents of one ADMM iteration are solved by
+one batched call. Everything that depends on rho, the risk levels or the consensus
+variables is computed in torch and passed in as parameters, so gradients reach them.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import cvxpy as cp
+import numpy as np
+import torch
+from cvxpylayers.torch import CvxpyLayer
+from torch import Tensor, nn
+
+from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.dynamics.systems import NominalModel
+
+from torch_gpmpc.control.problem import (  # noqa: F401  (re-exported: the problem's contract lives there)
+    FAIL_EXCEPTION, FAIL_INACCURATE, FAIL_NONE, FAIL_NONFINITE, FAILURE_KINDS, FEASIBILITY_TOL,
+    SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures, collision_rows, get_local_mpc,
+)
+
+logger = logging.getLogger(__name__)
+
+#: Solver arguments per ``solver`` name (merged with per-call overrides); passed to
+#: diffcp's batch solve and from there to the solver's settings.
+SOLVER_ARGS: dict[str, dict[str, Any]] = {
+    # diffcp with Clarabel (interior point). cvxpylayers hands diffcp the conic form
+    # (squares as second-order cones), where Clarabel's defaults leave input errors
+    # ~3e-4 (inputs carry 10x the state error since B = 0.1 I) and occasional stalls at
+    # ~1e-5. Tolerances 1e-12 with a shorter step (0.9 of the way to the cone boundary)
+    # gave plans within 1e-6 of a direct QP solve on 144 crossing instances, and ran
+    # faster than the defaults with 1e-12 (fewer stalled iterations).
+    "clarabel": {"solve_method": "Clarabel", "n_jobs_forward": 1,
+                 "tol_gap_abs": 1e-12, "tol_gap_rel": 1e-12, "tol_feas": 1e-12,
+                 "max_step_fraction": 0.9},
+    # cvxpylayers' default: diffcp + SCS, with tight tolerances.
+    "reference": {"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iters": 100_000, "n_jobs_forward": 1},
+}
+
+#: diffcp arguments that only exist when gradients are computed (the solve-only path
+#: would hand them to the solver's settings and fail). diffcp's default derivative mode
+#: ``lsqr`` is an iterative solve whose gradients were off by 20-100% on the paper-size
+#: problem; ``dense`` factorizes the (~600 x 600) derivative system exactly.
+BACKWARD_ARGS: dict[str, Any] = {"n_jobs_backward": 1, "mode": "dense"}
+_BACKWARD_ONLY_KEYS = frozenset({"n_jobs_backward", "mode", "derivative_kwargs"})
+
+
+class LocalMPC(nn.Module):
+    r"""Agent-local augmented-Lagrangian MPC problem (paper eqs. 26-27), batched over agents.
+
+    For one agent with horizon T, state/input dimension D and M neighbour slots::
+
+        minimize    ||X - Xref||_F^2 + alpha ||U||_F^2 + slack_penalty * sum(s)
+                    + sum_j [ lam_own_j . X + lam_nbr_j . Y_j
+                              + rho_j / 2 (||X - z_own_j||_F^2 + ||Y_j - z_nbr_j||_F^2) ]
+        over        X (T+1, D), U (T, D), Y_j (T+1, D) for j < M, s (M, T)
+        subject to  X_0 = x0
+                    X_{tau+1} = dyn_A_tau X_tau + B U_tau + dyn_c_tau        tau = 0..T-1
+                    ||U_tau||_2 <= u_max                                    tau = 0..T-1
+                    n_{j,tau}^T (X_tau - Y_{j,tau}) + s_{j,tau} >= bound_{j,tau}   tau = 1..T
+                    s >= 0
+
+    Agent k's copy of edge (k, j) is ``y_kj,k = [X; Y_j]`` with consensus value
+    ``z_kj = [z_own_j; z_nbr_j]`` and multiplier ``[lam_own_j; lam_nbr_j]``;
+    ``bound = r_safe + Phi^{-1}(1 - eps_k) sigma_k`` (paper eq. 24) and ``n`` the unit
+    normal of the linearized distance (eq. 15, ``n^T rbar = ||rbar||`` so the constant
+    terms cancel). The slack with a large exact penalty keeps the problem feasible.
+
+    DPP form (how it is stated to cvxpy): with ``w = rho z - lam`` (computed in torch),
+    up to constants the objective is
+    ``c_X ||X||^2 - (2 Xref + sum_j w_own_j) . X + sum_j (rho_j/2 ||Y_j||^2 - w_nbr_j . Y_j)
+    + alpha ||U||^2 + slack_penalty sum(s)`` with ``c_X = 1 + sum_j rho_j / 2``. Completing
+    the squares (variables scaled by square roots of the weights, design.md section 4)::
+
+        ||sqrt(c_X) X - (Xref + sum_j w_own_j / 2) / sqrt(c_X)||^2
+        + sum_j ||sqrt(rho_j/2) Y_j - w_nbr_j / (2 sqrt(rho_j/2))||^2 + ...
+
+    with the scales and shifts computed in torch and passed as parameters: a parameter
+    times a variable inside ``sum_squares`` is DPP, and unlike the expanded form the
+    optimal value involves no cancellation between large terms, so the interior-point
+    solve of the conic form is accurate to ~1e-8 instead of ~1e-5. Inactive slots get
+    ``rho_j = 1``, ``w = 0`` (so ``Y_j = 0``), normal 0 and bound -1, keeping one problem
+    for all agents.
+
+    Args:
+        horizon: T.
+        dim: D (inputs have dimension D too).
+        num_neighbors: M, the number of neighbour slots (0 allowed).
+        nominal: the nominal model (its B is a build-time constant).
+        u_max: input norm bound.
+        alpha: control-effort weight.
+        slack_penalty: exact-penalty weight of the collision slacks.
+        solver: ``clarabel`` (diffcp with Clarabel) or ``reference`` (cvxpylayers'
+            default diffcp + SCS with tolerances 1e-9).
+    """
+
+    def __init__(
+        self,
+        horizon: int,
+        dim: int,
+        num_neighbors: int,
+        nominal: NominalModel,
+        u_max: float,
+        alpha: float,
+        slack_penalty: float = 1e4,
+        solver: str = "clarabel",
+    ) -> None:
+        super().__init__()
+        if solver not in SOLVER_ARGS:
+            raise GpmpcError(f"solver: {solver!r} is not a cvxpylayers path; choose from {', '.join(SOLVER_ARGS)}")
+        if horizon < 1 or dim < 1 or num_neighbors < 0:
+            raise GpmpcError(f"LocalMPC needs horizon >= 1, dim >= 1, num_neighbors >= 0; got "
+                             f"{horizon}, {dim}, {num_neighbors}")
+        if nominal.dim != dim:
+            raise GpmpcError(f"nominal model has dim {nominal.dim}, LocalMPC dim is {dim}")
+        if u_max <= 0 or alpha <= 0 or slack_penalty <= 0:
+            raise GpmpcError(f"u_max, alpha and slack_penalty must be > 0; got {u_max}, {alpha}, {slack_penalty}")
+        self.horizon, self.dim, self.num_neighbors = horizon, dim, num_neighbors
+        self.nominal, self.u_max, self.alpha = nominal, float(u_max), float(alpha)
+        self.slack_penalty, self.solver = float(slack_penalty), solver
+        self.problem, parameters, variables = self._build_problem()
+        #: cvxpy parameters in the order of :meth:`layer_parameters` (for plain cvxpy solves).
+        self.cvxpy_parameters = parameters
+        self._variable_shapes = [tuple(v.shape) for v in variables]
+        self.layer = CvxpyLayer(self.problem, parameters=parameters, variables=variables)
+
+    # ------------------------------------------------------------------ build
+    def _build_problem(self) -> tuple[cp.Problem, list[cp.Parameter], list[cp.Variable]]:
+        """The DPP problem, its parameters (layer order) and returned variables."""
+        T, D, M = self.horizon, self.dim, self.num_neighbors
+        b_mat = self.nominal.B().numpy()
+        X, U = cp.Variable((T + 1, D), name="X"), cp.Variable((T, D), name="U")
+        x0 = cp.Parameter(D, name="x0")
+        scale_x = cp.Parameter(nonneg=True, name="scale_X")
+        shift_x = cp.Parameter((T + 1, D), name="shift_X")
+        a_cols = [cp.Parameter((T, D), name=f"A_col{e}") for e in range(D)]
+        dyn_c = cp.Parameter((T, D), name="dyn_c")
+        ones_row = np.ones((1, D))
+        drift = sum(cp.multiply(a_cols[e], cp.reshape(X[:-1, e], (T, 1), order="F") @ ones_row)
+                    for e in range(D))
+        objective = cp.sum_squares(scale_x * X - shift_x) + self.alpha * cp.sum_squares(U)
+        constraints = [X[0] == x0, X[1:] == drift + U @ b_mat.T + dyn_c,
+                       cp.norm(U, 2, axis=1) <= self.u_max]
+        parameters = [x0, scale_x, shift_x, *a_cols, dyn_c]
+        variables = [X, U]
+        if M > 0:
+            Ys = [cp.Variable((T + 1, D), name=f"Y{j}") for j in range(M)]
+            S = cp.Variable((M, T), nonneg=True, name="slack")
+            scale_y = cp.Parameter(M, nonneg=True, name="scale_Y")
+            shift_y = [cp.Parameter((T + 1, D), name=f"shift_Y{j}") for j in range(M)]
+            normals = [cp.Parameter((T, D), name=f"normal{j}") for j in range(M)]
+            bounds = cp.Parameter((M, T), name="bounds")
+            for j in range(M):
+                objective += cp.sum_squares(scale_y[j] * Ys[j] - shift_y[j])
+                gap = cp.sum(cp.multiply(normals[j], X[1:] - Ys[j][1:]), axis=1)
+                constraints.append(gap + S[j] >= bounds[j])
+            objective += self.slack_penalty * cp.sum(S)
+            parameters += [scale_y, *shift_y, *normals, bounds]
+            variables += [*Ys, S]
+        problem = cp.Problem(cp.Minimize(objective), constraints)
+        if not problem.is_dpp():  # pragma: no cover - guarded by tests
+            raise RuntimeError("LocalMPC problem is not DPP")
+        return problem, parameters, variables
+
+    # ---------------------------------------------------------------- forward
+    def layer_parameters(self, data: LocalProblemData) -> list[Tensor]:
+        """Torch values of the layer's parameters (batched over B), in layer order.
+
+        Args:
+            data: the problem inputs (validated by the caller).
+
+        Returns:
+            Tensors ``[x0, scale_X, shift_X, A_col_0..A_col_{D-1}, dyn_c]`` and, if M > 0,
+            ``[scale_Y, shift_Y_0.., normal_0.., bounds]`` (see the class docstring).
+        """
+        M = self.num_neighbors
+        batch = data.x0.shape[0]
+        active = data.active.to(torch.bool)
+        act = active[:, :, None, None]
+        rho = data.rho.expand(batch, M) if data.rho.dim() == 0 else data.rho
+        rho_b = rho[:, :, None, None]
+        w_own = torch.where(act, rho_b * data.z_own - data.lam_own, torch.zeros_like(data.z_own))
+        w_nbr = torch.where(act, rho_b * data.z_nbr - data.lam_nbr, torch.zeros_like(data.z_nbr))
+        c_x = 1.0 + 0.5 * torch.where(active, rho, torch.zeros_like(rho)).sum(dim=1)
+        scale_x = torch.sqrt(c_x)
+        shift_x = (data.xref + 0.5 * w_own.sum(dim=1)) / scale_x[:, None, None]
+        params = [data.x0, scale_x, shift_x, *[data.dyn_A[..., e] for e in range(self.dim)], data.dyn_c]
+        if M > 0:
+            scale_y = torch.sqrt(0.5 * torch.where(active, rho, torch.ones_like(rho)))
+            shift_y = w_nbr / (2.0 * scale_y[:, :, None, None])
+            normals = torch.where(act, data.normals, torch.zeros_like(data.normals))
+            bounds = torch.where(active[:, :, None], data.bounds, -torch.ones_like(data.bounds))
+            params += [scale_y, *[shift_y[:, j] for j in range(M)],
+                       *[normals[:, j] for j in range(M)], bounds]
+        return params
+
+    def forward(self, data: LocalProblemData, solver_args: dict[str, Any] | None = None) -> LocalSolution:
+        """Solve the B local problems with one batched layer call.
+
+        A solver exception does not propagate: the batch is retried agent by agent and
+        the failing agents are returned with ``ok = False`` (NaN rows) and ``failure``
+        set (logged at DEBUG level; :class:`~torch_gpmpc.coordination.admm.ADMM` warns once per kind).
+
+        Args:
+            data: inputs with shapes as in :class:`LocalProblemData`.
+            solver_args: overrides of the solver arguments (e.g. tolerances).
+
+        Returns:
+            The :class:`LocalSolution`.
+        """
+        batch = data.validate(self.horizon, self.dim, self.num_neighbors)
+        params = self.layer_parameters(data)
+        needs_grad = torch.is_grad_enabled() and any(p.requires_grad for p in params)
+        args = {**SOLVER_ARGS[self.solver], **(BACKWARD_ARGS if needs_grad else {}), **(solver_args or {})}
+        if not needs_grad:
+            args = {k: v for k, v in args.items() if k not in _BACKWARD_ONLY_KEYS}
+        detail = None
+        try:
+            outputs = self.layer(*params, solver_args=args)
+            failed = torch.zeros(batch, dtype=torch.bool)
+        except Exception as exc:  # noqa: BLE001 - any solver failure is reported, not raised
+            logger.debug("LocalMPC: batched solve of %d problems failed (%s); retrying one by one",
+                         batch, exc)
+            outputs, failed, detail = self._solve_one_by_one(params, args)
+        return self._solution(data, outputs, failed, detail)
+
+    def _solve_one_by_one(self, params: list[Tensor], args: dict[str, Any]
+                          ) -> tuple[list[Tensor], Tensor, str | None]:
+        """Solve each problem alone; failures become NaN rows.
+
+        Returns:
+            ``(outputs, failed (B,), first exception message or None)``.
+        """
+        batch = params[0].shape[0]
+        rows, failed, detail = [], torch.zeros(batch, dtype=torch.bool), None
+        for b in range(batch):
+            try:
+                rows.append(self.layer(*[p[b:b + 1] for p in params], solver_args=args))
+            except Exception as exc:  # noqa: BLE001
+                logger.debug("LocalMPC: problem %d of %d failed: %s", b, batch, exc)
+                detail = detail or f"{type(exc).__name__}: {exc}"
+                failed[b] = True
+                rows.append(None)
+        template = next((r for r in rows if r is not None), None)
+        if template is None:
+            template = [torch.full((1, *v), float("nan"), dtype=params[0].dtype)
+                        for v in self._variable_shapes]
+        outputs = []
+        for i, ref in enumerate(template):
+            nan_row = torch.full_like(ref.detach(), float("nan"))
+            outputs.append(torch.cat([r[i] if r is not None else nan_row for r in rows]))
+        return outputs, failed, detail
+
+    def _solution(self, data: LocalProblemData, outputs: list[Tensor], failed: Tensor,
+                  detail: str | None = None) -> LocalSolution:
+        """Assemble a :class:`LocalSolution` and check each returned solution."""
+        T, D, M = self.horizon, self.dim, self.num_neighbors
+        batch = data.x0.shape[0]
+        X, U = outputs[0], outputs[1]
+        if M > 0:
+            Y = torch.stack(list(outputs[2:2 + M]), dim=1)
+            slack = outputs[2 + M]
+            slack_used = torch.where(data.active.to(torch.bool)[:, :, None], slack, torch.zeros_like(slack))
+            slack_active = (slack_used > SLACK_ACTIVE_TOL).flatten(1).any(dim=1)
+        else:
+            Y = X.new_zeros(batch, 0, T + 1, D)
+            slack = X.new_zeros(batch, 0, T)
+            slack_active = torch.zeros(batch, dtype=torch.bool)
+        failure = self._check(data, X.detach(), U.detach(), Y.detach(), slack.detach())
+        failure = torch.where(failed, torch.full_like(failure, FAIL_EXCEPTION), failure)
+        ok = failure == FAIL_NONE
+        if not bool(ok.all()):
+            logger.debug("LocalMPC: %d of %d local problems returned no valid solution (kinds %s)",
+                         int((~ok).sum()), batch, failure.tolist())
+        cost = ((X - data.xref) ** 2).sum(dim=(1, 2)) + self.alpha * (U ** 2).sum(dim=(1, 2))
+        return LocalSolution(X=X, U=U, Y=Y, slack=slack, slack_active=slack_active & ok, ok=ok, cost=cost,
+                             failure=failure, failure_detail=detail)
+
+    def _check(self, data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor) -> Tensor:
+        """Failure code per problem, (B,): see :func:`acceptance_failures`."""
+        return acceptance_failures(data, X, U, Y, slack, self.nominal, self.u_max)
+
+

@@ -1,0 +1,403 @@
+"""A fast batched, differentiable interior-point solver for the agent-local MPC problem.
+
+:class:`FastLocalMPC` solves exactly the problem of :class:`torch_gpmpc.control.solvers.conic.LocalMPC`
+(same :class:`~torch_gpmpc.control.solvers.conic.LocalProblemData` in, same
+:class:`~torch_gpmpc.control.solvers.conic.LocalSolution` out) with a primal-dual interior-point method
+and differentiates it implicitly through its KKT conditions (a ``torch.autograd.Function``).
+Data flow: :func:`canonicalize` (torch, differentiable: condensed dynamics, so only the
+inputs, the neighbour copies and the collision slacks remain) -> the compiled kernel
+:mod:`torch_gpmpc.control.solvers.ipm_kernel` (NumPy arrays, CPU) -> outputs and gradients back in torch.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from torch_gpmpc.control.solvers import ipm_kernel as ipm
+from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.control.problem import (
+    FAIL_INACCURATE, FAIL_NONFINITE, SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures,
+)
+from torch_gpmpc.dynamics.systems import NominalModel
+
+logger = logging.getLogger(__name__)
+
+#: The backward pass differentiates at a point polished to ``POLISH_FACTOR * tol``
+#: (at most ``POLISH_ITERATIONS`` extra iterations).
+POLISH_FACTOR = 1e-2
+POLISH_ITERATIONS = 6
+
+
+def _mv(mat: Tensor, vec: Tensor) -> Tensor:
+    """Batched matrix-vector product, (B, p, q) x (B, q) -> (B, p)."""
+    return torch.bmm(mat, vec.unsqueeze(-1)).squeeze(-1)
+
+
+# --------------------------------------------------------------------------- problem data
+def condense_dynamics(x0: Tensor, dyn_A: Tensor, dyn_c: Tensor, b: float) -> tuple[Tensor, Tensor]:
+    """Eliminate the dynamics: ``X_{1..T} = G U + h`` (differentiable).
+
+    With ``X_0 = x0`` and ``X_{t+1} = A_t X_t + b U_t + c_t``, block row ``t`` of ``G``
+    is ``b A_{t-1} ... A_{k+1}`` in block column ``k < t`` and ``b I`` for ``k = t - 1``.
+
+    Args:
+        x0: initial states, shape (B, D).
+        dyn_A: state matrices, shape (B, T, D, D).
+        dyn_c: offsets, shape (B, T, D).
+        b: the input gain (``B = b I``).
+
+    Returns:
+        ``(G, h)`` with G of shape (B, T*D, T*D) and h of shape (B, T*D), states and
+        inputs flattened time-major (index ``t * D + d``).
+    """
+    batch, horizon, dim = dyn_c.shape
+    n = horizon * dim
+    # What step t adds to the augmented block row [G_t | h_t]: b I in block column t and
+    # c_t in the last column; built once, shape (B, T, D, n + 1).
+    eye_blocks = b * torch.eye(n, dtype=dyn_c.dtype, device=dyn_c.device).view(horizon, dim, n)
+    inject = torch.cat([eye_blocks.expand(batch, horizon, dim, n), dyn_c[..., None]], dim=3)
+    row = torch.cat([x0.new_zeros(batch, dim, n), x0[:, :, None]], dim=2)
+    rows = []
+    for t in range(horizon):
+        row = torch.baddbmm(inject[:, t], dyn_A[:, t], row)  # A_t [G_{t-1} | h_{t-1}] + inject_t
+        rows.append(row)
+    stacked = torch.cat(rows, dim=1)  # (B, n, n + 1)
+    return stacked[:, :, :n], stacked[:, :, n]
+
+
+@dataclass
+class CanonicalData:
+    """The local problem in the solver's variables (all differentiable functions of the data).
+
+    Objective (up to constants) over ``u = vec(U)``, ``Y_{j,1..T}`` and ``s``::
+
+        c_X ||G u + h||^2 - l_X . (G u + h) + alpha ||u||^2
+        + sum_j (rho_y_j / 2 ||Y_j||^2 - w_y_j . Y_j) + slack_penalty * sum(s)
+
+    Attributes:
+        G: condensed input-to-state map, shape (B, T*D, T*D).
+        h: condensed free response, shape (B, T*D).
+        c_x: quadratic weight of the states, ``1 + sum_{active j} rho_j / 2``, shape (B,).
+        l_x: linear weight of X_{1..T}, ``2 Xref + sum_{active j} (rho_j z_own_j - lam_own_j)``,
+            shape (B, T*D).
+        rho_y: weight of the neighbour copies (1 on inactive slots), shape (B, M).
+        w_y: linear weight of Y_{j,1..T}, ``rho_j z_nbr_j - lam_nbr_j`` (0 inactive),
+            shape (B, M, T, D).
+        y0: the closed-form copies at step 0, ``w_y / rho_y`` at tau = 0, shape (B, M, D).
+        normals: collision normals (0 inactive), shape (B, M, T, D).
+        bounds: collision bounds (-1 inactive), shape (B, M, T).
+    """
+
+    G: Tensor
+    h: Tensor
+    c_x: Tensor
+    l_x: Tensor
+    rho_y: Tensor
+    w_y: Tensor
+    y0: Tensor
+    normals: Tensor
+    bounds: Tensor
+
+
+def canonicalize(data: LocalProblemData, b: float) -> CanonicalData:
+    """Map :class:`LocalProblemData` to :class:`CanonicalData` (differentiable).
+
+    Inactive slots get ``rho = 1``, ``w = 0`` (so ``Y_j = 0``), normal 0 and bound -1,
+    and contribute nothing to the state cost (as in :class:`~torch_gpmpc.control.solvers.conic.LocalMPC`).
+    """
+    batch, M = data.active.shape
+    active = data.active.to(torch.bool)
+    rho = data.rho.expand(batch, M) if data.rho.dim() == 0 else data.rho
+    act4 = active[:, :, None, None]
+    rho4 = rho[:, :, None, None]
+    zero4 = data.z_own.new_zeros(())
+    w_own = torch.where(act4, rho4 * data.z_own - data.lam_own, zero4)
+    w_nbr = torch.where(act4, rho4 * data.z_nbr - data.lam_nbr, zero4)
+    rho_y = torch.where(active, rho, torch.ones_like(rho))
+    c_x = 1.0 + 0.5 * torch.where(active, rho, torch.zeros_like(rho)).sum(dim=1)
+    l_x = (2.0 * data.xref[:, 1:] + w_own[:, :, 1:].sum(dim=1)).flatten(1)
+    normals = torch.where(act4, data.normals, zero4)
+    bounds = torch.where(active[:, :, None], data.bounds, -torch.ones_like(data.bounds))
+    G, h = condense_dynamics(data.x0, data.dyn_A, data.dyn_c, b)
+    y0 = w_nbr[:, :, 0] / rho_y[:, :, None]
+    return CanonicalData(G=G, h=h, c_x=c_x, l_x=l_x, rho_y=rho_y, w_y=w_nbr[:, :, 1:], y0=y0,
+                         normals=normals, bounds=bounds)
+
+
+# ------------------------------------------------------------------------ differentiation
+def _stationarity_pairing(G: Tensor, h: Tensor, c_x: Tensor, l_x: Tensor, rho_y: Tensor, w_y: Tensor,
+                          normals: Tensor, bounds: Tensor, u: Tensor, y: Tensor, zc: Tensor,
+                          a_u: Tensor, a_y: Tensor, xi: Tensor) -> Tensor:
+    """``a^T grad_v L(v, z; theta) + xi^T g_c(v; theta)`` summed over the batch (a scalar).
+
+    Only the terms that depend on the problem data theta are kept; its gradient with
+    respect to theta, negated, is the implicit-function-theorem vector-Jacobian product.
+
+    Shapes: G (B, n, n), h (B, n), c_x (B,), l_x (B, n), rho_y (B, M), w_y (B, M, T, D),
+    normals (B, M, T, D), bounds (B, M, T); u, a_u (B, n); y, a_y (B, K, D); zc, xi (B, K).
+    """
+    B, M, T, D = normals.shape
+    x1 = _mv(G, u) + h
+    dx1 = _mv(G, a_u)
+    obj = ((2.0 * c_x[:, None] * x1 - l_x) * dx1).sum()
+    rho = rho_y[:, :, None].expand(B, M, T).reshape(B, -1, 1)
+    obj = obj + ((rho * y - w_y.reshape(B, -1, D)) * a_y).sum()
+    N = normals.reshape(B, -1, D)
+    x_rows = x1.view(B, 1, T, D).expand(B, M, T, D).reshape(B, -1, D)
+    dx_rows = dx1.view(B, 1, T, D).expand(B, M, T, D).reshape(B, -1, D)
+    obj = obj - (zc * (N * (dx_rows - a_y)).sum(-1)).sum()
+    return obj + (xi * ((N * (x_rows - y)).sum(-1) - bounds.reshape(B, -1))).sum()
+
+
+def _kernel_arrays(tensors: tuple[Tensor, ...]) -> list[np.ndarray]:
+    """The canonical tensors as C-contiguous float64 NumPy arrays (zero-copy when possible)."""
+    return [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64) for t in tensors]
+
+
+@dataclass
+class _Iterate:
+    """Primal-dual point of B problems (NumPy): u (B, n), y (B, K, D), w and z (B, 2K + T)."""
+
+    u: np.ndarray
+    y: np.ndarray
+    w: np.ndarray
+    z: np.ndarray
+
+    def copy(self) -> "_Iterate":
+        return _Iterate(self.u.copy(), self.y.copy(), self.w.copy(), self.z.copy())
+
+
+class _LocalQpFunction(torch.autograd.Function):
+    """Batched interior-point solve with implicit differentiation of its KKT conditions.
+
+    Inputs are the :class:`CanonicalData` tensors (G, h, c_x, l_x, rho_y, w_y, normals,
+    bounds) and a settings tuple; outputs ``(u (B, n), y (B, M, T, D), s (B, M, T),
+    converged (B,))``.
+    """
+
+    @staticmethod
+    def forward(ctx, G, h, c_x, l_x, rho_y, w_y, normals, bounds, settings):  # noqa: D102
+        alpha, u_max, penalty, tol, max_iter, stats = settings
+        arrays = _kernel_arrays((G, h, c_x, l_x, rho_y, w_y, normals, bounds))
+        B, M, T, D = normals.shape
+        K, n = M * T, T * D
+        point = _Iterate(np.empty((B, n)), np.empty((B, K, D)), np.empty((B, 2 * K + T)), np.empty((B, 2 * K + T)))
+        converged, iterations, kkt_error = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
+        ipm.solve_batch(*arrays, alpha, u_max, penalty, tol, max_iter, point.u, point.y, point.w, point.z, False,
+                        converged, iterations, kkt_error)
+        stats["iterations"] = int(iterations.max(initial=0))
+        ctx.point, ctx.converged, ctx.kkt_error = point, converged, kkt_error
+        ctx.settings = (alpha, u_max, penalty, tol)
+        ctx.save_for_backward(G, h, c_x, l_x, rho_y, w_y, normals, bounds)
+
+        def out(a: np.ndarray, *shape: int) -> Tensor:
+            return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=h.dtype, device=h.device).reshape(*shape)
+
+        converged_t = torch.from_numpy(converged).to(h.device)
+        ctx.mark_non_differentiable(converged_t)
+        return (out(point.u, B, n), out(point.y, B, M, T, D), out(point.w[:, K:2 * K], B, M, T), converged_t)
+
+    @staticmethod
+    def backward(ctx, g_u, g_y, g_s, _g_conv):  # noqa: D102
+        point = ctx.point
+        alpha, u_max, penalty, tol = ctx.settings
+        inputs = ctx.saved_tensors  # (autograd checks these were not modified in place)
+        arrays = _kernel_arrays(inputs)
+        B, K, D = point.y.shape
+        n = point.u.shape[1]
+        ref = inputs[1]
+
+        def arr(g: Tensor | None, *shape: int) -> np.ndarray:
+            if g is None:
+                return np.zeros(shape)
+            return np.ascontiguousarray(g.detach().cpu().numpy(), dtype=np.float64).reshape(shape)
+
+        def ten(a: np.ndarray) -> Tensor:
+            return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=ref.dtype, device=ref.device)
+
+        # Gradients are more sensitive than solutions to the barrier perturbation (a
+        # nearly degenerate row counts as half active): continue from the returned point
+        # to a tighter tolerance before differentiating (usually one or two iterations).
+        polished = point.copy()
+        p_conv, p_iter, p_err = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
+        ipm.solve_batch(*arrays, alpha, u_max, penalty, POLISH_FACTOR * tol, POLISH_ITERATIONS,
+                        polished.u, polished.y, polished.w, polished.z, True, p_conv, p_iter, p_err)
+        keep = ~ctx.converged | p_conv | (p_err <= ctx.kkt_error)
+        at = _Iterate(*(np.where(keep.reshape(-1, *[1] * (a.ndim - 1)), a, b) for a, b in
+                        zip((polished.u, polished.y, polished.w, polished.z), (point.u, point.y, point.w, point.z))))
+        a_u, a_y, xi, failed = np.empty((B, n)), np.empty((B, K, D)), np.empty((B, K)), np.empty(B, dtype=np.bool_)
+        ipm.adjoint_batch(*arrays, alpha, at.u, at.w, at.z, arr(g_u, B, n), arr(g_y, B, K, D), arr(g_s, B, K),
+                          a_u, a_y, xi, failed)
+        a_u, a_y, xi = (ten(np.nan_to_num(a)) for a in (a_u, a_y, xi))
+        needs = ctx.needs_input_grad[:8]
+        with torch.enable_grad():
+            leaves = [t.detach().requires_grad_(n) for t, n in zip(inputs, needs)]
+            pairing = _stationarity_pairing(*leaves, ten(at.u), ten(at.y), ten(at.z[:, :K]), a_u, a_y, xi)
+            wanted = [leaf for leaf, n in zip(leaves, needs) if n]
+            grads = iter(torch.autograd.grad(pairing, wanted, allow_unused=True)) if wanted else iter(())
+        out = []
+        for leaf, n in zip(leaves, needs):
+            grad = next(grads) if n else None
+            out.append(None if grad is None else -grad)
+        return (*out, None)
+
+
+# ------------------------------------------------------------------------------ the layer
+class FastLocalMPC(nn.Module):
+    r"""Agent-local MPC problem (paper eqs. 26-27) by a batched differentiable interior-point method.
+
+    Solves, for each of B agents with horizon T, dimension D and M neighbour slots, the
+    same problem as :class:`torch_gpmpc.control.solvers.conic.LocalMPC`::
+
+        minimize    ||X - Xref||_F^2 + alpha ||U||_F^2 + slack_penalty * sum(s)
+                    + sum_{active j} [ lam_own_j . X + lam_nbr_j . Y_j
+                                       + rho_j / 2 (||X - z_own_j||^2 + ||Y_j - z_nbr_j||^2) ]
+                    + sum_{inactive j} 1/2 ||Y_j||^2
+        over        X (T+1, D), U (T, D), Y_j (T+1, D), s (M, T)
+        subject to  X_0 = x0,  X_{t+1} = dyn_A_t X_t + b U_t + dyn_c_t       t = 0..T-1
+                    ||U_t||_2 <= u_max                                      t = 0..T-1
+                    n_{j,t}^T (X_t - Y_{j,t}) + s_{j,t} >= bound_{j,t},  s >= 0   t = 1..T
+
+    (inactive slots have no collision row). Method:
+
+    * **Condensing.** ``X_{1..T} = G u + h`` with ``u = vec(U)`` (:func:`condense_dynamics`);
+      ``Y_{j,0} = (rho z_nbr - lam_nbr)_{j,0} / rho_j`` in closed form. Variables left:
+      ``u`` (T D), ``Y_{j,1..T}`` (M T D), ``s`` (M T).
+    * **Interior point.** Primal-dual, infeasible start, Mehrotra predictor-corrector,
+      one step length, fraction to the boundary 0.99. The input bounds are the smooth
+      convex constraints ``(u_max^2 - ||U_t||^2) / 2 >= 0`` with their own slacks (not
+      second-order cones: an NT-scaled cone loses precision at tight tolerances because
+      its distance to the boundary is a difference of O(1) numbers; a scalar slack
+      does not). Globalization: after each step every ``U_t`` is projected onto the
+      ball of radius ``u_max`` (the iterate may be moved since all residuals are
+      recomputed; near the solution the projection is inactive).
+    * **Linear algebra** (:mod:`torch_gpmpc.control.solvers.ipm_kernel`, compiled per problem). Per collision
+      row, ``Y_{j,t}`` and ``s_{j,t}`` are eliminated in closed form (diagonal Hessian
+      ``rho_j``), leaving ``S0 = H + blockdiag(z_q I) + A^T diag(deff) A`` (T D x T D) with
+      bounded weights; the input-bound multipliers stay in the system (augmented,
+      quasi-definite, size T D + T) and are solved through their T x T Schur complement,
+      so no 1/mu-sized term is ever factored. Two Cholesky factorizations per iteration
+      serve the predictor and the corrector.
+    * **Stopping.** Relative dual residuals, relative primal residuals and the absolute
+      complementarity ``sum(w z)`` all below ``tol``, per problem.
+    * **Gradients.** Implicit differentiation of the KKT conditions at the returned
+      primal-dual point: one adjoint solve with the same reduced matrix, then the
+      data-dependent part of the KKT residual is differentiated by autograd, so every
+      tensor field of :class:`~torch_gpmpc.control.solvers.conic.LocalProblemData` gets its gradient.
+      The backward first continues the iteration to ``tol / 100`` from the returned
+      point (usually 1-2 iterations): gradients are more sensitive to the barrier
+      perturbation than solutions (nearly degenerate rows).
+
+    Never raises on numerical trouble: problems that do not converge within
+    ``max_iter`` (or have non-finite data) get ``ok = False`` and finite outputs.
+
+    Args:
+        horizon: T.
+        dim: D (inputs have dimension D too).
+        num_neighbors: M (0 allowed).
+        nominal: the nominal model; its ``B() = b I`` is used.
+        u_max: input norm bound.
+        alpha: control-effort weight.
+        slack_penalty: exact-penalty weight of the collision slacks.
+        tol: stopping tolerance on the KKT error.
+        max_iter: iteration limit.
+    """
+
+    def __init__(self, horizon: int, dim: int, num_neighbors: int, nominal: NominalModel, u_max: float,
+                 alpha: float, slack_penalty: float = 1e4, tol: float = 1e-10, max_iter: int = 50) -> None:
+        super().__init__()
+        if horizon < 1 or dim < 1 or num_neighbors < 0:
+            raise GpmpcError(f"FastLocalMPC needs horizon >= 1, dim >= 1, num_neighbors >= 0; got "
+                             f"{horizon}, {dim}, {num_neighbors}")
+        if nominal.dim != dim:
+            raise GpmpcError(f"nominal model has dim {nominal.dim}, FastLocalMPC dim is {dim}")
+        if u_max <= 0 or alpha <= 0 or slack_penalty <= 0 or tol <= 0 or max_iter < 1:
+            raise GpmpcError(f"u_max, alpha, slack_penalty, tol must be > 0 and max_iter >= 1; got "
+                             f"{u_max}, {alpha}, {slack_penalty}, {tol}, {max_iter}")
+        b_mat = nominal.B()
+        b = float(b_mat[0, 0])
+        if not torch.equal(b_mat, b * torch.eye(dim, dtype=b_mat.dtype)):
+            raise GpmpcError("FastLocalMPC needs an input matrix B = b I")
+        self.horizon, self.dim, self.num_neighbors = horizon, dim, num_neighbors
+        self.nominal, self.b = nominal, b
+        self.u_max, self.alpha, self.slack_penalty = float(u_max), float(alpha), float(slack_penalty)
+        self.tol, self.max_iter = float(tol), int(max_iter)
+        #: Iterations used by the last call (for benchmarks and logging).
+        self.last_iterations = 0
+
+    def forward(self, data: LocalProblemData) -> LocalSolution:
+        """Solve the B local problems.
+
+        Args:
+            data: inputs with shapes as in :class:`~torch_gpmpc.control.solvers.conic.LocalProblemData`
+                (float64 recommended; computations run in the dtype of ``x0``).
+
+        Returns:
+            The :class:`~torch_gpmpc.control.solvers.conic.LocalSolution`; differentiable with respect to
+            every floating-point field of ``data``.
+
+        Raises:
+            GpmpcError: if a field has the wrong shape.
+        """
+        batch = data.validate(self.horizon, self.dim, self.num_neighbors)
+        T, D, M = self.horizon, self.dim, self.num_neighbors
+        canon = canonicalize(data, self.b)
+        canon, valid = _sanitize(canon)
+        stats: dict = {}
+        settings = (self.alpha, self.u_max, self.slack_penalty, self.tol, self.max_iter, stats)
+        u, y1, slack, converged = _LocalQpFunction.apply(canon.G, canon.h, canon.c_x, canon.l_x, canon.rho_y,
+                                                         canon.w_y, canon.normals, canon.bounds, settings)
+        self.last_iterations = stats["iterations"]
+        x0 = torch.where(valid[:, None], data.x0, torch.zeros_like(data.x0))
+        X = torch.cat([x0[:, None], (_mv(canon.G, u) + canon.h).view(batch, T, D)], dim=1)
+        U = u.view(batch, T, D)
+        Y = torch.cat([canon.y0[:, :, None], y1], dim=2)
+        # the same acceptance rule as the cvxpylayers path; unconverged or invalid rows fail too
+        failure = acceptance_failures(data, X.detach(), U.detach(), Y.detach(), slack.detach(),
+                                      self.nominal, self.u_max)
+        failure = torch.where(~valid, torch.full_like(failure, FAIL_NONFINITE), failure)  # bad input data
+        failure = torch.where(~converged & (failure == 0), torch.full_like(failure, FAIL_INACCURATE), failure)
+        ok = failure == 0
+        if M > 0:
+            used = torch.where(data.active.to(torch.bool)[:, :, None], slack, torch.zeros_like(slack))
+            slack_active = (used > SLACK_ACTIVE_TOL).flatten(1).any(dim=1) & ok
+        else:
+            slack_active = torch.zeros(batch, dtype=torch.bool)
+        if not bool(ok.all()):  # ADMM counts and warns (once per kind); keep the details here
+            logger.debug("FastLocalMPC: %d of %d local problems rejected (tol %g, %d iterations)",
+                         int((~ok).sum()), batch, self.tol, self.max_iter)
+        xref = torch.where(valid[:, None, None], data.xref, torch.zeros_like(data.xref))
+        cost = ((X - xref) ** 2).sum(dim=(1, 2)) + self.alpha * (U ** 2).sum(dim=(1, 2))
+        return LocalSolution(X=X, U=U, Y=Y, slack=slack, slack_active=slack_active, ok=ok, cost=cost,
+                             failure=failure)
+
+
+def _sanitize(canon: CanonicalData) -> tuple[CanonicalData, Tensor]:
+    """Replace problems with non-finite data or ``rho <= 0`` by a benign one.
+
+    Returns:
+        ``(canon, valid (B,))``; rows with ``valid = False`` are the problem with
+        ``G = 0, h = 0, c_x = 1, l_x = 0, rho_y = 1, w_y = 0``, no collision rows.
+    """
+    parts = [canon.G.flatten(1), canon.h, canon.c_x[:, None], canon.l_x, canon.rho_y, canon.w_y.flatten(1),
+             canon.y0.flatten(1), canon.normals.flatten(1), canon.bounds.flatten(1)]
+    total = torch.cat([p.detach() for p in parts], dim=1).sum(1)
+    valid = torch.isfinite(total)
+    if canon.rho_y.numel():
+        valid = valid & (canon.rho_y.detach() > 0).all(1)
+    if bool(valid.all()):
+        return canon, valid
+
+    def keep(t: Tensor, fill: float) -> Tensor:
+        mask = valid.view(-1, *([1] * (t.dim() - 1)))
+        return torch.where(mask, t, torch.full_like(t, fill))
+
+    return CanonicalData(G=keep(canon.G, 0.0), h=keep(canon.h, 0.0), c_x=keep(canon.c_x, 1.0),
+                         l_x=keep(canon.l_x, 0.0), rho_y=keep(canon.rho_y, 1.0), w_y=keep(canon.w_y, 0.0),
+                         y0=keep(canon.y0, 0.0), normals=keep(canon.normals, 0.0),
+                         bounds=keep(canon.bounds, -1.0)), valid

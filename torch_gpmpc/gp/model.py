@@ -1,0 +1,695 @@
+"""Residual Gaussian process: one independent GP per state dimension (paper §2.1).
+
+For each output dimension d the residual ``y_d = [x' - f(x, u)]_d`` is modelled by a
+zero-mean GP with a squared-exponential ARD kernel (paper eq. 3-4)::
+
+    kappa_d(a, b) = sigma_d^2 exp(-1/2 (a - b)^T L_d^{-1} (a - b)),   L_d = diag(l_{d,1}^2, ...)
+    mu_d(x)       = k_d(x)^T (K_d + s_d^2 I)^{-1} Y_d                               (eq. 3)
+    var_d(x)      = kappa_d(x, x) - k_d(x)^T (K_d + s_d^2 I)^{-1} k_d(x)            (eq. 4)
+    d mu_d / dx   = sum_n kappa_d(x, xi_n) L_d^{-1} (xi_n - x) alpha_{d,n}          (eq. 13)
+
+Internally inputs are standardized per input dimension and outputs per output
+dimension (the standardized GP is fitted by GPyTorch: ``ExactGP`` with
+``batch_shape=[D]``, ``ZeroMean``, ``ScaleKernel(RBFKernel(ard))``,
+``GaussianLikelihood`` with learned noise). This is exactly a GP in raw units whose
+prior mean is the empirical mean of ``y`` and whose hyperparameters are the raw-unit
+values reported by :attr:`ResidualGP.lengthscales`, :attr:`ResidualGP.outputscales`
+and :attr:`ResidualGP.noise`. Users pass raw units and get raw units back.
+
+After fitting, :meth:`ResidualGP.refresh` caches the Cholesky factor of
+``K_d + s_d^2 I`` and ``alpha_d = (K_d + s_d^2 I)^{-1} Y_d``; :meth:`ResidualGP.linearize`
+then evaluates mean, Jacobian and variance for a batch of points with a few batched
+torch ops (no GPyTorch predictive machinery), because the controller calls it every
+ADMM iteration.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+import math
+import pickle
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import gpytorch
+import torch
+from linear_operator.utils.errors import NotPSDError
+from torch import Tensor
+
+from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.fileio import atomic_path
+
+log = logging.getLogger(__name__)
+
+FORMAT = "torch_gpmpc.ResidualGP"
+VERSION = 1
+INPUT_KINDS = ("state", "state_input")
+#: Most training points :func:`fit_residual_gp` accepts: an exact GP needs O(N^2)
+#: memory and O(N^3) time per output dimension (5000 points: ~0.4 GB for D = 2).
+MAX_TRAINING_POINTS = 5000
+#: Jitter levels (added to the kernel diagonal, standardized units) tried when a
+#: Cholesky factorization fails; ``None`` is GPyTorch's default.
+JITTERS = (None, 1e-6, 1e-4)
+#: GPyTorch switches to iterative solvers above this size; we always want Cholesky.
+_MAX_CHOLESKY = 1_000_000
+_Z95 = 1.959963984540054
+#: Standardized initial hyperparameters (inputs and outputs have unit variance).
+_INIT = {"lengthscale": 1.0, "outputscale": 1.0, "noise": 0.1}
+
+Callback = Callable[[int, float, dict], None]
+
+
+class _BatchExactGP(gpytorch.models.ExactGP):
+    """D independent exact GPs on standardized data (GPyTorch batch mode).
+
+    Args:
+        train_x: standardized inputs, shape (D, N, Din) (the same points for every d).
+        train_y: standardized targets, shape (D, N).
+        likelihood: ``GaussianLikelihood(batch_shape=[D])``.
+    """
+
+    def __init__(self, train_x: Tensor, train_y: Tensor, likelihood: gpytorch.likelihoods.GaussianLikelihood):
+        super().__init__(train_x, train_y, likelihood)
+        batch = torch.Size([train_y.shape[0]])
+        self.mean_module = gpytorch.means.ZeroMean(batch_shape=batch)
+        self.covar_module = gpytorch.kernels.ScaleKernel(
+            gpytorch.kernels.RBFKernel(ard_num_dims=train_x.shape[-1], batch_shape=batch),
+            batch_shape=batch,
+        )
+
+    def forward(self, x: Tensor) -> gpytorch.distributions.MultivariateNormal:
+        """Prior at standardized inputs ``x`` of shape (D, n, Din); batch MVN (D, n)."""
+        return gpytorch.distributions.MultivariateNormal(self.mean_module(x), self.covar_module(x))
+
+
+@dataclass
+class _Cache:
+    """Everything :meth:`ResidualGP.linearize` needs (standardized units unless noted).
+
+    Shapes: D outputs, N training points, Din inputs.
+    """
+
+    x_mean: Tensor  # (Din,) raw
+    x_std: Tensor  # (Din,) raw
+    ls: Tensor  # (D, 1, Din) standardized lengthscales
+    x_scale: Tensor  # (D, 1, Din) raw: x_std * lengthscale
+    S: Tensor  # (D, N, Din) training inputs / lengthscale (standardized)
+    S_cols: tuple[Tensor, ...]  # Din contiguous columns of S, each (D, 1, N)
+    outputscale: Tensor  # (D,)
+    chol: Tensor  # (D, N, N) lower Cholesky factor of K + s^2 I
+    alpha: Tensor  # (D, N) (K + s^2 I)^{-1} y
+    y_mean: Tensor  # (D,) raw
+    y_std: Tensor  # (D,) raw
+    noise_raw: Tensor  # (D,) raw noise variance
+
+
+class ResidualGP(torch.nn.Module):
+    """Residual GP ``x -> y`` with D independent outputs (one GP per state dimension).
+
+    Build it with :func:`fit_residual_gp`; evaluate with :meth:`predict`,
+    :meth:`mean_jacobian` or (fastest, all at once) :meth:`linearize`. Each agent of
+    the multi-agent controller owns one instance.
+
+    Args:
+        inputs: raw training inputs, shape (N, Din).
+        y: raw training targets (residuals), shape (N, D).
+        input_kind: what the inputs are: ``"state"`` (Din = D, the paper) or
+            ``"state_input"`` (Din = D + Du). Stored in the model file.
+        normalization: optional ``(x_mean (Din,), x_std (Din,), y_mean (D,), y_std (D,))``;
+            computed from the data when ``None``.
+
+    Attributes:
+        model: the GPyTorch ``ExactGP`` on standardized data (batch_shape [D]).
+        likelihood: its ``GaussianLikelihood`` (batch_shape [D]).
+    """
+
+    def __init__(self, inputs: Tensor, y: Tensor, input_kind: str = "state",
+                 normalization: tuple[Tensor, Tensor, Tensor, Tensor] | None = None):
+        super().__init__()
+        inputs, y = _check_training_data(inputs, y)
+        if input_kind not in INPUT_KINDS:
+            raise GpmpcError(f"input_kind must be one of {INPUT_KINDS}, got {input_kind!r}")
+        self.input_kind = input_kind
+        self.train_inputs_raw = inputs
+        self.train_y_raw = y
+        x_mean, x_std, y_mean, y_std = normalization or _normalization(inputs, y)
+        self.x_mean, self.x_std, self.y_mean, self.y_std = x_mean, x_std, y_mean, y_std
+        D, (N, Din) = y.shape[1], inputs.shape
+        z = ((inputs - x_mean) / x_std).expand(D, N, Din)
+        ys = ((y - y_mean) / y_std).T.contiguous()
+        self.likelihood = gpytorch.likelihoods.GaussianLikelihood(batch_shape=torch.Size([D]))
+        self.model = _BatchExactGP(z, ys, self.likelihood)
+        self.model.covar_module.base_kernel.lengthscale = _INIT["lengthscale"]
+        self.model.covar_module.outputscale = _INIT["outputscale"]
+        self.likelihood.noise = _INIT["noise"]
+        self._cache: _Cache | None = None
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def input_dim(self) -> int:
+        """Din."""
+        return int(self.train_inputs_raw.shape[1])
+
+    @property
+    def output_dim(self) -> int:
+        """D."""
+        return int(self.train_y_raw.shape[1])
+
+    @property
+    def num_data(self) -> int:
+        """N."""
+        return int(self.train_inputs_raw.shape[0])
+
+    # ------------------------------------------------------------------ hyperparameters
+    @property
+    def lengthscales(self) -> Tensor:
+        """ARD length-scales l_{d,i} in raw input units, shape (D, Din)."""
+        ls = self.model.covar_module.base_kernel.lengthscale.detach()
+        return ls.reshape(self.output_dim, self.input_dim) * self.x_std
+
+    @property
+    def outputscales(self) -> Tensor:
+        """Signal variances sigma_d^2 in raw output units squared, shape (D,)."""
+        return self.model.covar_module.outputscale.detach() * self.y_std ** 2
+
+    @property
+    def noise(self) -> Tensor:
+        """Observation-noise variances s_d^2 in raw output units squared, shape (D,)."""
+        return self.likelihood.noise.detach().reshape(self.output_dim) * self.y_std ** 2
+
+    def hyperparameters(self) -> dict[str, Any]:
+        """Raw-unit hyperparameters as plain floats/lists (for logging and summaries)."""
+        return {
+            "lengthscale": self.lengthscales.tolist(),
+            "outputscale": self.outputscales.tolist(),
+            "noise": self.noise.tolist(),
+            "input_dim": self.input_dim,
+            "output_dim": self.output_dim,
+            "num_data": self.num_data,
+            "input_kind": self.input_kind,
+        }
+
+    # ------------------------------------------------------------------ cache
+    def refresh(self) -> "ResidualGP":
+        """Recompute the prediction cache from the current hyperparameters.
+
+        Called by :func:`fit_residual_gp` and :meth:`load`; call it yourself after
+        changing hyperparameters by hand. Also resets GPyTorch's own caches.
+
+        Raises:
+            GpmpcError: if ``K + s^2 I`` is not positive definite even with jitter.
+        """
+        self.model.eval()
+        self.likelihood.eval()
+        self.model.prediction_strategy = None
+        with torch.no_grad():
+            D, Din = self.output_dim, self.input_dim
+            ls = self.model.covar_module.base_kernel.lengthscale.detach().reshape(D, 1, Din)
+            outputscale = self.model.covar_module.outputscale.detach().reshape(D)
+            noise = self.likelihood.noise.detach().reshape(D)
+            z = (self.train_inputs_raw - self.x_mean) / self.x_std
+            S = z / ls
+            K = outputscale[:, None, None] * torch.exp(-0.5 * _sqdist(S, S))
+            K = K + noise[:, None, None] * torch.eye(self.num_data, dtype=K.dtype)
+            chol = _safe_cholesky(K, outputscale)
+            ys = ((self.train_y_raw - self.y_mean) / self.y_std).T.unsqueeze(-1)
+            alpha = torch.cholesky_solve(ys, chol).squeeze(-1)
+        S_cols = tuple(S[:, None, :, i].contiguous() for i in range(Din))
+        self._cache = _Cache(self.x_mean, self.x_std, ls, self.x_std * ls, S, S_cols, outputscale, chol, alpha,
+                             self.y_mean, self.y_std, noise * self.y_std ** 2)
+        return self
+
+    def _get_cache(self) -> _Cache:
+        if self._cache is None:
+            self.refresh()
+        return self._cache
+
+    def _cross(self, x: Tensor) -> tuple[_Cache, Tensor, Tensor]:
+        """Scaled query points s (D, n, Din) and cross-covariances k (D, n, N)."""
+        c = self._get_cache()
+        x = self._check_query(x)
+        s = ((x - c.x_mean) / c.x_std) / c.ls
+        # squared distances column by column: exact differences, faster than cdist for small Din
+        sq = (s[..., 0:1] - c.S_cols[0]).square_()
+        for i in range(1, len(c.S_cols)):
+            sq += (s[..., i:i + 1] - c.S_cols[i]).square_()
+        k = c.outputscale[:, None, None] * torch.exp(-0.5 * sq)
+        return c, s, k
+
+    def _check_query(self, x: Tensor) -> Tensor:
+        if not isinstance(x, Tensor) or x.ndim != 2 or x.shape[1] != self.input_dim:
+            shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+            raise GpmpcError(f"GP query points must have shape (n, {self.input_dim}) "
+                             f"({self.input_kind} inputs), got {shape}")
+        return x.to(torch.float64)
+
+    @staticmethod
+    def _variance(c: _Cache, k: Tensor) -> Tensor:
+        """Latent variance in standardized units, shape (D, n)."""
+        v = torch.linalg.solve_triangular(c.chol, k.mT, upper=False)
+        return (c.outputscale[:, None] - v.square().sum(-2)).clamp_min(0.0)
+
+    # ------------------------------------------------------------------ predictions
+    def predict(self, x: Tensor, include_noise: bool = False) -> tuple[Tensor, Tensor]:
+        """Posterior mean and marginal variance (paper eq. 3-6).
+
+        Args:
+            x: query inputs, shape (n, Din), raw units.
+            include_noise: add the observation noise s_d^2 (predictive variance of a
+                new measurement) instead of the latent variance of eq. 4.
+
+        Returns:
+            ``(mean (n, D), var (n, D))`` in raw units.
+        """
+        c, _, k = self._cross(x)
+        mean = c.y_mean + c.y_std * (k * c.alpha[:, None, :]).sum(-1).T  # same op order as linearize
+        var = c.y_std ** 2 * self._variance(c, k).T
+        if include_noise:
+            var = var + c.noise_raw
+        return mean, var
+
+    def mean_jacobian(self, x: Tensor) -> Tensor:
+        """Closed-form Jacobian of the posterior mean (paper eq. 13, with standardization).
+
+        Args:
+            x: query inputs, shape (n, Din), raw units.
+
+        Returns:
+            ``J`` of shape (n, D, Din) with ``J[j, d, i] = d mu_d / d x_i`` at ``x[j]``.
+        """
+        c, s, k = self._cross(x)
+        return self._mean_jac(c, s, k)[1]
+
+    def linearize(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Mean, mean Jacobian and latent variance at ``x`` in one call.
+
+        Equals ``predict(x)`` and ``mean_jacobian(x)``; differentiable w.r.t. ``x``.
+
+        Args:
+            x: linearization points, shape (n, Din), raw units.
+
+        Returns:
+            ``(mean (n, D), jac (n, D, Din), var (n, D))`` in raw units.
+        """
+        c, s, k = self._cross(x)
+        mean, jac = self._mean_jac(c, s, k)
+        var = c.y_std ** 2 * self._variance(c, k).T
+        return mean, jac, var
+
+    @staticmethod
+    def _mean_jac(c: _Cache, s: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
+        """Raw-unit mean (n, D) and Jacobian (n, D, Din) from one cross-covariance k (D, n, N)."""
+        W = k * c.alpha[:, None, :]  # (D, n, N)
+        mean_std = W.sum(-1)  # (D, n)
+        # eq. 13 in scaled coordinates: d mu_std / d s_i = sum_n W_n (S_ni - s_i);
+        # chain rule through s = (x - x_mean) / (x_std * lengthscale), then y = y_mean + y_std mu_std
+        jac = (W @ c.S - mean_std[..., None] * s) / c.x_scale * c.y_std[:, None, None]
+        return c.y_mean + c.y_std * mean_std.T, jac.transpose(0, 1)
+
+    def gpytorch_predict(self, x: Tensor, include_noise: bool = False) -> tuple[Tensor, Tensor]:
+        """The same prediction through GPyTorch's own predictive path (reference/baseline).
+
+        Args:
+            x: query inputs, shape (n, Din), raw units.
+            include_noise: pass the posterior through the likelihood.
+
+        Returns:
+            ``(mean (n, D), var (n, D))`` in raw units (differentiable w.r.t. ``x``).
+        """
+        x = self._check_query(x)
+        self.model.eval()
+        self.likelihood.eval()
+        z = ((x - self.x_mean) / self.x_std).expand(self.output_dim, *x.shape)
+        with gpytorch.settings.max_cholesky_size(_MAX_CHOLESKY):
+            post = self.model(z)
+            if include_noise:
+                post = self.likelihood(post)
+            mean, var = post.mean, post.variance
+        return self.y_mean + self.y_std * mean.T, self.y_std ** 2 * var.T
+
+    def negative_log_marginal_likelihood(self) -> float:
+        """Exact ``-log p(Y)`` of the training data in raw units, summed over the D outputs."""
+        c = self._get_cache()
+        ys = ((self.train_y_raw - self.y_mean) / self.y_std).T
+        n = self.num_data
+        per_dim = (0.5 * (ys * c.alpha).sum(-1) + torch.diagonal(c.chol, dim1=-2, dim2=-1).log().sum(-1)
+                   + 0.5 * n * math.log(2 * math.pi) + n * torch.log(self.y_std))
+        return float(per_dim.sum())
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | Path) -> None:
+        """Write the model to ONE ``.pt`` file, atomically.
+
+        The file is ``torch.save`` of a dict holding only strings, ints and tensors:
+        the GPyTorch state dict (raw hyperparameters and constraint bounds), the
+        normalization constants and the raw training data.
+        """
+        payload = {
+            "format": FORMAT,
+            "version": VERSION,
+            "input_kind": self.input_kind,
+            "train_inputs": self.train_inputs_raw.detach().clone(),
+            "train_y": self.train_y_raw.detach().clone(),
+            "x_mean": self.x_mean.clone(), "x_std": self.x_std.clone(),
+            "y_mean": self.y_mean.clone(), "y_std": self.y_std.clone(),
+            "state_dict": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
+        }
+        payload["checksum"] = _checksum(payload)
+        with atomic_path(path) as tmp:
+            torch.save(payload, tmp)
+
+    @classmethod
+    def load(cls, path: str | Path, expected_dim: int | None = None,
+             expected_input_dim: int | None = None) -> "ResidualGP":
+        """Read a model written by :meth:`save` (``torch.load(weights_only=True)``: never runs code).
+
+        Args:
+            path: the ``.pt`` file.
+            expected_dim: if given, the required output (state) dimension D.
+            expected_input_dim: if given, the required input dimension Din.
+
+        Raises:
+            GpmpcError: missing, corrupt or truncated file, wrong format, unsafe
+                pickle content, invalid content, or dimension mismatch.
+        """
+        src = f"GP model file {str(path)!r}"
+        payload = _torch_load(Path(path), src)
+        gp = _from_payload(payload, src)
+        if expected_dim is not None and gp.output_dim != int(expected_dim):
+            raise GpmpcError(f"{src}: the model predicts D={gp.output_dim} residual dimensions but "
+                             f"D={expected_dim} is required; fit a model on data of dimension {expected_dim}")
+        if expected_input_dim is not None and gp.input_dim != int(expected_input_dim):
+            raise GpmpcError(f"{src}: the model takes Din={gp.input_dim} inputs ({gp.input_kind}) but "
+                             f"Din={expected_input_dim} is required; refit with the matching --inputs "
+                             "(state: Din = D, state_input: Din = D + Du)")
+        return gp
+
+
+# ---------------------------------------------------------------------- helpers
+def _sqdist(a: Tensor, b: Tensor) -> Tensor:
+    """Squared Euclidean distances, shape (..., n, m), computed without the mm trick."""
+    return torch.cdist(a, b, compute_mode="donot_use_mm_for_euclid_dist").square()
+
+
+def _safe_cholesky(K: Tensor, outputscale: Tensor) -> Tensor:
+    """Lower Cholesky factor of K (D, N, N), retrying with relative jitter."""
+    eye = torch.eye(K.shape[-1], dtype=K.dtype)
+    for jitter in (0.0, 1e-10, 1e-8, 1e-6, 1e-4):
+        chol, info = torch.linalg.cholesky_ex(K + jitter * outputscale[:, None, None] * eye)
+        if not bool(info.any()):
+            if jitter:
+                log.warning("GP cache: added jitter %.0e x outputscale to the kernel diagonal", jitter)
+            return chol
+    raise GpmpcError("GP kernel matrix is not positive definite even with jitter 1e-4; "
+                     "check the training data for duplicated inputs or extreme scales")
+
+
+def _check_training_data(inputs: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    inputs = torch.as_tensor(inputs, dtype=torch.float64)
+    y = torch.as_tensor(y, dtype=torch.float64)
+    if inputs.ndim != 2 or y.ndim != 2 or inputs.shape[0] != y.shape[0]:
+        raise GpmpcError(f"GP training data: inputs must be (N, Din) and y (N, D) with the same N, "
+                         f"got {tuple(inputs.shape)} and {tuple(y.shape)}")
+    if inputs.shape[0] < 2 or inputs.shape[1] < 1 or y.shape[1] < 1:
+        raise GpmpcError(f"GP training data: need N >= 2 points and non-empty dimensions, "
+                         f"got inputs {tuple(inputs.shape)}, y {tuple(y.shape)}")
+    if not (torch.isfinite(inputs).all() and torch.isfinite(y).all()):
+        raise GpmpcError("GP training data contains NaN or inf; clean the transitions first")
+    return inputs.detach().clone(), y.detach().clone()
+
+
+def _normalization(inputs: Tensor, y: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Per-dimension means and standard deviations (a constant dimension gets std 1)."""
+    def std(a: Tensor) -> Tensor:
+        s = a.std(dim=0)
+        return torch.where(s > 1e-12 * (1.0 + a.abs().max(dim=0).values), s, torch.ones_like(s))
+    return inputs.mean(0), std(inputs), y.mean(0), std(y)
+
+
+def _torch_load(path: Path, src: str) -> Any:
+    """``torch.load(weights_only=True)`` with every failure turned into a GpmpcError."""
+    if not path.is_file():
+        raise GpmpcError(f"{src}: file not found; fit one with `gpmpc fit-gp --out FILE`")
+    if path.stat().st_size == 0:
+        raise GpmpcError(f"{src}: cannot be read: the file is empty (an interrupted copy?); "
+                         "fit one with `gpmpc fit-gp --out FILE`")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # e.g. "Detected pickle protocol 4"
+            return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        if "GLOBAL" in str(exc):
+            raise GpmpcError(f"{src}: refused to load: it references Python code or objects other "
+                             "than tensors (an unsafe or foreign pickle); only files written by "
+                             "ResidualGP.save are accepted") from None
+        raise GpmpcError(f"{src}: cannot be read (corrupt or truncated file, or unsupported "
+                         "pickle content); only files written by ResidualGP.save are accepted") from None
+    except Exception as exc:  # torch raises RuntimeError/EOFError/ValueError... on garbage
+        first = (str(exc).splitlines() or [""])[0].split(". ")[0]  # torch's miniz errors run on
+        raise GpmpcError(f"{src}: cannot be read (corrupt, truncated or not a torch file): "
+                         f"{type(exc).__name__}: {first}") from None
+
+
+def _checksum(payload: dict) -> str:
+    """SHA-256 over every entry except ``checksum`` (names, dtypes, shapes and bytes of tensors).
+
+    torch's zip container does not verify its CRCs on load, so without this a damaged
+    tensor (a flipped bit) would load as a silently different model.
+    """
+    digest = hashlib.sha256()
+
+    def feed(key: str, value: Any) -> None:
+        digest.update(key.encode())
+        if isinstance(value, dict):
+            for k in sorted(value):
+                feed(f"{key}/{k}", value[k])
+        elif isinstance(value, Tensor):
+            t = value.detach().cpu().contiguous()
+            digest.update(f"{t.dtype}{tuple(t.shape)}".encode())
+            digest.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+        else:
+            digest.update(repr(value).encode())
+
+    for key in sorted(k for k in payload if k != "checksum"):
+        feed(key, payload[key])
+    return digest.hexdigest()
+
+
+def _from_payload(payload: Any, src: str) -> ResidualGP:
+    """Validate a loaded dict and rebuild the model (raises GpmpcError)."""
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise GpmpcError(f"{src}: not a torch_gpmpc ResidualGP file (missing format tag {FORMAT!r})")
+    if payload.get("version") != VERSION:
+        raise GpmpcError(f"{src}: unsupported version {payload.get('version')!r}; expected {VERSION}")
+    tensors = {}
+    for key in ("train_inputs", "train_y", "x_mean", "x_std", "y_mean", "y_std"):
+        value = payload.get(key)
+        if not isinstance(value, Tensor) or not value.is_floating_point():
+            raise GpmpcError(f"{src}: entry {key!r} is missing or not a float tensor (corrupt file)")
+        if not bool(torch.isfinite(value).all()):
+            raise GpmpcError(f"{src}: entry {key!r} has NaN/inf values (corrupt file)")
+        tensors[key] = value.to(torch.float64)
+    X, Y = tensors["train_inputs"], tensors["train_y"]
+    if X.ndim != 2 or Y.ndim != 2 or X.shape[0] != Y.shape[0] or X.shape[0] < 2:
+        raise GpmpcError(f"{src}: training data shapes {tuple(X.shape)} / {tuple(Y.shape)} are "
+                         "inconsistent (corrupt file)")
+    expect = {"x_mean": X.shape[1], "x_std": X.shape[1], "y_mean": Y.shape[1], "y_std": Y.shape[1]}
+    for key, size in expect.items():
+        if tuple(tensors[key].shape) != (size,) or (key.endswith("std") and bool((tensors[key] <= 0).any())):
+            raise GpmpcError(f"{src}: entry {key!r} has shape {tuple(tensors[key].shape)} or values "
+                             f"inconsistent with the training data (expected ({size},), std > 0)")
+    kind = payload.get("input_kind")
+    if kind not in INPUT_KINDS:
+        raise GpmpcError(f"{src}: entry 'input_kind' must be one of {INPUT_KINDS}, got {kind!r}")
+    gp = ResidualGP(X, Y, input_kind=kind,
+                    normalization=(tensors["x_mean"], tensors["x_std"], tensors["y_mean"], tensors["y_std"]))
+    _load_state(gp, payload.get("state_dict"), src)
+    # last: the checks above give more specific messages; this catches what they cannot see
+    if "checksum" in payload:  # files written before the checksum existed have none
+        if payload["checksum"] != _checksum(payload):
+            raise GpmpcError(f"{src}: checksum mismatch, the file is corrupt (damaged or modified after "
+                             "it was written); copy it again or refit with `gpmpc fit-gp`")
+    return gp.refresh()
+
+
+def _load_state(gp: ResidualGP, state: Any, src: str) -> None:
+    reference = gp.model.state_dict()
+    if not isinstance(state, dict) or set(state) != set(reference):
+        got = sorted(state) if isinstance(state, dict) else type(state).__name__
+        raise GpmpcError(f"{src}: entry 'state_dict' does not hold the expected hyperparameters "
+                         f"{sorted(reference)} (got {got})")
+    for key, ref in reference.items():
+        value = state[key]
+        if not isinstance(value, Tensor) or value.shape != ref.shape:
+            raise GpmpcError(f"{src}: hyperparameter {key!r} has the wrong shape "
+                             f"(expected {tuple(ref.shape)})")
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()) and "bound" not in key:
+            raise GpmpcError(f"{src}: hyperparameter {key!r} has NaN/inf values (corrupt file)")
+    gp.model.load_state_dict({k: v.to(reference[k].dtype) for k, v in state.items()})
+
+
+# ---------------------------------------------------------------------- fitting
+def _neg_mll(model: _BatchExactGP, mll: gpytorch.mlls.ExactMarginalLogLikelihood) -> Tensor:
+    """Negative exact marginal log likelihood per datum, summed over outputs.
+
+    Retries with increasing Cholesky jitter; raises GpmpcError when all fail.
+    """
+    last: Exception | None = None
+    for jitter in JITTERS:
+        ctx = (gpytorch.settings.cholesky_jitter(float_value=jitter, double_value=jitter)
+               if jitter is not None else contextlib.nullcontext())
+        try:
+            with ctx, gpytorch.settings.max_cholesky_size(_MAX_CHOLESKY):
+                out = model(*model.train_inputs)
+                return -mll(out, model.train_targets).sum()
+        except (NotPSDError, torch.linalg.LinAlgError) as exc:
+            last = exc
+            log.warning("GP fit: Cholesky failed (jitter %s), retrying with more jitter", jitter)
+    raise GpmpcError(f"GP fit failed: kernel matrix not positive definite even with jitter "
+                     f"{JITTERS[-1]:g} ({last}); check for duplicated or extreme training data")
+
+
+def fit_residual_gp(inputs: Tensor, y: Tensor, optimizer: str = "lbfgs", iters: int = 50, seed: int = 0,
+                    callback: Callback | None = None, lr: float | None = None,
+                    input_kind: str = "state") -> ResidualGP:
+    """Fit a :class:`ResidualGP` by maximizing the exact marginal log likelihood.
+
+    Args:
+        inputs: raw training inputs, shape (N, Din).
+        y: raw residual targets, shape (N, D).
+        optimizer: ``"lbfgs"`` (``torch.optim.LBFGS`` with strong-Wolfe line search,
+            the paper's choice) or ``"adam"``.
+        iters: number of optimizer steps (L-BFGS iterations or Adam steps).
+        seed: seeds torch's RNG for the fit (the exact fit itself is deterministic).
+        callback: called as ``callback(step, loss, hyperparameters)`` for steps
+            ``0..iters`` with the loss (negative MLL per datum, standardized units,
+            summed over outputs) and the raw-unit :meth:`ResidualGP.hyperparameters`
+            at which it was evaluated (step ``iters`` is the final model).
+        lr: learning rate (default 1.0 for L-BFGS, 0.1 for Adam).
+        input_kind: ``"state"`` or ``"state_input"`` (recorded in the model).
+
+    Returns:
+        The fitted model in eval mode with its prediction cache built.
+
+    Raises:
+        GpmpcError: bad arguments, non-PD kernel matrices, or a diverged fit.
+    """
+    if optimizer not in ("lbfgs", "adam"):
+        raise GpmpcError(f"optimizer must be 'lbfgs' or 'adam', got {optimizer!r}")
+    if int(iters) < 0:
+        raise GpmpcError(f"iters must be >= 0, got {iters}")
+    inputs = torch.as_tensor(inputs)
+    check_training_size(int(inputs.shape[0]) if inputs.ndim else 0)
+    gp = ResidualGP(inputs, y, input_kind=input_kind)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(seed))
+        _optimize(gp, optimizer, int(iters), callback, lr)
+    return gp.refresh()
+
+
+def check_training_size(num_points: int) -> None:
+    """Raise if ``num_points`` exceeds :data:`MAX_TRAINING_POINTS`.
+
+    Raises:
+        GpmpcError: naming the size, the limit and the fix.
+    """
+    if num_points > MAX_TRAINING_POINTS:
+        raise GpmpcError(f"GP training data: N={num_points} points is more than an exact GP fits in "
+                         f"reasonable time and memory (at most {MAX_TRAINING_POINTS}); subsample the "
+                         "transitions or fit one agent's rows (fit-gp --agent K)")
+
+
+def _optimize(gp: ResidualGP, optimizer: str, iters: int, callback: Callback | None,
+              lr: float | None) -> None:
+    model = gp.model
+    model.train()
+    gp.likelihood.train()
+    mll = gpytorch.mlls.ExactMarginalLogLikelihood(gp.likelihood, model)
+    params = [p for p in model.parameters() if p.requires_grad]
+    if optimizer == "lbfgs":
+        opt = torch.optim.LBFGS(params, lr=lr or 1.0, max_iter=1, line_search_fn="strong_wolfe")
+    else:
+        opt = torch.optim.Adam(params, lr=lr or 0.1)
+
+    def closure() -> Tensor:
+        opt.zero_grad()
+        loss = _neg_mll(model, mll)
+        loss.backward()
+        return loss
+
+    for step in range(iters + 1):
+        hp = gp.hyperparameters()
+        if step == iters:
+            with torch.no_grad():
+                loss = _neg_mll(model, mll)
+        else:
+            loss = opt.step(closure)
+        value = float(loss.detach())
+        if not math.isfinite(value):
+            raise GpmpcError(f"GP fit diverged (loss {value}) at step {step}; try --optimizer lbfgs, "
+                             "fewer --iters or check the data")
+        if callback is not None:
+            callback(step, value, hp)
+
+
+def holdout_metrics(gp: ResidualGP, inputs: Tensor, y: Tensor) -> dict[str, Any]:
+    """Held-out accuracy: RMSE of the mean and coverage of 95% predictive intervals.
+
+    Args:
+        gp: a fitted model.
+        inputs: held-out inputs, shape (m, Din).
+        y: held-out residual targets, shape (m, D).
+
+    Returns:
+        ``{"rmse": [D floats], "coverage95": [D floats], "coverage95_all": float, "num": m}``
+        where coverage uses ``predict(include_noise=True)``.
+    """
+    with torch.no_grad():
+        mean, var = gp.predict(inputs, include_noise=True)
+        err = y - mean
+        inside = (err.abs() <= _Z95 * var.sqrt()).to(torch.float64)
+    return {
+        "rmse": err.square().mean(0).sqrt().tolist(),
+        "coverage95": inside.mean(0).tolist(),
+        "coverage95_all": float(inside.mean()),
+        "num": int(y.shape[0]),
+    }
+
+
+def fit_from_transitions(transitions, nominal=None, inputs: str = "state", agent: int | None = None,
+                         **fit_kwargs: Any) -> ResidualGP:
+    """Fit a residual GP to logged transitions (paper eq. 2: ``y = x' - f(x, u)``).
+
+    Args:
+        transitions: a :class:`~torch_gpmpc.data.transitions.Transitions`.
+        nominal: the known model f; default ``NominalModel(dim=D)`` (A = I, B = 0.1 I).
+        inputs: ``"state"`` (paper) or ``"state_input"``.
+        agent: fit only this agent's rows (``None`` = all rows).
+        **fit_kwargs: passed to :func:`fit_residual_gp` (optimizer, iters, seed, callback, lr).
+
+    Returns:
+        The fitted model.
+    """
+    from torch_gpmpc.dynamics.systems import NominalModel
+
+    nominal = nominal if nominal is not None else NominalModel(dim=transitions.state_dim)
+    if agent is not None:
+        transitions = transitions.for_agent(agent)
+    X, Y = transitions.residuals(nominal, inputs=inputs)
+    return fit_residual_gp(X, Y, input_kind=inputs, **fit_kwargs)
+
+
+def fit_per_agent(transitions, nominal=None, inputs: str = "state", **fit_kwargs: Any) -> dict[int, ResidualGP]:
+    """One GP per agent id in ``transitions`` (each agent learns its own residual).
+
+    Returns:
+        ``{agent_id: ResidualGP}``.
+    """
+    ids = transitions.agent_ids
+    if not ids:
+        raise GpmpcError(f"{transitions.source}: no 'agent' column, cannot fit one GP per agent")
+    return {k: fit_from_transitions(transitions, nominal, inputs, agent=k, **fit_kwargs) for k in ids}

@@ -1,0 +1,375 @@
+"""Figures of closed-loop runs (the paper's Figs. 2-6) and of ADMM behaviour.
+
+All figures use matplotlib's Agg canvas directly (no display, no pyplot global
+state, safe in worker processes) and are written atomically through
+:func:`torch_gpmpc.fileio.atomic_path`. 3D runs are drawn in the x1-x2 plane.
+
+Shapes use S = steps, K = agents, D = state dimension, T = horizon,
+I = ADMM iterations, P = pairs (ordered as :func:`~torch_gpmpc.sim.metrics.pair_index`).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import LineCollection
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle
+
+from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.fileio import atomic_path
+from torch_gpmpc.sim.metrics import compute_metrics, pair_distances, pair_index, path_lengths
+from torch_gpmpc.sim.rollout import Rollout
+
+logger = logging.getLogger(__name__)
+
+_DPI = 110
+
+
+def _color(k: int) -> str:
+    """Colour of agent (or series) k, from matplotlib's tab10 cycle."""
+    return f"C{k % 10}"
+
+
+def _new_figure(ncols: int, nrows: int = 1, panel: tuple[float, float] = (4.0, 3.6)) -> tuple[Figure, np.ndarray]:
+    """A Figure on an Agg canvas with an (nrows, ncols) array of axes."""
+    fig = Figure(figsize=(panel[0] * ncols, panel[1] * nrows), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(nrows, ncols, squeeze=False)
+    return fig, axes
+
+
+def _save(fig: Figure, path: str | Path) -> Path:
+    """Write ``fig`` as PNG to ``path`` atomically; returns the path."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=_DPI)
+    logger.debug("wrote %s", path)
+    return path
+
+
+# ---------------------------------------------------------------------------
+# one run
+
+
+def default_snapshot_steps(num_steps: int, count: int = 4) -> list[int]:
+    """``count`` evenly spaced steps in 0..S including the last (fewer if S is small)."""
+    return sorted({int(round(v)) for v in np.linspace(0, num_steps, count)})
+
+
+def plot_trajectories(
+    rollout: Rollout,
+    path: str | Path,
+    steps: Sequence[int] | None = None,
+    reference_paths: Any = None,
+) -> Path:
+    """Snapshot panels of the agents' motion (the paper's Figs. 2-3).
+
+    Per panel (one per step t): each agent's trajectory so far (solid), its current
+    position (heavy dot) with a circle of radius r_safe/2, the plan made at t
+    (dashed, small dot at its end), and the dashed straight line start -> target.
+    The last panel says when the targets were reached.
+
+    Args:
+        rollout: the run; uses ``states`` (S+1, K, D), ``plans`` (S, K, T+1, D),
+            ``targets`` (K, D) and ``config['r_safe']``.
+        path: PNG file to write.
+        steps: steps t in 0..S to show (default: 4 evenly spaced, including S).
+        reference_paths: optional reference, shape (K, R, D), drawn dotted.
+
+    Returns:
+        ``path``.
+    """
+    states = np.asarray(rollout.states, dtype=np.float64)
+    num_steps = states.shape[0] - 1
+    steps = default_snapshot_steps(num_steps) if steps is None else [int(s) for s in steps]
+    bad = [s for s in steps if not 0 <= s <= num_steps]
+    if bad or not steps:
+        raise GpmpcError(f"plot_trajectories: steps must be in 0..{num_steps}, got {list(steps)}")
+    metrics = compute_metrics(rollout)
+    ref = None if reference_paths is None else np.asarray(reference_paths, dtype=np.float64)
+    fig, axes = _new_figure(len(steps))
+    for n, (ax, t) in enumerate(zip(axes[0], steps)):
+        _draw_snapshot(ax, rollout, states, t, metrics["r_safe"], ref)
+        title = f"t = {t}"
+        if n == len(steps) - 1:
+            ttt = metrics["time_to_target"]
+            title += f"\ntargets reached at t = {ttt}" if ttt is not None else "\ntargets not reached"
+        ax.set_title(title, fontsize=10)
+    axes[0][0].legend(loc="best", fontsize=7)
+    _share_limits(axes[0], states, rollout.targets)
+    return _save(fig, path)
+
+
+def _draw_snapshot(ax: Any, rollout: Rollout, states: np.ndarray, t: int, r_safe: float,
+                   ref: np.ndarray | None) -> None:
+    """One panel of :func:`plot_trajectories` at step t."""
+    targets = np.asarray(rollout.targets, dtype=np.float64)
+    plans = np.asarray(rollout.plans, dtype=np.float64)
+    for k in range(states.shape[1]):
+        c = _color(k)
+        start, goal = states[0, k], targets[k]
+        ax.plot([start[0], goal[0]], [start[1], goal[1]], "--", color=c, lw=0.8, alpha=0.5)
+        ax.plot(goal[0], goal[1], "x", color=c, ms=7)
+        if ref is not None:
+            ax.plot(ref[k, :, 0], ref[k, :, 1], ":", color=c, lw=0.8, alpha=0.6)
+        ax.plot(states[: t + 1, k, 0], states[: t + 1, k, 1], "-", color=c, lw=1.5, label=f"agent {k}")
+        if t < plans.shape[0]:
+            plan = plans[t, k]
+            ax.plot(plan[:, 0], plan[:, 1], "--", color=c, lw=1.2)
+            ax.plot(plan[-1, 0], plan[-1, 1], "o", color=c, ms=3)
+        pos = states[t, k]
+        ax.plot(pos[0], pos[1], "o", color=c, ms=8)
+        if r_safe > 0:
+            ax.add_patch(Circle((pos[0], pos[1]), r_safe / 2, fill=False, color=c, lw=0.8))
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel("x1")
+    ax.set_ylabel("x2")
+    ax.grid(True, lw=0.3)
+
+
+def _share_limits(axes: Sequence[Any], states: np.ndarray, targets: Any) -> None:
+    """Same x/y limits on every panel, covering all states and targets (with a margin)."""
+    pts = np.concatenate([states.reshape(-1, states.shape[-1]), np.asarray(targets, dtype=np.float64)])
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if not len(pts):
+        return
+    lo, hi = pts[:, :2].min(axis=0), pts[:, :2].max(axis=0)
+    pad = 0.1 * max(float((hi - lo).max()), 1.0)
+    for ax in axes:
+        ax.set_xlim(lo[0] - pad, hi[0] + pad)
+        ax.set_ylim(lo[1] - pad, hi[1] + pad)
+
+
+def plot_distances(rollout: Rollout, path: str | Path) -> Path:
+    """Inter-agent distance over time, one line per pair, with r_safe dashed.
+
+    Args:
+        rollout: the run; uses ``states`` (S+1, K, D) and ``config['r_safe']``.
+        path: PNG file to write.
+
+    Returns:
+        ``path``.
+    """
+    states = np.asarray(rollout.states, dtype=np.float64)
+    r_safe = compute_metrics(rollout)["r_safe"]
+    dists = pair_distances(states)  # (S+1, P)
+    fig, axes = _new_figure(1, panel=(6.0, 3.6))
+    ax = axes[0, 0]
+    for p, (i, j) in enumerate(pair_index(states.shape[1])):
+        ax.plot(np.arange(dists.shape[0]), dists[:, p], color=_color(p), label=f"agents {i}-{j}")
+    if dists.shape[1] == 0:
+        ax.text(0.5, 0.5, "single agent: no pairs", ha="center", transform=ax.transAxes)
+    ax.axhline(r_safe, color="k", ls="--", lw=1.0, label=f"r_safe = {r_safe:g}")
+    ax.set_xlabel("step t")
+    ax.set_ylabel("distance")
+    ax.set_title(f"inter-agent distances ({rollout.method})", fontsize=10)
+    ax.grid(True, lw=0.3)
+    ax.legend(fontsize=7)
+    return _save(fig, path)
+
+
+def plot_admm_residuals(rollout: Rollout, path: str | Path) -> Path:
+    """ADMM primal and dual residual vs iteration, every step thin, the mean thick (log y).
+
+    The mean at iteration i is over the steps still iterating at i (NaN padding skipped).
+
+    Args:
+        rollout: the run; uses ``primal_residuals`` and ``dual_residuals`` (S, I),
+            NaN-padded, and ``config['admm_tol']`` / ``config['admm_dual_tol']``.
+        path: PNG file to write.
+
+    Returns:
+        ``path``.
+    """
+    cfg = rollout.config or {}
+    fig, axes = _new_figure(2)
+    panels = (
+        ("primal residual max ||y - z||", rollout.primal_residuals, cfg.get("admm_tol")),
+        ("dual residual rho ||z - z_prev||", rollout.dual_residuals, cfg.get("admm_dual_tol")),
+    )
+    for ax, (label, res, tol) in zip(axes[0], panels):
+        _draw_residuals(ax, np.asarray(res, dtype=np.float64), tol)
+        ax.set_title(label, fontsize=10)
+        ax.set_xlabel("ADMM iteration")
+    axes[0, 0].set_ylabel("residual")
+    return _save(fig, path)
+
+
+def _draw_residuals(ax: Any, res: np.ndarray, tol: float | None) -> None:
+    """Thin line per row of ``res`` (S, I), bold mean, optional tolerance line."""
+    res = np.where(res > 0, res, np.nan)
+    if res.ndim != 2 or not np.isfinite(res).any():
+        ax.text(0.5, 0.5, "no residuals recorded", ha="center", transform=ax.transAxes)
+        return
+    its = np.arange(1, res.shape[1] + 1)
+    segs = [np.column_stack([its, row])[np.isfinite(row)] for row in res]
+    ax.add_collection(LineCollection([s for s in segs if len(s) > 1], colors="C0", linewidths=0.4, alpha=0.3))
+    for s in segs:  # single-iteration steps still show up
+        if len(s) == 1:
+            ax.plot(s[0, 0], s[0, 1], ".", color="C0", ms=2, alpha=0.3)
+    ax.plot(its, _nanmean_rows(res), color="C3", lw=2.0, label="mean over steps")
+    if tol is not None:
+        ax.axhline(float(tol), color="k", ls="--", lw=1.0, label=f"tolerance {float(tol):g}")
+    ax.set_yscale("log")
+    ax.autoscale_view()
+    ax.grid(True, which="both", lw=0.3)
+    ax.legend(fontsize=7)
+
+
+def _nanmean_rows(values: np.ndarray) -> np.ndarray:
+    """Mean over axis 0 ignoring NaN, NaN where a column has no finite value (no warning)."""
+    finite = np.isfinite(values)
+    count = finite.sum(axis=0)
+    total = np.where(finite, values, 0.0).sum(axis=0)
+    return np.divide(total, count, out=np.full(values.shape[1], np.nan), where=count > 0)
+
+
+def save_run_figures(rollout: Rollout, outdir: str | Path, reference_paths: Any = None) -> list[Path]:
+    """Write ``trajectories.png``, ``distances.png`` and ``admm_residuals.png`` into ``outdir``.
+
+    Args:
+        rollout: the run.
+        outdir: directory (created if missing).
+        reference_paths: optional reference, shape (K, R, D), for the trajectory figure.
+
+    Returns:
+        The written paths.
+    """
+    outdir = Path(outdir)
+    return [
+        plot_trajectories(rollout, outdir / "trajectories.png", reference_paths=reference_paths),
+        plot_distances(rollout, outdir / "distances.png"),
+        plot_admm_residuals(rollout, outdir / "admm_residuals.png"),
+    ]
+
+
+# ---------------------------------------------------------------------------
+# several runs (gpmpc reproduce)
+
+
+def _hold_pad(values: np.ndarray, length: int) -> np.ndarray:
+    """Pad (N, ...) to (length, ...) by repeating the last row."""
+    if values.shape[0] >= length:
+        return values[:length]
+    tail = np.repeat(values[-1:], length - values.shape[0], axis=0)
+    return np.concatenate([values, tail], axis=0)
+
+
+def _check_runs(runs: Mapping[str, Sequence[Rollout]]) -> int:
+    """Every method has >= 1 run and all runs have the same K; returns K."""
+    if not runs:
+        raise GpmpcError("no runs to plot; give at least one method with one run")
+    sizes = set()
+    for method, rollouts in runs.items():
+        if not rollouts:
+            raise GpmpcError(f"method {method!r} has no runs to plot")
+        sizes.update(np.asarray(r.states).shape[1] for r in rollouts)
+    if len(sizes) != 1:
+        raise GpmpcError(f"runs have different numbers of agents {sorted(sizes)}; plot one scenario at a time")
+    return sizes.pop()
+
+
+def plot_distance_bands(runs: Mapping[str, Sequence[Rollout]], path: str | Path, r_safe: float) -> Path:
+    """Per method a panel: per pair the mean +- std of the distance over runs (paper Fig. 5).
+
+    Shorter runs are padded by holding their last distance.
+
+    Args:
+        runs: method -> rollouts of the same scenario (same K).
+        path: PNG file to write.
+        r_safe: safety distance, drawn dashed.
+
+    Returns:
+        ``path``.
+    """
+    num_agents = _check_runs(runs)
+    pairs = pair_index(num_agents)
+    fig, axes = _new_figure(len(runs), panel=(3.6, 3.2))
+    for ax, (method, rollouts) in zip(axes[0], runs.items()):
+        dists = [pair_distances(r.states) for r in rollouts]  # each (S_r+1, P)
+        length = max(d.shape[0] for d in dists)
+        stack = np.stack([_hold_pad(d, length) for d in dists])  # (N, L, P)
+        mean, std = stack.mean(axis=0), stack.std(axis=0)
+        t = np.arange(length)
+        for p, (i, j) in enumerate(pairs):
+            ax.plot(t, mean[:, p], color=_color(p), lw=1.2, label=f"agents {i}-{j}")
+            ax.fill_between(t, mean[:, p] - std[:, p], mean[:, p] + std[:, p], color=_color(p), alpha=0.25)
+        ax.axhline(r_safe, color="k", ls="--", lw=1.0, label=f"r_safe = {r_safe:g}")
+        ax.set_title(f"{method} ({len(rollouts)} runs)", fontsize=10)
+        ax.set_xlabel("step t")
+        ax.grid(True, lw=0.3)
+    axes[0, 0].set_ylabel("distance")
+    axes[0, 0].legend(fontsize=7)
+    return _save(fig, path)
+
+
+def plot_path_lengths(runs: Mapping[str, Sequence[Rollout]], path: str | Path) -> Path:
+    """Grouped bars of the mean path length per agent and method (paper Fig. 6).
+
+    Groups are agents, bars within a group are methods (error bar: std over runs);
+    the dashed segment over each group is that agent's mean straight-line length
+    ||target - start||.
+
+    Args:
+        runs: method -> rollouts of the same scenario (same K).
+        path: PNG file to write.
+
+    Returns:
+        ``path``.
+    """
+    num_agents = _check_runs(runs)
+    methods = list(runs)
+    width = 0.8 / len(methods)
+    fig, axes = _new_figure(1, panel=(max(5.0, 1.6 * num_agents + 2.0), 3.6))
+    ax = axes[0, 0]
+    agents = np.arange(num_agents)
+    straight = []
+    for m, method in enumerate(methods):
+        lengths = np.stack([path_lengths(r.states) for r in runs[method]])  # (N, K)
+        offset = (m - (len(methods) - 1) / 2) * width
+        ax.bar(agents + offset, lengths.mean(axis=0), width, yerr=lengths.std(axis=0),
+               color=_color(m), label=method, capsize=2)
+        straight += [np.linalg.norm(np.asarray(r.targets) - np.asarray(r.states)[0], axis=-1) for r in runs[method]]
+    line = np.mean(straight, axis=0)  # (K,)
+    for k in agents:
+        ax.hlines(line[k], k - 0.45, k + 0.45, colors="k", linestyles="--", lw=1.2, zorder=3,
+                  label="straight line" if k == 0 else None)
+    ax.set_xticks(agents, [f"agent {k}" for k in agents])
+    ax.set_ylabel("path length")
+    ax.set_ylim(0, 1.25 * ax.get_ylim()[1])  # room for the legend above the bars
+    ax.grid(True, axis="y", lw=0.3)
+    ax.legend(fontsize=7, ncols=min(len(methods) + 1, 4), loc="upper center")
+    return _save(fig, path)
+
+
+def plot_admm_rho_sweep(results: Mapping[str, Mapping[float, Any]], path: str | Path) -> Path:
+    """Mean primal residual vs ADMM iteration for several rho, one panel per method (paper Fig. 4).
+
+    Args:
+        results: method -> {rho: mean primal residual per iteration, shape (I,)}
+            (NaN or non-positive entries are skipped).
+        path: PNG file to write.
+
+    Returns:
+        ``path``.
+    """
+    if not results:
+        raise GpmpcError("plot_admm_rho_sweep: no results to plot")
+    fig, axes = _new_figure(len(results), panel=(3.6, 3.2))
+    for ax, (method, by_rho) in zip(axes[0], results.items()):
+        for n, (rho, curve) in enumerate(sorted(by_rho.items())):
+            y = np.asarray(curve, dtype=np.float64).reshape(-1)
+            y = np.where(y > 0, y, np.nan)
+            ax.plot(np.arange(1, y.size + 1), y, color=_color(n), label=f"rho = {rho:g}")
+        ax.set_yscale("log")
+        ax.set_title(method, fontsize=10)
+        ax.set_xlabel("ADMM iteration")
+        ax.grid(True, which="both", lw=0.3)
+        ax.legend(fontsize=7)
+    axes[0, 0].set_ylabel("mean primal residual")
+    return _save(fig, path)

@@ -1,0 +1,78 @@
+"""Figure of a learned residual field (the paper's Fig. 1): true wind vs GP mean.
+
+Uses matplotlib's object API with the Agg canvas (no pyplot, no global backend
+state) and writes the PNG atomically.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.fileio import atomic_path
+
+
+def plot_gp_field(gp, wind: Callable[[Tensor], Tensor], inputs: Tensor, path: str | Path,
+                  box: float | None = None, grid: int = 20, title: str | None = None) -> None:
+    """Quiver plot of the true wind g and the learned GP mean over a 2D box.
+
+    The background shows the GP's latent standard deviation
+    ``sqrt(var_1 + var_2)`` (the norm of the per-dimension stds).
+
+    Args:
+        gp: a fitted :class:`~torch_gpmpc.gp.model.ResidualGP` with state inputs, D = 2.
+        wind: the true residual, ``(n, 2) -> (n, 2)``.
+        inputs: training inputs, shape (N, 2) (plotted as points).
+        path: PNG file to write.
+        box: half-width of the plotted square (default: covers the training inputs).
+        grid: arrows per axis.
+        title: optional figure title.
+
+    Raises:
+        GpmpcError: if the model is not a 2D state-input model.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    if gp.input_dim != 2 or gp.output_dim != 2:
+        raise GpmpcError(f"--figure needs a 2D model with state inputs (Din = D = 2), got "
+                         f"Din={gp.input_dim}, D={gp.output_dim}; drop --figure")
+    inputs = torch.as_tensor(inputs, dtype=torch.float64)
+    half = float(box) if box is not None else float(inputs.abs().max()) * 1.02
+    axis = torch.linspace(-half, half, grid)
+    X1, X2 = torch.meshgrid(axis, axis, indexing="xy")
+    pts = torch.stack([X1.reshape(-1), X2.reshape(-1)], dim=1)
+    with torch.no_grad():
+        mean, var = gp.predict(pts)
+        true = wind(pts)
+        fine = torch.linspace(-half, half, 4 * grid)
+        F1, F2 = torch.meshgrid(fine, fine, indexing="xy")
+        _, fvar = gp.predict(torch.stack([F1.reshape(-1), F2.reshape(-1)], dim=1))
+    std = fvar.sum(1).sqrt().reshape(F1.shape)
+
+    fig = Figure(figsize=(6.4, 6.0))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    cs = ax.contourf(F1.numpy(), F2.numpy(), std.numpy(), levels=20, cmap="Greys", alpha=0.6)
+    fig.colorbar(cs, ax=ax, label="GP std  sqrt(var_1 + var_2)")
+    scale = float(max(true.norm(dim=1).max(), mean.norm(dim=1).max())) * grid / 1.5
+    ax.quiver(pts[:, 0].numpy(), pts[:, 1].numpy(), true[:, 0].numpy(), true[:, 1].numpy(),
+              color="tab:blue", scale=scale, width=0.004, label="true wind g(x)")
+    ax.quiver(pts[:, 0].numpy(), pts[:, 1].numpy(), mean[:, 0].numpy(), mean[:, 1].numpy(),
+              color="tab:red", scale=scale, width=0.003, alpha=0.85, label="GP mean mu(x)")
+    ax.scatter(inputs[:, 0].numpy(), inputs[:, 1].numpy(), s=8, c="k", marker="o", label="training states")
+    ax.set_xlim(-half, half)
+    ax.set_ylim(-half, half)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x_1")
+    ax.set_ylabel("x_2")
+    rmse = float((mean - true).square().mean().sqrt())
+    ax.set_title(title or f"Residual GP vs true wind (N={gp.num_data}, grid RMSE {rmse:.3f})")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3, fontsize=8, frameon=False)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)

@@ -1,0 +1,163 @@
+"""Batches of closed-loop runs: cached by (kind, method, seed/rho, config hash), summarized.
+
+Used by ``gpmpc reproduce``. A finished run is stored as its ``Rollout`` file under
+``cache/`` (written atomically), so an interrupted reproduction resumes where it
+stopped and a changed config never reuses a stale result.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from torch_gpmpc.config.schema import Config
+from torch_gpmpc.sim.metrics import compute_metrics
+from torch_gpmpc.sim.rollout import Rollout
+
+
+@dataclass(frozen=True)
+class Task:
+    """One closed-loop run to execute (picklable, for worker processes).
+
+    Attributes:
+        kind: ``run`` (a full paper run) or ``sweep`` (a short run with a fixed number of
+            ADMM iterations for the rho study of Fig. 4).
+        method: controller method.
+        seed: run seed.
+        rho: ADMM penalty.
+        config: flat config dict (method, seed and rho are overridden by the fields above).
+        cache_dir: where the rollout file goes.
+    """
+
+    kind: str
+    method: str
+    seed: int
+    rho: float
+    config: dict
+    cache_dir: str
+
+    @property
+    def cfg(self) -> Config:
+        """The effective configuration of this task."""
+        return Config(**{**self.config, "method": self.method, "seed": self.seed, "rho": self.rho})
+
+    @property
+    def path(self) -> Path:
+        """Cache file of this task's rollout."""
+        tag = f"{self.kind}_{self.method}_s{self.seed}_rho{self.rho:g}_{config_hash(self.cfg)}"
+        return Path(self.cache_dir) / f"{tag}.npz"
+
+
+def config_hash(cfg: Config) -> str:
+    """Short stable hash of every config key (12 hex digits)."""
+    text = json.dumps(cfg.to_dict(), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def sweep_config(base: Config, steps: int, iterations: int) -> dict:
+    """Config of a Fig. 4 sweep run: ``steps`` closed-loop steps, exactly ``iterations``
+    ADMM iterations each (the tolerance is set unreachably low so no step stops early)."""
+    return {**base.to_dict(), "max_steps": steps, "admm_max_iter": iterations, "admm_tol": 1e-300,
+            "admm_dual_tol": None}
+
+
+def execute(task: Task) -> str:
+    """Run ``task`` unless its rollout is cached; return the rollout path (worker entry point)."""
+    from torch_gpmpc.sim.closed_loop import simulate
+
+    torch.set_num_threads(1)
+    if not task.path.exists():
+        simulate(task.cfg).save(task.path)
+    return str(task.path)
+
+
+def summarize(rollouts: Sequence[Rollout]) -> dict[str, Any]:
+    """Aggregate the metrics of several runs of one method (one table row).
+
+    Returns:
+        ``runs``, ``reached_fraction``, ``time_to_target_mean``/``_std`` (over runs that
+        arrived; None if none did), ``min_distance_mean``/``_worst``, ``violations_total``,
+        ``runs_with_violations``, ``path_length_mean`` (over agents and runs),
+        ``straight_line_length``, ``admm_iterations_mean``/``_max``, ``wall_time_s_mean``.
+    """
+    metrics = [compute_metrics(r) for r in rollouts]
+    arrived = [m["time_to_target"] for m in metrics if m["time_to_target"] is not None]
+    dists = [m["min_pair_distance"] for m in metrics if m["min_pair_distance"] is not None]
+    return {
+        "runs": len(metrics),
+        "reached_fraction": float(np.mean([m["reached"] for m in metrics])),
+        "time_to_target_mean": float(np.mean(arrived)) if arrived else None,
+        "time_to_target_std": float(np.std(arrived)) if arrived else None,
+        "min_distance_mean": float(np.mean(dists)) if dists else None,
+        "min_distance_worst": float(np.min(dists)) if dists else None,
+        "violations_total": int(sum(m["violations"] for m in metrics)),
+        "runs_with_violations": int(sum(m["violations"] > 0 for m in metrics)),
+        "path_length_mean": float(np.mean([np.mean(m["path_length"]) for m in metrics])),
+        "straight_line_length": float(np.mean([np.mean(m["straight_line_length"]) for m in metrics])),
+        "admm_iterations_mean": float(np.mean([m["admm_iterations_mean"] or 0.0 for m in metrics])),
+        "admm_iterations_max": int(max(m["admm_iterations_max"] or 0 for m in metrics)),
+        "wall_time_s_mean": float(np.mean([m["wall_time_s"] for m in metrics])),
+    }
+
+
+def mean_residual_profile(rollout: Rollout) -> np.ndarray:
+    """Primal residual per ADMM iteration averaged over the run's steps, shape (I,)."""
+    res = rollout.primal_residuals
+    with np.errstate(invalid="ignore"):
+        return np.nanmean(res, axis=0) if res.size else np.zeros(0)
+
+
+TABLE_COLUMNS = [
+    ("method", "method"),
+    ("runs", "runs"),
+    ("reached_fraction", "reached"),
+    ("time_to_target", "time to target"),
+    ("min_distance_mean", "min dist (mean)"),
+    ("min_distance_worst", "min dist (worst)"),
+    ("violations_total", "violations"),
+    ("runs_with_violations", "runs w/ violations"),
+    ("path_length_mean", "path length"),
+    ("admm_iterations_mean", "ADMM it (mean)"),
+    ("admm_iterations_max", "ADMM it (max)"),
+    ("wall_time_s_mean", "wall s"),
+]
+
+
+def _cell(row: dict, key: str) -> str:
+    if key == "time_to_target":
+        mean, std = row["time_to_target_mean"], row["time_to_target_std"]
+        return "never" if mean is None else f"{mean:.1f} ± {std:.1f}"
+    value = row[key]
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.3f}" if abs(value) < 100 and not math.isclose(value, round(value)) else f"{value:.1f}"
+    return str(value)
+
+
+def table_markdown(rows: dict[str, dict]) -> str:
+    """Markdown table, one row per method."""
+    header = "| " + " | ".join(title for _, title in TABLE_COLUMNS) + " |"
+    rule = "|" + "---|" * len(TABLE_COLUMNS)
+    lines = [header, rule]
+    for method, row in rows.items():
+        row = {"method": method, **row}
+        lines.append("| " + " | ".join(_cell(row, key) for key, _ in TABLE_COLUMNS) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def table_csv(rows: dict[str, dict]) -> str:
+    """CSV with every summary field (machine-readable twin of the markdown table)."""
+    keys = ["method"] + list(next(iter(rows.values())).keys()) if rows else ["method"]
+    lines = [",".join(keys)]
+    for method, row in rows.items():
+        values = [method] + ["" if row[k] is None else str(row[k]) for k in keys[1:]]
+        lines.append(",".join(values))
+    return "\n".join(lines) + "\n"

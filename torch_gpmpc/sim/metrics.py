@@ -1,0 +1,194 @@
+"""Metrics of one closed-loop run (the ``metrics.json`` contract, design.md §2).
+
+Shapes use S = steps taken, K = agents, D = state dimension, P = K(K-1)/2 pairs.
+Pairs are ordered as :func:`pair_index` returns them: (0,1), (0,2), ..., (K-2,K-1).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import numpy as np
+
+from torch_gpmpc.config.schema import Config
+from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.sim.rollout import Rollout
+
+logger = logging.getLogger(__name__)
+
+#: Keys every ``metrics.json`` has (design.md §2), in output order.
+CONTRACT_KEYS = (
+    "method", "seed", "num_agents", "steps", "reached", "time_to_target", "min_pair_distance",
+    "violations", "path_length", "straight_line_length", "admm_iterations_mean",
+    "admm_iterations_max", "converged_fraction", "wall_time_s", "solve_time_s_per_step",
+    "infeasible_local_solves",
+)
+
+
+def pair_index(num_agents: int) -> list[tuple[int, int]]:
+    """All unordered agent pairs (i, j) with i < j, in row-major order.
+
+    Args:
+        num_agents: K.
+
+    Returns:
+        List of P = K(K-1)/2 tuples.
+    """
+    return [(i, j) for i in range(num_agents) for j in range(i + 1, num_agents)]
+
+
+def pair_distances(states: Any) -> np.ndarray:
+    """Euclidean distance of every agent pair at every step.
+
+    Args:
+        states: positions, array-like of shape (S+1, K, D).
+
+    Returns:
+        float64 array of shape (S+1, P), columns ordered as :func:`pair_index`
+        (P = 0 for a single agent).
+    """
+    x = np.asarray(states, dtype=np.float64)
+    if x.ndim != 3:
+        raise ValueError(f"pair_distances: states must have shape (S+1, K, D), got {x.shape}")
+    pairs = pair_index(x.shape[1])
+    if not pairs:
+        return np.zeros((x.shape[0], 0))
+    i, j = np.array(pairs).T
+    return np.linalg.norm(x[:, i, :] - x[:, j, :], axis=-1)
+
+
+def time_to_target(states: Any, targets: Any, goal_tol: float) -> int | None:
+    """First step s at which every agent is within ``goal_tol`` of its target.
+
+    Args:
+        states: positions, shape (S+1, K, D).
+        targets: targets, shape (K, D).
+        goal_tol: arrival tolerance (distance <= goal_tol counts as arrived).
+
+    Returns:
+        s in 0..S, or ``None`` if that never happens.
+    """
+    x = np.asarray(states, dtype=np.float64)
+    dist = np.linalg.norm(x - np.asarray(targets, dtype=np.float64)[None], axis=-1)  # (S+1, K)
+    hits = np.flatnonzero(np.all(dist <= goal_tol, axis=1))
+    return int(hits[0]) if hits.size else None
+
+
+def path_lengths(states: Any) -> np.ndarray:
+    """Length of each agent's travelled polyline, sum_s ||x[s+1] - x[s]||.
+
+    Args:
+        states: positions, shape (S+1, K, D).
+
+    Returns:
+        float64 array of shape (K,).
+    """
+    x = np.asarray(states, dtype=np.float64)
+    return np.linalg.norm(np.diff(x, axis=0), axis=-1).sum(axis=0)
+
+
+def compute_metrics(rollout: Rollout) -> dict[str, Any]:
+    """The ``metrics.json`` dict of one run; every value is a plain Python type.
+
+    Beyond the contract keys (:data:`CONTRACT_KEYS`) it adds ``noise_std``, ``r_safe``,
+    ``goal_tol`` (from ``rollout.config``, defaults from :class:`Config` when absent),
+    ``final_distance_to_target`` (per agent), ``at_target_final`` (all agents within
+    ``goal_tol`` at the last state), ``max_slack``, ``failed_local_solves`` (local solves
+    that failed and were replaced by the agent's previous plan; 0 when the rollout does
+    not record them) and ``failed_local_solves_by_kind`` (``{"exception": n,
+    "non-finite": n, "inaccurate": n}``).
+
+    ``reached`` is ``time_to_target is not None``: with process noise an agent can
+    drift out of the tolerance again after arriving (``at_target_final`` tells).
+    ``min_pair_distance`` is ``None`` for a single agent; steps-based means are
+    ``None`` for a run with zero steps.
+
+    Args:
+        rollout: the run, with ``states`` (S+1, K, D) and ``targets`` (K, D).
+
+    Returns:
+        Dict of JSON-serializable values.
+
+    Raises:
+        GpmpcError: inconsistent array shapes in the rollout.
+    """
+    states, targets = _checked_states(rollout)
+    defaults = Config()
+    cfg = rollout.config or {}
+    r_safe = float(cfg.get("r_safe", defaults.r_safe))
+    goal_tol = float(cfg.get("goal_tol", defaults.goal_tol))
+    noise_std = float(cfg.get("noise_std", defaults.noise_std))
+
+    dists = pair_distances(states)  # (S+1, P)
+    ttt = time_to_target(states, targets, goal_tol)
+    final = np.linalg.norm(states[-1] - targets, axis=-1)  # (K,)
+    iters = np.asarray(rollout.admm_iterations, dtype=np.float64)
+    return {
+        "method": str(rollout.method),
+        "seed": int(rollout.seed),
+        "num_agents": int(states.shape[1]),
+        "steps": int(states.shape[0] - 1),
+        "reached": ttt is not None,
+        "time_to_target": ttt,
+        "min_pair_distance": _scalar(dists.min()) if dists.size else None,
+        "violations": int(np.count_nonzero(dists < r_safe)),
+        "path_length": [float(v) for v in path_lengths(states)],
+        "straight_line_length": [float(v) for v in np.linalg.norm(targets - states[0], axis=-1)],
+        "admm_iterations_mean": _mean(iters),
+        "admm_iterations_max": int(iters.max()) if iters.size else None,
+        "converged_fraction": _mean(np.asarray(rollout.converged, dtype=np.float64)),
+        "wall_time_s": _scalar(rollout.wall_time_s),
+        "solve_time_s_per_step": _mean(np.asarray(rollout.solve_time, dtype=np.float64)),
+        "infeasible_local_solves": int(np.sum(rollout.infeasible_solves)),
+        "noise_std": noise_std,
+        "r_safe": r_safe,
+        "goal_tol": goal_tol,
+        "final_distance_to_target": [float(v) for v in final],
+        "at_target_final": bool(np.all(final <= goal_tol)),
+        "max_slack": _max(np.asarray(rollout.slack_max, dtype=np.float64)),
+        **_failures(rollout),
+    }
+
+
+def _failures(rollout: Rollout) -> dict[str, Any]:
+    """``failed_local_solves`` and its split by kind (zeros when the rollout lacks them)."""
+    from torch_gpmpc.control.problem import FAILURE_KINDS
+
+    by_kind = getattr(rollout, "failed_solves_by_kind", None)
+    total = getattr(rollout, "failed_solves", None)
+    counts = (np.asarray(by_kind, dtype=np.int64).reshape(-1, len(FAILURE_KINDS)).sum(axis=0)
+              if by_kind is not None else np.zeros(len(FAILURE_KINDS), dtype=np.int64))
+    return {
+        "failed_local_solves": int(np.sum(total)) if total is not None else int(counts.sum()),
+        "failed_local_solves_by_kind": {kind: int(n) for kind, n in zip(FAILURE_KINDS, counts)},
+    }
+
+
+def _checked_states(rollout: Rollout) -> tuple[np.ndarray, np.ndarray]:
+    """``states`` (S+1, K, D) and ``targets`` (K, D) as float64, shapes checked."""
+    states = np.asarray(rollout.states, dtype=np.float64)
+    targets = np.asarray(rollout.targets, dtype=np.float64)
+    if states.ndim != 3 or states.shape[0] < 1:
+        raise GpmpcError(f"rollout 'states' must have shape (S+1, K, D), got {states.shape}")
+    if targets.shape != states.shape[1:]:
+        raise GpmpcError(f"rollout 'targets' must have shape (K, D) = {states.shape[1:]}, got {targets.shape}")
+    return states, targets
+
+
+def _scalar(value: Any) -> float | None:
+    """Python float, or ``None`` when not finite."""
+    v = float(value)
+    return v if math.isfinite(v) else None
+
+
+def _mean(values: np.ndarray) -> float | None:
+    """Mean as a Python float; ``None`` for an empty array or a non-finite mean."""
+    return _scalar(values.mean()) if values.size else None
+
+
+def _max(values: np.ndarray) -> float | None:
+    """Largest finite value; ``None`` if there is none."""
+    finite = values[np.isfinite(values)]
+    return float(finite.max()) if finite.size else None

@@ -1,0 +1,113 @@
+"""The record of one closed-loop run, and its ``rollout.npz`` file.
+
+Shapes use S = steps taken, K = agents, D = state dimension, T = horizon,
+I = ``admm_max_iter``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.fileio import atomic_path
+
+
+@dataclass
+class Rollout:
+    """Everything a closed-loop run produced.
+
+    Attributes:
+        states: true states, shape (S+1, K, D); ``states[0]`` are the starts.
+        inputs: applied inputs, shape (S, K, D).
+        plans: planned state trajectories at each step, shape (S, K, T+1, D).
+        targets: final targets, shape (K, D).
+        adjacency: communication graph used at each step, bool, shape (S, K, K).
+        admm_iterations: ADMM iterations at each step, int, shape (S,).
+        converged: whether ADMM met its tolerance at each step, bool, shape (S,).
+        primal_residuals: largest per-edge ||y - z|| per iteration, shape (S, I), NaN-padded.
+        dual_residuals: rho ||z - z_prev|| per iteration, shape (S, I), NaN-padded.
+        slack_max: largest collision slack of the final ADMM iterate per step, shape (S,).
+        infeasible_solves: local solves with active slack or failed status per step, int, shape (S,).
+        solve_time: seconds spent in local solves per step, shape (S,).
+        chance_margin: largest chance margin Phi^-1(1-eps_k) sigma~ used per step, shape (S,).
+        wall_time_s: total wall-clock time of the run, seconds.
+        method: controller method name.
+        seed: run seed.
+        config: the run's configuration as a flat dict.
+        messages_per_iteration: numbers each agent sends per ADMM iteration, shape (S, K).
+        failed_solves: local solves that failed (solver exception, non-finite or inaccurate
+            answer; the agent's previous plan was used instead) per step, int, shape (S,);
+            ``None`` in files written before it existed.
+        failed_solves_by_kind: the same split by kind, int, shape (S, 3), columns in the
+            order of :data:`torch_gpmpc.control.solvers.conic.FAILURE_KINDS` (exception, non-finite, inaccurate).
+    """
+
+    states: np.ndarray
+    inputs: np.ndarray
+    plans: np.ndarray
+    targets: np.ndarray
+    adjacency: np.ndarray
+    admm_iterations: np.ndarray
+    converged: np.ndarray
+    primal_residuals: np.ndarray
+    dual_residuals: np.ndarray
+    slack_max: np.ndarray
+    infeasible_solves: np.ndarray
+    solve_time: np.ndarray
+    chance_margin: np.ndarray
+    wall_time_s: float
+    method: str
+    seed: int
+    config: dict[str, Any] = field(default_factory=dict)
+    messages_per_iteration: np.ndarray | None = None
+    failed_solves: np.ndarray | None = None
+    failed_solves_by_kind: np.ndarray | None = None
+
+    @property
+    def num_steps(self) -> int:
+        """S, the number of control steps taken."""
+        return int(self.inputs.shape[0])
+
+    @property
+    def num_agents(self) -> int:
+        """K."""
+        return int(self.states.shape[1])
+
+    def save(self, path: str | Path) -> None:
+        """Write ``rollout.npz`` atomically (arrays only; config and names as JSON text)."""
+        arrays = {
+            name: np.asarray(getattr(self, name))
+            for name in (
+                "states", "inputs", "plans", "targets", "adjacency", "admm_iterations",
+                "converged", "primal_residuals", "dual_residuals", "slack_max",
+                "infeasible_solves", "solve_time", "chance_margin",
+            )
+        }
+        for name in ("messages_per_iteration", "failed_solves", "failed_solves_by_kind"):
+            if getattr(self, name) is not None:
+                arrays[name] = np.asarray(getattr(self, name))
+        meta = {"method": self.method, "seed": self.seed, "wall_time_s": self.wall_time_s,
+                "config": self.config}
+        arrays["meta_json"] = np.array(json.dumps(meta))
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, **arrays)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Rollout":
+        """Read a ``rollout.npz`` written by :meth:`save` (no pickle is ever loaded)."""
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {k: data[k] for k in data.files}
+            meta = json.loads(str(arrays.pop("meta_json")))
+            return cls(**arrays, method=meta["method"], seed=meta["seed"],
+                       wall_time_s=meta["wall_time_s"], config=meta["config"])
+        except Exception as exc:  # noqa: BLE001 - BadZipFile, KeyError, TypeError, ... on a damaged file
+            first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise GpmpcError(f"rollout file {str(path)!r} cannot be read (corrupt, truncated or not "
+                             f"written by gpmpc run): {first}") from exc

@@ -1,0 +1,369 @@
+"""Scenarios: where the agents start, where they go, and the reference they track.
+
+Shapes use K = agents, D = state dimension, T = horizon, R = ``ref_points``.
+
+Generated scenarios (``Config.scenario``):
+
+* ``paper``: K = 3 starts on a circle of radius ``circle_radius`` at angles
+  2*pi*k/K in the x1-x2 plane (third coordinate 0 in 3D), targets the antipodes
+  (design.md §3; the straight paths all cross the centre).
+* ``circle``: the same construction for any K = ``num_agents``.
+* ``random``: K starts and K targets uniform in ``[-circle_radius, circle_radius]^D``,
+  drawn from a generator seeded with ``Config.seed``; starts are pairwise at least
+  ``max(min_separation, r_safe)`` apart, and so are targets.
+
+A scenario file (JSON or TOML) overrides ``Config.scenario``::
+
+    starts = [[4.0, 0.0], [-2.0, 3.4641016]]     # K x D
+    targets = [[-4.0, 0.0], [2.0, -3.4641016]]   # K x D
+    reference = "line"                           # optional: "line" | "target"
+    ref_points = 50                              # optional, >= 2
+    name = "two agents"                          # optional label
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import logging
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torch_gpmpc.config.schema import REFERENCES, Config
+from torch_gpmpc.errors import GpmpcError
+
+logger = logging.getLogger(__name__)
+
+#: Keys a scenario file may contain.
+SCENARIO_KEYS = ("starts", "targets", "reference", "ref_points", "name")
+#: Largest allowed absolute coordinate in a scenario file.
+MAX_COORDINATE = 1e4
+#: Candidates drawn per batch, and batches tried per agent, by ``random`` scenarios.
+_RANDOM_BATCH = 256
+_RANDOM_BATCHES = 40
+
+
+@dataclass(frozen=True, eq=False)
+class Scenario:
+    """Starts, targets and reference of one closed-loop run.
+
+    Attributes:
+        starts: initial positions, float64, shape (K, D).
+        targets: final targets, float64, shape (K, D).
+        reference_kind: ``line`` (straight line start -> target over ``ref_points``
+            points, then hold the target) or ``target`` (constant target).
+        ref_points: R, the number of points of the straight-line reference (>= 2).
+        name: a label (``paper``, ``circle``, ``random`` or the file's stem).
+    """
+
+    starts: Tensor
+    targets: Tensor
+    reference_kind: str = "line"
+    ref_points: int = 50
+    name: str = "custom"
+
+    def __post_init__(self) -> None:
+        starts = torch.as_tensor(self.starts, dtype=torch.float64)
+        targets = torch.as_tensor(self.targets, dtype=torch.float64)
+        if starts.ndim != 2 or starts.shape != targets.shape or starts.shape[0] < 1:
+            raise GpmpcError(
+                f"Scenario: starts and targets must both have shape (K, D) with K >= 1, "
+                f"got {tuple(starts.shape)} and {tuple(targets.shape)}"
+            )
+        for key, mat in (("starts", starts), ("targets", targets)):
+            if not bool(torch.isfinite(mat).all()) or bool((mat.abs() > MAX_COORDINATE).any()):
+                raise GpmpcError(f"Scenario: {key} must be finite coordinates within +-{MAX_COORDINATE:g}")
+        if self.reference_kind not in REFERENCES:
+            raise GpmpcError(f"Scenario: reference_kind {self.reference_kind!r} is not one of {REFERENCES}")
+        if int(self.ref_points) < 2:
+            raise GpmpcError(f"Scenario: ref_points must be >= 2, got {self.ref_points}")
+        object.__setattr__(self, "starts", starts)
+        object.__setattr__(self, "targets", targets)
+        object.__setattr__(self, "ref_points", int(self.ref_points))
+
+    @property
+    def num_agents(self) -> int:
+        """K."""
+        return int(self.starts.shape[0])
+
+    @property
+    def dim(self) -> int:
+        """D."""
+        return int(self.starts.shape[1])
+
+    def reference_window(self, t: int, horizon: int) -> Tensor:
+        """Reference positions x_ref^{t}, ..., x_ref^{t+T} of every agent.
+
+        For ``line``, point i is ``start + (target - start) * min(i, R-1) / (R-1)``, so
+        the reference reaches the target at i = R-1 and holds it afterwards. For
+        ``target`` every point is the target.
+
+        Args:
+            t: current time step, >= 0.
+            horizon: T, >= 0.
+
+        Returns:
+            Tensor of shape (K, T+1, D), float64.
+        """
+        if t < 0 or horizon < 0:
+            raise ValueError(f"reference_window: need t >= 0 and horizon >= 0, got t={t}, horizon={horizon}")
+        steps = torch.arange(int(t), int(t) + int(horizon) + 1)
+        return self._reference_at(steps)
+
+    def reference_path(self) -> Tensor:
+        """The whole reference x_ref^0, ..., x_ref^{R-1}.
+
+        Returns:
+            Tensor of shape (K, R, D), float64 (for ``target`` every point is the target).
+        """
+        return self._reference_at(torch.arange(self.ref_points))
+
+    def _reference_at(self, steps: Tensor) -> Tensor:
+        """Reference at integer time indices ``steps`` (N,) -> (K, N, D)."""
+        if self.reference_kind == "target":
+            return self.targets[:, None, :].expand(-1, steps.numel(), -1).clone()
+        last = self.ref_points - 1
+        frac = steps.clamp(max=last).to(torch.float64) / last  # (N,)
+        delta = self.targets - self.starts  # (K, D)
+        return self.starts[:, None, :] + frac[None, :, None] * delta[:, None, :]
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict in the scenario-file format (JSON-serializable)."""
+        return {
+            "name": self.name,
+            "starts": self.starts.tolist(),
+            "targets": self.targets.tolist(),
+            "reference": self.reference_kind,
+            "ref_points": self.ref_points,
+        }
+
+
+def make_scenario(cfg: Config, path: str | Path | None = None) -> Scenario:
+    """Build the scenario of a run.
+
+    Args:
+        cfg: run configuration (``scenario``, ``num_agents``, ``dim``, ``circle_radius``,
+            ``min_separation``, ``r_safe``, ``seed``, ``reference``, ``ref_points``).
+        path: optional scenario file (JSON or TOML); when given it overrides
+            ``cfg.scenario``, and its ``reference``/``ref_points`` override the config's.
+
+    Returns:
+        The :class:`Scenario`.
+
+    Raises:
+        GpmpcError: a bad scenario file, starts closer than ``r_safe``, or a random
+            scenario that cannot be placed with the requested separation.
+    """
+    if path is not None:
+        return load_scenario_file(path, cfg)
+    if cfg.scenario == "paper":
+        starts, targets = circle_positions(3, cfg.dim, cfg.circle_radius)
+    elif cfg.scenario == "circle":
+        starts, targets = circle_positions(cfg.num_agents, cfg.dim, cfg.circle_radius)
+    elif cfg.scenario == "random":
+        starts, targets = random_positions(cfg)
+    else:  # pragma: no cover - Config already restricts the choices
+        raise GpmpcError(f"config key 'scenario': unknown scenario {cfg.scenario!r}")
+    _check_start_separation(starts, cfg.r_safe, f"scenario {cfg.scenario!r}",
+                            "raise circle_radius, lower num_agents or lower r_safe")
+    return Scenario(starts, targets, cfg.reference, cfg.ref_points, cfg.scenario)
+
+
+def circle_positions(num_agents: int, dim: int, radius: float) -> tuple[Tensor, Tensor]:
+    """Starts on a circle in the x1-x2 plane at angles 2*pi*k/K, targets the antipodes.
+
+    Args:
+        num_agents: K.
+        dim: D (>= 2); coordinates beyond the second are 0.
+        radius: circle radius.
+
+    Returns:
+        ``(starts, targets)``, each float64 of shape (K, D).
+    """
+    angles = 2.0 * math.pi * torch.arange(num_agents, dtype=torch.float64) / num_agents
+    starts = torch.zeros(num_agents, dim, dtype=torch.float64)
+    starts[:, 0] = radius * torch.cos(angles)
+    starts[:, 1] = radius * torch.sin(angles)
+    return starts, -starts
+
+
+def random_positions(cfg: Config) -> tuple[Tensor, Tensor]:
+    """Seeded random starts and targets in ``[-circle_radius, circle_radius]^D``.
+
+    Starts are pairwise at least ``max(min_separation, r_safe)`` apart, and so are
+    targets (rejection sampling, at most ``_RANDOM_BATCH * _RANDOM_BATCHES`` tries per agent).
+
+    Returns:
+        ``(starts, targets)``, each float64 of shape (K, D).
+
+    Raises:
+        GpmpcError: the separation cannot be met within the bounded number of tries.
+    """
+    gen = torch.Generator().manual_seed(cfg.seed)
+    sep = max(cfg.min_separation, cfg.r_safe)
+    starts = _sample_separated(cfg, sep, gen, "start")
+    targets = _sample_separated(cfg, sep, gen, "target")
+    return starts, targets
+
+
+def _sample_separated(cfg: Config, sep: float, gen: torch.Generator, what: str) -> Tensor:
+    """K points uniform in the box, pairwise >= ``sep`` apart -> (K, D)."""
+    box = cfg.circle_radius
+    points = torch.empty(0, cfg.dim, dtype=torch.float64)
+    for k in range(cfg.num_agents):
+        for _ in range(_RANDOM_BATCHES):
+            cand = (torch.rand(_RANDOM_BATCH, cfg.dim, generator=gen, dtype=torch.float64) * 2 - 1) * box
+            if points.shape[0] == 0:
+                ok = torch.ones(_RANDOM_BATCH, dtype=torch.bool)
+            else:
+                ok = (torch.cdist(cand, points) >= sep).all(dim=1)
+            if ok.any():
+                points = torch.cat([points, cand[ok.nonzero()[0]]], dim=0)
+                break
+        else:
+            raise GpmpcError(
+                f"scenario 'random': could not place the {what} of agent {k} at least {sep:g} from the "
+                f"other {what}s in [-{box:g}, {box:g}]^{cfg.dim} within {_RANDOM_BATCH * _RANDOM_BATCHES} "
+                f"tries; lower min_separation (or r_safe) or num_agents, or raise circle_radius"
+            )
+    return points
+
+
+# ---------------------------------------------------------------------------
+# scenario files
+
+
+def load_scenario_file(path: str | Path, cfg: Config) -> Scenario:
+    """Read and validate a JSON or TOML scenario file (format: module docstring).
+
+    Raises:
+        GpmpcError: one clear message naming the file, the field and the fix.
+    """
+    path = Path(path)
+    where = f"scenario file {str(path)!r}"
+    data = _read_table(path, where)
+    unknown = [key for key in data if key not in SCENARIO_KEYS]
+    if unknown:
+        key = unknown[0]
+        near = difflib.get_close_matches(str(key), SCENARIO_KEYS, n=1, cutoff=0.0)
+        raise GpmpcError(f"{where}: unknown key {key!r}; did you mean {near[0]!r}? "
+                         f"(valid keys: {', '.join(SCENARIO_KEYS)})")
+    for key in ("starts", "targets"):
+        if key not in data:
+            raise GpmpcError(f"{where}: missing key {key!r}; give {key} as a K x D list of numbers")
+    starts = _parse_matrix(data["starts"], "starts", where)
+    targets = _parse_matrix(data["targets"], "targets", where)
+    _check_shapes(starts, targets, cfg.dim, where)
+    reference = _parse_reference(data.get("reference", cfg.reference), where)
+    ref_points = _parse_ref_points(data.get("ref_points", cfg.ref_points), where)
+    name = data.get("name", path.stem)
+    if not isinstance(name, str):
+        raise GpmpcError(f"{where}: 'name' must be a string, got {name!r}")
+    _check_start_separation(starts, cfg.r_safe, where, "move them apart or lower r_safe")
+    _warn_close_targets(targets, cfg.r_safe, where)
+    if starts.shape[0] != cfg.num_agents:
+        logger.info("%s has %d agents; it overrides num_agents=%d", where, starts.shape[0], cfg.num_agents)
+    return Scenario(starts, targets, reference, ref_points, name)
+
+
+def _read_table(path: Path, where: str) -> dict[str, Any]:
+    """Parse a ``.json`` or ``.toml`` file into a dict."""
+    if not path.is_file():
+        raise GpmpcError(f"{where} does not exist; check the path")
+    suffix = path.suffix.lower()
+    if suffix not in (".json", ".toml"):
+        raise GpmpcError(f"{where}: unknown suffix {suffix!r}; use .json or .toml")
+    try:
+        text = path.read_text()
+        data = json.loads(text) if suffix == ".json" else tomllib.loads(text)
+    except (json.JSONDecodeError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise GpmpcError(f"{where} cannot be parsed: {exc}") from exc
+    if not isinstance(data, dict):
+        raise GpmpcError(f"{where}: expected a table with keys 'starts' and 'targets'")
+    return data
+
+
+def _parse_matrix(value: Any, key: str, where: str) -> Tensor:
+    """A K x D list of finite numbers within +-MAX_COORDINATE -> float64 (K, D)."""
+    if not isinstance(value, list) or not value:
+        raise GpmpcError(f"{where}: {key!r} must be a non-empty K x D list of numbers, got {value!r}")
+    rows = []
+    for k, row in enumerate(value):
+        if not isinstance(row, list):
+            raise GpmpcError(f"{where}: {key}[{k}] must be a list of D numbers, got {row!r}")
+        rows.append([_parse_number(x, f"{key}[{k}][{d}]", where) for d, x in enumerate(row)])
+    lengths = {len(r) for r in rows}
+    if len(lengths) != 1:
+        lens = ", ".join(str(len(r)) for r in rows)
+        raise GpmpcError(f"{where}: {key!r} is ragged (row lengths {lens}); give every row D numbers")
+    return torch.tensor(rows, dtype=torch.float64)
+
+
+def _parse_number(x: Any, name: str, where: str) -> float:
+    """One finite coordinate with |x| <= MAX_COORDINATE."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        raise GpmpcError(f"{where}: {name} is {x!r} ({type(x).__name__}); give a number")
+    value = float(x)
+    if not math.isfinite(value):
+        raise GpmpcError(f"{where}: {name} is {value!r}, not finite; give a finite number")
+    if abs(value) > MAX_COORDINATE:
+        raise GpmpcError(f"{where}: {name} = {value:g} exceeds {MAX_COORDINATE:g} in absolute value; "
+                         f"use coordinates within +-{MAX_COORDINATE:g}")
+    return value
+
+
+def _check_shapes(starts: Tensor, targets: Tensor, dim: int, where: str) -> None:
+    """Same K for starts and targets, and D equal to the config's ``dim``."""
+    if starts.shape[0] != targets.shape[0]:
+        raise GpmpcError(f"{where}: 'starts' has {starts.shape[0]} agents but 'targets' has "
+                         f"{targets.shape[0]}; give one target per start")
+    for key, mat in (("starts", starts), ("targets", targets)):
+        if mat.shape[1] != dim:
+            raise GpmpcError(f"{where}: {key!r} rows have {mat.shape[1]} coordinates but the config has "
+                             f"dim = {dim}; give {dim} coordinates per row or --set dim={mat.shape[1]}")
+
+
+def _parse_reference(value: Any, where: str) -> str:
+    if value not in REFERENCES:
+        raise GpmpcError(f"{where}: 'reference' is {value!r}; use one of {', '.join(REFERENCES)}")
+    return value
+
+
+def _parse_ref_points(value: Any, where: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 2:
+        raise GpmpcError(f"{where}: 'ref_points' is {value!r}; give an integer >= 2")
+    return value
+
+
+def _check_start_separation(starts: Tensor, r_safe: float, where: str, fix: str) -> None:
+    """Raise if two starts are closer than ``r_safe`` (names the closest such pair)."""
+    k = starts.shape[0]
+    if k < 2:
+        return
+    i, j = torch.triu_indices(k, k, offset=1)
+    dist = (starts[i] - starts[j]).norm(dim=1)  # (P,)
+    p = int(torch.argmin(dist))
+    d = float(dist[p])
+    if d < r_safe:
+        raise GpmpcError(f"{where}: starts of agents {int(i[p])} and {int(j[p])} are {d:.4g} apart, "
+                         f"closer than r_safe = {r_safe:g}; {fix}")
+
+
+def _warn_close_targets(targets: Tensor, r_safe: float, where: str) -> None:
+    """Targets closer than ``r_safe`` cannot all be reached safely: warn (not an error)."""
+    k = targets.shape[0]
+    if k < 2:
+        return
+    i, j = torch.triu_indices(k, k, offset=1)
+    dist = (targets[i] - targets[j]).norm(dim=1)
+    p = int(torch.argmin(dist))
+    if float(dist[p]) < r_safe:
+        logger.warning("%s: targets of agents %d and %d are %.4g apart, closer than r_safe = %g; "
+                       "they cannot both be reached without a violation",
+                       where, int(i[p]), int(j[p]), float(dist[p]), r_safe)
