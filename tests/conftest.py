@@ -5,5 +5,3 @@ import torch
 
 torch.set_num_threads(1)
 
-import torch as _t
-_t.set_default_dtype(_t.float64)  # TEMP

@@ -9,7 +9,6 @@ from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.control.linearize import linearize_plan
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 
-torch.set_default_dtype(torch.float64)
 
 METHODS = ("nominal", "nominal-chance", "nonlinear", "nonlinear-chance", "gp", "gp-chance")
 

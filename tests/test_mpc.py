@@ -16,7 +16,6 @@ from torch_gpmpc.control.solvers.conic import LocalMPC, LocalProblemData, collis
 from torch_gpmpc.control.risk import chance_margins, collision_normals, pair_risks, state_covariances
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 
-torch.set_default_dtype(torch.float64)
 
 T, D = 13, 2
 U_MAX, ALPHA, PENALTY, R_SAFE = 2.0, 1e-3, 1e4, 0.5

@@ -16,7 +16,6 @@ from torch_gpmpc.control.risk import (
     state_covariances,
 )
 
-torch.set_default_dtype(torch.float64)
 
 NDTRI_095 = 1.6448536269514722
 

@@ -1,6 +1,6 @@
 """torch_gpmpc: cooperative Gaussian-process MPC for safe multi-agent navigation.
 
-Public API (design.md §2): ``Transitions``, ``ResidualGP``, ``fit_residual_gp``,
+Public API: ``Transitions``, ``ResidualGP``, ``fit_residual_gp``,
 ``LocalMPC``, ``ADMM``, ``simulate``, ``Rollout``, ``compute_metrics``, ``Config``.
 Imports are lazy so that ``gpmpc --help`` and light modules stay fast. Importing the
 package changes no global state: every tensor the package creates is float64 explicitly.

@@ -43,7 +43,7 @@ def _validate_args(args) -> None:
     if args.figure is not None:
         if Path(args.figure).suffix.lower() != ".png":
             raise GpmpcError(f"--figure {args.figure!r}: the figure file must end in .png")
-        if args.inputs != "state":
+        if args.gp_inputs != "state":
             raise GpmpcError("--figure needs --inputs state (the figure is over the 2D state plane)")
 
 
@@ -84,7 +84,7 @@ def main(args) -> int:
     data = _load(args)
     train, test = data.split(args.holdout, seed=args.seed) if args.holdout > 0 else (data, None)
     nominal = NominalModel(dim=data.state_dim)
-    X, Y = train.residuals(nominal, inputs=args.inputs)
+    X, Y = train.residuals(nominal, inputs=args.gp_inputs)
     check_training_size(X.shape[0])  # before the progress bar and the TensorBoard directory
     last = {"loss": float("nan")}
     with TBLogger(args.logdir) as tb, tqdm(total=args.iters + 1, desc="fit-gp", unit="step",
@@ -96,10 +96,10 @@ def main(args) -> int:
             bar.update(1)
 
         gp = fit_residual_gp(X, Y, optimizer=args.optimizer, iters=args.iters, seed=args.seed,
-                             callback=callback, input_kind=args.inputs)
+                             callback=callback, input_kind=args.gp_inputs)
         metrics = None
         if test is not None:
-            metrics = holdout_metrics(gp, *test.residuals(nominal, inputs=args.inputs))
+            metrics = holdout_metrics(gp, *test.residuals(nominal, inputs=args.gp_inputs))
             for d, (r, c) in enumerate(zip(metrics["rmse"], metrics["coverage95"], strict=True)):
                 tb.scalar(f"gp/holdout_rmse/d{d}", r, args.iters)
                 tb.scalar(f"gp/holdout_coverage95/d{d}", c, args.iters)

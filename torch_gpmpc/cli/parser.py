@@ -69,7 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--logdir", help="TensorBoard directory")
     p.add_argument("--holdout", type=float, default=0.0, help="fraction held out for RMSE/coverage")
     p.add_argument("--agent", type=int, help="fit only rows of this agent id")
-    p.add_argument("--inputs", choices=("state", "state_input"), default="state")
+    p.add_argument("--gp-inputs", "--inputs", dest="gp_inputs", choices=("state", "state_input"), default="state",
+                   help="GP inputs: the state (paper) or state and input (default state)")
     p.add_argument("--optimizer", choices=("lbfgs", "adam"), default="lbfgs")
     p.add_argument("--iters", type=int, default=50)
     p.add_argument("--seed", type=int, default=0)
