@@ -10,7 +10,7 @@ class ConstantVarianceGP:
 
     def __init__(self, var: float, dim: int = 2) -> None:
         self.var, self.input_dim, self.output_dim = var, dim, dim
-        self.noise = torch.zeros(dim)
+        self.noise = torch.zeros(dim, dtype=torch.float64)
 
     def linearize(self, x):
         n, d = x.shape

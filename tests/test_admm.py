@@ -32,7 +32,7 @@ def test_graph_slots_map_each_edge_to_both_ends():
 
 
 def test_communication_radius_selects_pairs():
-    x = torch.tensor([[0.0, 0.0], [1.0, 0.0], [3.0, 0.0]])
+    x = torch.tensor([[0.0, 0.0], [1.0, 0.0], [3.0, 0.0]], dtype=torch.float64)
     assert communication_graph(x, 1.5).edges.tolist() == [[0, 1]]
     assert communication_graph(x, None).edges.tolist() == [[0, 1], [0, 2], [1, 2]]
 
@@ -61,12 +61,12 @@ def _centralized(cfg: Config, x0, xref, dyn_A, dyn_c, edges, normals, bounds):
 @pytest.mark.parametrize("method", ["nonlinear", "nominal-chance"])
 def test_admm_matches_centralized_solution(method):
     """Frozen linearization (cold start: every plan holds x0), run to a tight tolerance."""
-    # primal-only stopping can halt at a consensus that is not yet optimal (design.md §3):
+    # primal-only stopping can halt at a consensus that is not yet optimal:
     # demand the dual residual too.
     cfg = Config(horizon=6, rho=5.0, admm_tol=1e-7, admm_dual_tol=1e-7, admm_max_iter=1500, relinearize=False,
                  eps=0.1, risk_split=0.3, noise_std=0.0)
-    x0 = torch.tensor([[-0.6, 0.0], [0.6, 0.1], [0.0, 0.9]])
-    xref = torch.stack([torch.linspace(0, 1, 7)[:, None] * (-x0[k] * 2) + x0[k] for k in range(3)])
+    x0 = torch.tensor([[-0.6, 0.0], [0.6, 0.1], [0.0, 0.9]], dtype=torch.float64)
+    xref = torch.stack([torch.linspace(0, 1, 7, dtype=torch.float64)[:, None] * (-x0[k] * 2) + x0[k] for k in range(3)])
     wind = VortexWind(0.1)
     var = 0.04
     gps = [ConstantVarianceGP(var)] * 3 if method.endswith("chance") else None
@@ -107,8 +107,8 @@ def test_admm_matches_centralized_solution(method):
 
 def test_one_agent_admm_equals_direct_mpc_solve():
     cfg = Config(horizon=8, num_agents=1, scenario="circle", noise_std=0.0)
-    x0 = torch.tensor([[1.0, -2.0]])
-    xref = torch.linspace(0, 1, 9)[None, :, None] * torch.tensor([[3.0, 3.0]])[:, None, :] + x0[:, None, :]
+    x0 = torch.tensor([[1.0, -2.0]], dtype=torch.float64)
+    xref = torch.linspace(0, 1, 9, dtype=torch.float64)[None, :, None] * torch.tensor([[3.0, 3.0]], dtype=torch.float64)[:, None, :] + x0[:, None, :]
     wind = VortexWind(0.1)
     admm = ADMM(cfg.replace(relinearize=False), "nonlinear", NominalModel(2), wind, None)
     res = admm.solve_step(x0, xref, communication_graph(x0, None))
@@ -129,7 +129,7 @@ def test_one_agent_admm_equals_direct_mpc_solve():
 
 def test_messages_per_iteration_formula():
     cfg = Config(horizon=13, admm_max_iter=1)
-    x0 = torch.tensor([[-1.0, 0.0], [1.0, 0.0], [0.0, 1.5]])
+    x0 = torch.tensor([[-1.0, 0.0], [1.0, 0.0], [0.0, 1.5]], dtype=torch.float64)
     graph = graph_from_edges(3, [(0, 1), (1, 2)])
     res = ADMM(cfg, "nominal").solve_step(x0, x0[:, None].expand(-1, 14, -1), graph)
     # each agent sends its copy y_{kj,k} (2 (T+1) D numbers) to each neighbour
@@ -137,7 +137,7 @@ def test_messages_per_iteration_formula():
 
 
 def test_warm_start_shift_drops_first_point():
-    x0 = torch.tensor([[0.0, 0.0], [1.0, 1.0]])
+    x0 = torch.tensor([[0.0, 0.0], [1.0, 1.0]], dtype=torch.float64)
     state = initial_state(x0, 3, graph_from_edges(2, [(0, 1)]))
     state.plans = torch.arange(2 * 4 * 2, dtype=torch.float64).reshape(2, 4, 2)
     shifted = state.shifted()

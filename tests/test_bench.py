@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 
-from torch_gpmpc.cli.parser import main
+from torch_gpmpc.cli import main
 
 
 def test_bench_local_short(monkeypatch):
@@ -40,10 +40,23 @@ def test_bench_cli_scale_short(tmp_path, monkeypatch):
     assert (tmp_path / "figures" / "bench_scale.png").stat().st_size > 0
 
 
-def test_bench_unknown_section_and_alias(tmp_path, capsys):
+def test_bench_unknown_section_is_refused(tmp_path, capsys):
     assert main(["bench", "--sections", "nope", "--out", str(tmp_path)]) == 2
     assert "unknown section 'nope'" in capsys.readouterr().err
     assert not (tmp_path / "bench.json").exists()
+
+
+def test_bench_section_alias_fast_runs_the_local_section_once(tmp_path, monkeypatch):
+    """``fast`` is the old name of ``local``: it runs the local workload, once, recorded as ``local``."""
+    import json
+
+    import torch_gpmpc.bench.local as bench_local
+
+    calls = []
+    monkeypatch.setattr(bench_local, "run", lambda quick, out: calls.append(quick) or {"table": []})
+    assert main(["bench", "--sections", "fast,local", "--quick", "--out", str(tmp_path)]) == 0
+    assert calls == [True]
+    assert list(json.loads((tmp_path / "bench.json").read_text())["sections"]) == ["local"]
 
 
 def test_bench_run_short_breakdown_times_every_iteration_once():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from torch_gpmpc.cli.parser import main
+from torch_gpmpc.cli import main
 from torch_gpmpc.data.transitions import Transitions
 from torch_gpmpc.gp.model import ResidualGP
 from torch_gpmpc.report.tensorboard import TBLogger, read_scalars
@@ -47,7 +47,7 @@ def test_fit_gp_writes_model_events_figure(collected, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "NLL" in out and "lengthscale" in out and "held-out (10 rows): RMSE" in out and "coverage" in out
     gp = ResidualGP.load(model, expected_dim=2)
-    assert gp.num_data == 30 and gp.input_kind == "state"
+    assert gp.num_data == 30 and gp.gp_inputs == "state"
     assert fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     scalars = read_scalars(logdir)
     assert [s for s, _ in scalars["gp/loss"]] == list(range(6))
@@ -64,7 +64,7 @@ def test_fit_gp_state_input_and_adam(collected, tmp_path):
     assert main(["fit-gp", "--transitions", str(collected), "--out", str(model), "--inputs", "state_input",
                  "--optimizer", "adam", "--iters", "3"]) == 0
     gp = ResidualGP.load(model)
-    assert gp.input_dim == 4 and gp.input_kind == "state_input"
+    assert gp.input_dim == 4 and gp.gp_inputs == "state_input"
 
 
 def test_collect_bad_input(tmp_path, capsys):

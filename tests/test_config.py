@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from torch_gpmpc.config.schema import Config, load_config, parse_overrides
+from torch_gpmpc.config import Config, load_config, parse_overrides
 from torch_gpmpc.errors import GpmpcError
 
 

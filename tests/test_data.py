@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from torch_gpmpc.data.transitions import Transitions, collect_transitions
+from torch_gpmpc.data import Transitions, collect_transitions
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.gp.model import fit_from_transitions
+from torch_gpmpc.gp import fit_from_transitions
 from torch_gpmpc.dynamics.systems import NominalModel, make_system
 
 
@@ -108,7 +108,7 @@ def test_residuals_for_agent_and_split(data):
     x, y = data.residuals(NominalModel())
     torch.testing.assert_close(y, data.x_next - data.x - 0.1 * data.u, rtol=0, atol=1e-14)
     assert torch.equal(x, data.x)
-    xu, _ = data.residuals(NominalModel(), inputs="state_input")
+    xu, _ = data.residuals(NominalModel(), gp_inputs="state_input")
     assert xu.shape == (60, 4)
     one = data.for_agent(2)
     assert one.num_samples == 20 and bool((one.agent == 2).all())
@@ -121,7 +121,7 @@ def test_residuals_for_agent_and_split(data):
     with pytest.raises(GpmpcError, match=r"holdout fraction must be in \(0, 1\)"):
         data.split(1.0)
     with pytest.raises(GpmpcError, match="'state' or 'state_input'"):
-        data.residuals(NominalModel(), inputs="foo")
+        data.residuals(NominalModel(), gp_inputs="foo")
 
 
 # ---------------------------------------------------------------------- one error per problem

@@ -15,14 +15,16 @@ import pytest
 import torch
 
 from torch_gpmpc.coordination.admm import ADMM
-from torch_gpmpc.cli.parser import main
-from torch_gpmpc.config.schema import Config, load_config
-from torch_gpmpc.coordination.distributed.world import AgentController, simulate_distributed
+from torch_gpmpc.cli import main
+from torch_gpmpc.config import Config, load_config
+from torch_gpmpc.coordination.distributed.agent import AgentController
+from torch_gpmpc.sim.distributed import simulate_distributed
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.coordination.graph import communication_graph
 from torch_gpmpc.sim.metrics import CONTRACT_KEYS, pair_distances
-from torch_gpmpc.sim.scenarios import Scenario, make_scenario
-from torch_gpmpc.sim.closed_loop import _clip_norm, noise_sequence, simulate
+from torch_gpmpc.sim.scenarios import make_scenario
+from torch_gpmpc.dynamics.systems import clip_norm
+from torch_gpmpc.sim.closed_loop import noise_sequence, simulate
 from torch_gpmpc.dynamics.systems import make_system
 
 QUICK = {"method": "gp-chance", "max_steps": 3, "admm_max_iter": 5, "gp_iters": 5}
@@ -38,8 +40,7 @@ def test_agent_controllers_reproduce_batched_admm_bit_for_bit():
     K = sc.num_agents
     system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
     admm = ADMM(cfg, cfg.method, system.nominal)
-    agents = [AgentController(k, K, cfg, Scenario(sc.starts[k:k + 1], sc.targets[k:k + 1], sc.reference_kind,
-                                                  sc.ref_points)) for k in range(K)]
+    agents = [AgentController(k, K, cfg, sc.reference_path()[k]) for k in range(K)]
     x, warm, noise = sc.starts.clone(), None, noise_sequence(cfg, K)
     with torch.no_grad():
         for t in range(2):
@@ -56,9 +57,9 @@ def test_agent_controllers_reproduce_batched_admm_bit_for_bit():
                 out = [agents[k].update({j: own[j][k] for j in own[k]}) for k in range(K)]
                 assert max(o[0] for o in out) == res.primal_residuals[it]
                 assert max(o[1] for o in out) == res.dual_residuals[it]
-            u = torch.stack([a.end_step()[:cfg.dim] for a in agents])
+            u = torch.stack([a.end_step().u for a in agents])
             assert torch.equal(u, res.inputs[:, 0])
-            x = system.step(x, _clip_norm(u, cfg.u_max), noise=noise[t])
+            x = system.step(x, clip_norm(u, cfg.u_max), noise=noise[t])
 
 
 def test_bad_arguments_raise_before_launching():

@@ -13,7 +13,9 @@ import torch
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.control.solvers.interior_point import FastLocalMPC
 from torch_gpmpc.config.schema import METHODS
-from torch_gpmpc.control.solvers.conic import LocalMPC, LocalProblemData, get_local_mpc
+from torch_gpmpc.control.problem import LocalProblemData
+from torch_gpmpc.control.solvers import make_local_solver
+from torch_gpmpc.control.solvers.conic import LocalMPC
 from torch_gpmpc.dynamics.systems import NominalModel
 
 T, D, U_MAX, ALPHA, B_GAIN = 8, 2, 2.0, 1e-3, 0.1
@@ -47,7 +49,7 @@ def make_data(batch: int, M: int, seed: int, *, push: float = 1.0, bound_extra: 
     diff = z_own - z_nbr
     normals = (diff / diff.norm(dim=-1, keepdim=True))[:, :, 1:]
     bounds = 0.5 + 0.1 * torch.rand(batch, M, T, generator=g, dtype=torch.float64) + bound_extra
-    active = torch.rand(batch, M, generator=g) < active_frac
+    active = torch.rand(batch, M, generator=g, dtype=torch.float64) < active_frac
     if M:
         active[0, 0] = True
     rho = 5.0 + 20.0 * torch.rand(batch, M, generator=g, dtype=torch.float64) if per_slot_rho \
@@ -253,7 +255,7 @@ def test_input_errors():
 @pytest.mark.parametrize("mode", ["pointwise", "propagated"])
 @pytest.mark.parametrize("method", METHODS)
 def test_fast_path_matches_reference_paths_every_method_and_mode(method, mode):
-    """Issue 7: the fast solver against a direct cvxpy solve and cvxpylayers' default path,
+    """The fast solver against a direct cvxpy solve and cvxpylayers' default path,
     on the crossing instances of tests/test_mpc.py (3 agents, 3 slots, one padding slot)."""
     from tests.test_mpc import crossing_instance, problem_data, reference_solve
 
@@ -261,8 +263,8 @@ def test_fast_path_matches_reference_paths_every_method_and_mode(method, mode):
     active[1, 2] = False
     inst = crossing_instance(3, 3, method, mode, seed=11 + METHODS.index(method), active=active)
     data = problem_data(inst)
-    fast = get_local_mpc(13, 2, 3, NominalModel(2), 2.0, 1e-3, solver="fast")(data)
-    ref = get_local_mpc(13, 2, 3, NominalModel(2), 2.0, 1e-3, solver="reference")(data)
+    fast = make_local_solver(13, 2, 3, NominalModel(2), 2.0, 1e-3, solver="fast")(data)
+    ref = make_local_solver(13, 2, 3, NominalModel(2), 2.0, 1e-3, solver="reference")(data)
     assert fast.ok.all() and ref.ok.all()
     for b in range(3):
         X, U, _, _ = reference_solve(data, b)

@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 import torch
 
-from torch_gpmpc.data.transitions import collect_transitions
+from torch_gpmpc.data import collect_transitions
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.gp.model import FORMAT, ResidualGP, _safe_cholesky, fit_per_agent, fit_residual_gp, holdout_metrics
+from torch_gpmpc.gp import ResidualGP, fit_per_agent, fit_residual_gp, holdout_metrics
+from torch_gpmpc.gp.cache import safe_cholesky
+from torch_gpmpc.gp.io import FORMAT
 from torch_gpmpc.dynamics.systems import NominalModel, make_system
 
 SYSTEM = make_system(noise_std=0.1)
@@ -36,14 +38,14 @@ def gp(train) -> ResidualGP:
 
 @pytest.fixture(scope="module")
 def grid() -> torch.Tensor:
-    axis = torch.linspace(-4.0, 4.0, 20)
+    axis = torch.linspace(-4.0, 4.0, 20, dtype=torch.float64)
     return torch.stack(torch.meshgrid(axis, axis, indexing="ij"), dim=-1).reshape(-1, 2)
 
 
 @pytest.fixture(scope="module")
 def queries() -> torch.Tensor:
     gen = torch.Generator().manual_seed(7)
-    return (torch.rand(15, 2, generator=gen) * 2 - 1) * 4.5  # also a little outside the data
+    return (torch.rand(15, 2, generator=gen, dtype=torch.float64) * 2 - 1) * 4.5  # also a little outside the data
 
 
 # ---------------------------------------------------------------------- independent closed form
@@ -62,7 +64,7 @@ def paper_gp(gp: ResidualGP, X: torch.Tensor, Y: torch.Tensor, x: torch.Tensor):
         def kappa(a, b, sf2=sf2, ell=ell):
             return sf2 * torch.exp(-0.5 * (((a[:, None, :] - b[None, :, :]) / ell) ** 2).sum(-1))
 
-        A = kappa(X, X) + sn2 * torch.eye(X.shape[0])
+        A = kappa(X, X) + sn2 * torch.eye(X.shape[0], dtype=torch.float64)
         ks = kappa(x, X)
         means.append(m[d] + ks @ torch.linalg.solve(A, Y[:, d] - m[d]))
         variances.append(sf2 - (ks * torch.linalg.solve(A, ks.T).T).sum(-1))
@@ -112,7 +114,7 @@ def test_jacobian_matches_central_differences(gp, queries):
     h = 1e-5
     cols = []
     for i in range(2):
-        e = torch.zeros(2)
+        e = torch.zeros(2, dtype=torch.float64)
         e[i] = h
         cols.append((gp.predict(queries + e)[0] - gp.predict(queries - e)[0]) / (2 * h))
     fd = torch.stack(cols, dim=-1)  # (n, D, Din)
@@ -153,23 +155,23 @@ def test_linearize_is_differentiable_in_x(gp, queries):
 
 def test_query_shape_is_checked(gp):
     with pytest.raises(GpmpcError, match=r"shape \(n, 2\)"):
-        gp.predict(torch.zeros(3, 4))
+        gp.predict(torch.zeros(3, 4, dtype=torch.float64))
 
 
 # ---------------------------------------------------------------------- other fitting paths
 def test_state_input_model_and_adam_with_callback():
     tr = collect_transitions(SYSTEM, num_agents=1, samples=40, seed=2)
-    X, Y = tr.residuals(NominalModel(), inputs="state_input")
+    X, Y = tr.residuals(NominalModel(), gp_inputs="state_input")
     steps = []
-    gp = fit_residual_gp(X, Y, optimizer="adam", iters=5, input_kind="state_input",
+    gp = fit_residual_gp(X, Y, optimizer="adam", iters=5, gp_inputs="state_input",
                          callback=lambda step, loss, hp: steps.append((step, loss, hp)))
     assert [s for s, _, _ in steps] == list(range(6))
     assert steps[-1][1] < steps[0][1]  # Adam decreased the loss
     assert np.array(steps[0][2]["lengthscale"]).shape == (2, 4)
     mean, jac, var = gp.linearize(X[:5])
-    assert jac.shape == (5, 2, 4) and gp.input_kind == "state_input"
+    assert jac.shape == (5, 2, 4) and gp.gp_inputs == "state_input"
     h = 1e-5
-    e = torch.zeros(4)
+    e = torch.zeros(4, dtype=torch.float64)
     e[3] = h
     fd = (gp.predict(X[:5] + e)[0] - gp.predict(X[:5] - e)[0]) / (2 * h)
     torch.testing.assert_close(jac[:, :, 3], fd, rtol=1e-5, atol=1e-9)
@@ -183,9 +185,9 @@ def test_one_gp_per_agent():
 
 
 def test_cholesky_failure_is_a_clear_error():
-    K = -torch.eye(3).expand(2, 3, 3)
+    K = -torch.eye(3, dtype=torch.float64).expand(2, 3, 3)
     with pytest.raises(GpmpcError, match="not positive definite even with jitter"):
-        _safe_cholesky(K, torch.ones(2))
+        safe_cholesky(K, torch.ones(2, dtype=torch.float64))
 
 
 def test_fit_rejects_bad_arguments(train):
@@ -271,7 +273,7 @@ def test_corrupt_files_are_refused(gp, tmp_path, kind):
 
 def test_wrong_format_and_tampered_content(gp, tmp_path):
     path = tmp_path / "m.pt"
-    torch.save({"weights": torch.zeros(3)}, path)
+    torch.save({"weights": torch.zeros(3, dtype=torch.float64)}, path)
     with pytest.raises(GpmpcError, match="not a torch_gpmpc ResidualGP file"):
         ResidualGP.load(path)
     gp.save(path)
@@ -285,7 +287,7 @@ def test_wrong_format_and_tampered_content(gp, tmp_path):
     torch.save(bad, path)
     with pytest.raises(GpmpcError, match="expected hyperparameters"):
         ResidualGP.load(path)
-    bad = {**good, "y_std": torch.ones(3)}
+    bad = {**good, "y_std": torch.ones(3, dtype=torch.float64)}
     torch.save(bad, path)
     with pytest.raises(GpmpcError, match="'y_std' has shape"):
         ResidualGP.load(path)

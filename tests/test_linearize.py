@@ -19,7 +19,7 @@ class FakeGP:
     def __init__(self, dim: int = 2, scale: float = 0.08):
         self.wind = VortexWind(scale=scale)
         self.dim = dim
-        self.noise = torch.full((dim,), 0.01)
+        self.noise = torch.full((dim,), 0.01, dtype=torch.float64)
 
     def linearize(self, x):
         var = 0.01 + 0.002 * (x ** 2).sum(-1, keepdim=True) * torch.arange(1, self.dim + 1)
@@ -29,7 +29,7 @@ class FakeGP:
 @pytest.fixture
 def plan():
     torch.manual_seed(0)
-    return 2.0 * torch.randn(3, 6, 2)
+    return 2.0 * torch.randn(3, 6, 2, dtype=torch.float64)
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -53,17 +53,17 @@ def test_nonlinear_jacobian_matches_finite_differences(plan):
     lin = linearize_plan("nonlinear", plan, NominalModel(), wind)
     h = 1e-6
     for e in range(2):
-        step = torch.zeros(2)
+        step = torch.zeros(2, dtype=torch.float64)
         step[e] = h
         fd = (wind(plan[:, :-1] + step) - wind(plan[:, :-1] - step)) / (2 * h)
-        torch.testing.assert_close(lin.dyn_A[..., e] - torch.eye(2)[:, e], fd, atol=1e-9, rtol=1e-7)
+        torch.testing.assert_close(lin.dyn_A[..., e] - torch.eye(2, dtype=torch.float64)[:, e], fd, atol=1e-9, rtol=1e-7)
 
 
 def test_affine_model_is_first_order_taylor(plan):
     """Near xbar the affine model matches the true f + g to second order."""
     wind = VortexWind()
     lin = linearize_plan("nonlinear", plan, NominalModel(), wind)
-    delta = 1e-3 * torch.randn(3, 5, 2)
+    delta = 1e-3 * torch.randn(3, 5, 2, dtype=torch.float64)
     x = plan[:, :-1] + delta
     affine = (lin.dyn_A @ x[..., None]).squeeze(-1) + lin.dyn_c
     assert (affine - (x + wind(x))).abs().max() < 1e-6
@@ -91,7 +91,7 @@ def test_wrong_gp_count_or_dimension_raises(plan):
     with pytest.raises(GpmpcError, match="3 agents"):
         linearize_plan("gp", plan, NominalModel(), gps=[FakeGP()])
     with pytest.raises(GpmpcError, match="shape"):
-        linearize_plan("gp", torch.zeros(1, 4, 3), NominalModel(dim=3), gps=[FakeGP(dim=2)])
+        linearize_plan("gp", torch.zeros(1, 4, 3, dtype=torch.float64), NominalModel(dim=3), gps=[FakeGP(dim=2)])
 
 
 def test_unknown_method_and_bad_shapes_raise(plan):

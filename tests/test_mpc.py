@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import cvxpy as cp
 import numpy as np
@@ -11,9 +11,10 @@ import pytest
 import torch
 
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.control.linearize import linearize_plan
-from torch_gpmpc.control.solvers.conic import LocalMPC, LocalProblemData, collision_rows, get_local_mpc
-from torch_gpmpc.control.risk import chance_margins, collision_normals, pair_risks, state_covariances
+from torch_gpmpc.control import examples
+from torch_gpmpc.control.problem import LocalProblemData
+from torch_gpmpc.control.solvers import make_local_solver
+from torch_gpmpc.control.solvers.conic import LocalMPC
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 
 
@@ -29,78 +30,23 @@ class FakeGP:
 
     def __init__(self, scale: float = 0.08):
         self.wind = VortexWind(scale=scale)
-        self.noise = torch.full((D,), 0.01)
+        self.noise = torch.full((D,), 0.01, dtype=torch.float64)
 
     def linearize(self, x):
-        var = 0.01 + 0.002 * (x ** 2).sum(-1, keepdim=True) * torch.tensor([1.0, 1.5])
+        var = 0.01 + 0.002 * (x ** 2).sum(-1, keepdim=True) * torch.tensor([1.0, 1.5], dtype=torch.float64)
         return self.wind(x), self.wind.jacobian(x), var
 
 
-@dataclass
-class Instance:
-    """Crossing agents: linearization data plus ADMM state (all tensors)."""
-
-    xbar: torch.Tensor  # (B, T+1, D)
-    xbar_nbr: torch.Tensor  # (B, M, T+1, D)
-    xref: torch.Tensor
-    x0: torch.Tensor
-    dyn_A: torch.Tensor
-    dyn_c: torch.Tensor
-    sigma: torch.Tensor  # (B, T+1, D, D)
-    normals: torch.Tensor  # (B, M, T+1, D)
-    active: torch.Tensor
-    z_own: torch.Tensor
-    z_nbr: torch.Tensor
-    lam_own: torch.Tensor
-    lam_nbr: torch.Tensor
-
-
-def line(start, direction, speed):
-    """Points start + tau * speed * direction for tau = 0..T, shape (..., T+1, D)."""
-    steps = torch.arange(T + 1, dtype=torch.float64)[:, None]
-    return start[..., None, :] + speed * steps * direction[..., None, :]
-
-
 def crossing_instance(batch, num_nbr, method="gp-chance", mode="pointwise", seed=0, active=None):
-    """Agents on a circle of radius 0.9 heading through the centre, neighbours crossing them."""
-    g = torch.Generator().manual_seed(seed)
-    angle = 2 * torch.pi * torch.rand(batch, generator=g)
-    start = 0.9 * torch.stack([torch.cos(angle), torch.sin(angle)], -1)
-    heading = -start / start.norm(dim=-1, keepdim=True)
-    xbar = line(start, heading, 0.12)
-    xref = line(start, heading, 0.18)
-    nbr_angle = angle[:, None] + 2 * torch.pi * (torch.arange(num_nbr) + 1) / (num_nbr + 1) \
-        + 0.2 * torch.rand(batch, num_nbr, generator=g)
-    nbr_start = 0.9 * torch.stack([torch.cos(nbr_angle), torch.sin(nbr_angle)], -1)
-    xbar_nbr = line(nbr_start, -nbr_start / 0.9, 0.12)
-    lin = linearize_plan(method, xbar, NOMINAL, VortexWind(), [FakeGP() for _ in range(batch)])
-    sigma = state_covariances(mode, lin.var, lin.dyn_A)
-    ids = torch.arange(batch)
-    normals = collision_normals(xbar, xbar_nbr, ids, ids[:, None] + 100 + torch.arange(num_nbr))
-    if active is None:
-        active = torch.ones(batch, num_nbr, dtype=torch.bool)
-    noise = lambda *shape: torch.randn(*shape, generator=g)  # noqa: E731
-    return Instance(
-        xbar=xbar, xbar_nbr=xbar_nbr, xref=xref, x0=start.clone(), dyn_A=lin.dyn_A, dyn_c=lin.dyn_c,
-        sigma=sigma, normals=normals, active=active,
-        z_own=xbar[:, None].expand(batch, num_nbr, T + 1, D) + 0.02 * noise(batch, num_nbr, T + 1, D),
-        z_nbr=xbar_nbr + 0.02 * noise(batch, num_nbr, T + 1, D),
-        lam_own=0.1 * noise(batch, num_nbr, T + 1, D), lam_nbr=0.1 * noise(batch, num_nbr, T + 1, D),
-    )
+    """Agents on a circle of radius 0.9 heading through the centre, neighbours crossing them
+    (the shared factory, with :class:`FakeGP` residuals)."""
+    return examples.crossing_instance(batch, num_nbr, method=method, mode=mode, seed=seed, active=active,
+                                      gps=[FakeGP() for _ in range(batch)])
 
 
 def problem_data(inst, rho=20.0, split=0.5, eps=0.1, x0=None, z_own=None, z_nbr=None):
     """LocalProblemData through the differentiable chain pair_risks -> ndtri -> margins."""
-    eps_low, _ = pair_risks(torch.as_tensor(eps), torch.as_tensor(split))
-    batch, num_nbr = inst.active.shape
-    margins = chance_margins(inst.normals, inst.sigma, eps_low * torch.ones(batch, num_nbr))
-    normals, bounds = collision_rows(inst.normals, margins, R_SAFE, inst.active)
-    return LocalProblemData(
-        x0=inst.x0 if x0 is None else x0, xref=inst.xref, dyn_A=inst.dyn_A, dyn_c=inst.dyn_c,
-        normals=normals, bounds=bounds, active=inst.active, rho=torch.as_tensor(rho),
-        z_own=inst.z_own if z_own is None else z_own, z_nbr=inst.z_nbr if z_nbr is None else z_nbr,
-        lam_own=inst.lam_own, lam_nbr=inst.lam_nbr,
-    )
+    return inst.problem_data(rho=rho, split=split, eps=eps, r_safe=R_SAFE, x0=x0, z_own=z_own, z_nbr=z_nbr)
 
 
 def reference_solve(data: LocalProblemData, b: int):
@@ -130,7 +76,7 @@ def reference_solve(data: LocalProblemData, b: int):
 
 @pytest.fixture(scope="module")
 def layers():
-    return {m: get_local_mpc(T, D, m, NOMINAL, U_MAX, ALPHA, PENALTY, "clarabel") for m in (0, 1, 3)}
+    return {m: make_local_solver(T, D, m, NOMINAL, U_MAX, ALPHA, PENALTY, "clarabel") for m in (0, 1, 3)}
 
 
 def assert_feasible(data, sol, tol=1e-6):
@@ -182,7 +128,7 @@ def test_collision_rows_are_active_in_crossing_instance(layers):
 def test_gradients_match_finite_differences(layers):
     """d/d(rho, risk split, x0, z) of a fixed random functional of the plan."""
     inst = crossing_instance(1, 1, seed=3)
-    weights = torch.randn(T + 1, D, generator=torch.Generator().manual_seed(5))
+    weights = torch.randn(T + 1, D, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
     layer = layers[1]
 
     def objective(rho, split, x0, z_own, z_nbr):
@@ -190,7 +136,7 @@ def test_gradients_match_finite_differences(layers):
         assert sol.ok.all()
         return (sol.X[0] * weights).sum() + sol.cost.sum()
 
-    base = dict(rho=torch.tensor(20.0), split=torch.tensor(0.4), x0=inst.x0.clone(),
+    base = dict(rho=torch.tensor(20.0, dtype=torch.float64), split=torch.tensor(0.4, dtype=torch.float64), x0=inst.x0.clone(),
                 z_own=inst.z_own.clone(), z_nbr=inst.z_nbr.clone())
     leaves = {k: v.clone().requires_grad_(True) for k, v in base.items()}
     objective(**leaves).backward()
@@ -198,7 +144,7 @@ def test_gradients_match_finite_differences(layers):
     # steps well above the solution accuracy (~1e-9) but small for the curvature
     h = {"rho": 1e-2, "split": 1e-3, "x0": 1e-3, "z_own": 1e-3, "z_nbr": 1e-3}
     for name, value in base.items():
-        direction = torch.randn(value.shape, generator=g)
+        direction = torch.randn(value.shape, generator=g, dtype=torch.float64)
         with torch.no_grad():
             up = objective(**{**base, name: value + h[name] * direction})
             down = objective(**{**base, name: value - h[name] * direction})
@@ -214,7 +160,7 @@ def test_infeasible_copies_use_slack_and_batched_equals_one_by_one(layers):
     inst = crossing_instance(3, 1, seed=4)
     pinned = replace(inst, z_nbr=inst.xbar[:, None].clone(), z_own=inst.xbar[:, None].clone())
     data = problem_data(pinned, rho=1e7)
-    data.rho = torch.tensor([[1e7], [20.0], [1e7]])
+    data.rho = torch.tensor([[1e7], [20.0], [1e7]], dtype=torch.float64)
     sol = layers[1](data)
     assert sol.ok.all()
     assert sol.slack_active.tolist() == [True, False, True]
@@ -255,7 +201,7 @@ def test_reference_solver_agrees_with_clarabel(layers):
 
 
 def test_cache_and_input_errors(layers):
-    assert get_local_mpc(T, D, 1, NOMINAL, U_MAX, ALPHA, PENALTY, "clarabel") is layers[1]
+    assert make_local_solver(T, D, 1, NOMINAL, U_MAX, ALPHA, PENALTY, "clarabel") is layers[1]
     data = problem_data(crossing_instance(2, 1))
     with pytest.raises(GpmpcError, match="normals"):
         layers[3](data)

@@ -7,7 +7,7 @@ import re
 import shlex
 from pathlib import Path
 
-from torch_gpmpc.cli.parser import main
+from torch_gpmpc.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 

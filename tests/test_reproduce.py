@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import csv
 
-from torch_gpmpc.cli.parser import main
+from torch_gpmpc.cli import main
 from torch_gpmpc.config.schema import METHODS
-from torch_gpmpc.sim.experiments import summarize, table_markdown
+from torch_gpmpc.report.tables import table_markdown
+from torch_gpmpc.sim.experiments import summarize
 from tests.test_metrics import make_rollout
 
 SHORT = ["--runs", "1", "--workers", "1", "--set", "max_steps=2", "--set", "admm_max_iter=2",
@@ -50,35 +51,25 @@ def test_summary_of_hand_made_runs():
     assert "| 2.0 ± 0.0 |" in table_markdown({"gp-chance": row})
 
 
-def test_killed_reproduction_leaves_only_complete_files_and_resumes(tmp_path, capsys):
-    """SIGKILL mid-way: every cached run under its final name loads; a rerun computes only the rest."""
-    import signal
-    import subprocess
-    import sys
-    import time
-
+def test_interrupted_reproduction_resumes_from_complete_files_only(tmp_path, capsys):
+    """A run killed mid-way leaves some runs cached under their final names and perhaps a hidden,
+    half-written temporary file (writes go to ``.NAME.*.tmp`` and are renamed). A rerun loads the
+    complete files, ignores the fragment and computes exactly the missing runs."""
     from torch_gpmpc.sim.rollout import Rollout
 
     out = tmp_path / "repro"
     args = ["reproduce", "--out", str(out), "--methods", "nominal,nominal-chance"] + SHORT
-    proc = subprocess.Popen([sys.executable, "-m", "torch_gpmpc.cli.parser", *args],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    assert main(args) == 0
     cache = out / "cache"
-
-    def finished():  # final names only; a SIGKILL may leave a hidden .NAME.*.tmp.npz behind
-        return sorted(p for p in cache.glob("*.npz") if not p.name.startswith("."))
-
-    deadline = time.time() + 120
-    while time.time() < deadline and len(finished()) < 2:
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=30)
-    done = finished()
-    assert 2 <= len(done) < 6, "the kill should land mid-way (2 methods x (1 run + 2 rho values) = 6 runs)"
-    for path in done:
-        Rollout.load(path)  # complete, or it would raise
-    assert not list(out.glob("figures/*.png"))  # figures come after all runs
+    runs = sorted(p for p in cache.glob("*.npz") if not p.name.startswith("."))
+    assert len(runs) == 6  # 2 methods x (1 run + 2 rho values)
+    lost = runs[1::2]
+    fragment = cache / f".{lost[0].name}.x1y2.tmp.npz"
+    fragment.write_bytes(lost[0].read_bytes()[:100])  # what a SIGKILL during the write leaves
+    for path in lost:
+        path.unlink()
     capsys.readouterr()
     assert main(args) == 0
-    assert f"{len(done)} of 6 runs cached; computing {6 - len(done)}" in capsys.readouterr().out
-    assert len(finished()) == 6 and (out / "table.md").is_file()
+    assert "3 of 6 runs cached; computing 3" in capsys.readouterr().out
+    for path in runs:
+        Rollout.load(path)  # every run is complete again

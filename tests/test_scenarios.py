@@ -18,11 +18,11 @@ SQ3 = math.sqrt(3.0)
 def test_paper_scenario_closed_form():
     sc = make_scenario(Config())
     assert sc.starts.dtype == torch.float64 and sc.starts.shape == (3, 2)
-    expected = torch.tensor([[4.0, 0.0], [-2.0, 2.0 * SQ3], [-2.0, -2.0 * SQ3]])
+    expected = torch.tensor([[4.0, 0.0], [-2.0, 2.0 * SQ3], [-2.0, -2.0 * SQ3]], dtype=torch.float64)
     torch.testing.assert_close(sc.starts, expected)
     # agent 1: start (4 cos(2pi/3), 4 sin(2pi/3)), target its antipode
     torch.testing.assert_close(sc.starts[1], torch.tensor([4 * math.cos(2 * math.pi / 3),
-                                                           4 * math.sin(2 * math.pi / 3)]))
+                                                           4 * math.sin(2 * math.pi / 3)], dtype=torch.float64))
     torch.testing.assert_close(sc.targets, -expected)
     assert sc.reference_kind == "line" and sc.ref_points == 50 and sc.name == "paper"
 
@@ -31,12 +31,12 @@ def test_paper_scenario_3d_has_zero_third_coordinate():
     sc = make_scenario(Config(dim=3))
     assert sc.starts.shape == (3, 3)
     assert torch.all(sc.starts[:, 2] == 0) and torch.all(sc.targets[:, 2] == 0)
-    torch.testing.assert_close(sc.starts[1, :2], torch.tensor([-2.0, 2.0 * SQ3]))
+    torch.testing.assert_close(sc.starts[1, :2], torch.tensor([-2.0, 2.0 * SQ3], dtype=torch.float64))
 
 
 def test_circle_scenario_any_k():
     sc = make_scenario(Config(scenario="circle", num_agents=4, circle_radius=2.0))
-    expected = torch.tensor([[2.0, 0.0], [0.0, 2.0], [-2.0, 0.0], [0.0, -2.0]])
+    expected = torch.tensor([[2.0, 0.0], [0.0, 2.0], [-2.0, 0.0], [0.0, -2.0]], dtype=torch.float64)
     torch.testing.assert_close(sc.starts, expected, atol=1e-12, rtol=0)
     torch.testing.assert_close(sc.targets, -expected, atol=1e-12, rtol=0)
 
@@ -55,7 +55,7 @@ def test_reference_window_line():
     torch.testing.assert_close(w0[:, 1], start + (target - start) / 49)
     torch.testing.assert_close(w0[:, 13], start + (target - start) * 13 / 49)
     # agent 0 goes (4,0) -> (-4,0): x1 = 4 - 8 i / 49
-    torch.testing.assert_close(w0[0, :, 0], torch.tensor([4 - 8 * i / 49 for i in range(14)]))
+    torch.testing.assert_close(w0[0, :, 0], torch.tensor([4 - 8 * i / 49 for i in range(14)], dtype=torch.float64))
     w = sc.reference_window(48, 4)  # indices 48..52
     torch.testing.assert_close(w[:, 0], start + (target - start) * 48 / 49)
     for i in range(1, 5):  # index 49 reaches the target, then hold
@@ -82,7 +82,7 @@ def test_reference_target_kind():
 
 def test_scenario_dataclass_rejects_bad_shapes():
     with pytest.raises(ValueError, match="shape"):
-        Scenario(torch.zeros(3, 2), torch.zeros(2, 2))
+        Scenario(torch.zeros(3, 2, dtype=torch.float64), torch.zeros(2, 2, dtype=torch.float64))
 
 
 # ---------------------------------------------------------------------------
@@ -101,7 +101,7 @@ def test_file_json_overrides_config(tmp_path):
     path = write(tmp_path, {**GOOD, "reference": "target", "ref_points": 7})
     sc = make_scenario(Config(), path)
     assert sc.num_agents == 2 and sc.reference_kind == "target" and sc.ref_points == 7
-    torch.testing.assert_close(sc.starts, torch.tensor(GOOD["starts"]))
+    torch.testing.assert_close(sc.starts, torch.tensor(GOOD["starts"], dtype=torch.float64))
     assert sc.name == "scen"
 
 
@@ -109,7 +109,7 @@ def test_file_toml(tmp_path):
     text = 'starts = [[0, 0], [2, 0]]\ntargets = [[2, 2], [0, 2]]\nreference = "line"\n'
     sc = make_scenario(Config(reference="target"), write(tmp_path, text, ".toml"))
     assert sc.reference_kind == "line" and sc.starts.dtype == torch.float64
-    torch.testing.assert_close(sc.targets, torch.tensor(GOOD["targets"]))
+    torch.testing.assert_close(sc.targets, torch.tensor(GOOD["targets"], dtype=torch.float64))
 
 
 def test_file_round_trip_via_to_dict(tmp_path):

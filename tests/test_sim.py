@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from torch_gpmpc.cli.parser import main
+from torch_gpmpc.cli import main
 from torch_gpmpc.config.schema import METHODS, Config
 from torch_gpmpc.sim.metrics import compute_metrics
 from torch_gpmpc.sim.scenarios import make_scenario
@@ -108,14 +108,21 @@ def test_tensorboard_serves_our_scalar_tags(tmp_path):
 
 
 def test_three_dimensional_paper_scenario_runs(tmp_path):
-    """D = 3: starts on the circle in the x1-x2 plane, the wind's vertical component acts."""
-    out = tmp_path / "d3"
-    assert main(["run", "--set", "dim=3", "--out", str(out)] + QUICK) == 0
-    with np.load(out / "rollout.npz", allow_pickle=False) as r:
-        states, plans = r["states"], r["plans"]
-    assert states.shape == (3, 3, 3) and plans.shape == (2, 3, 14, 3)
-    assert np.all(states[0, :, 2] == 0.0)
-    assert np.any(states[1:, :, 2] != 0.0)  # g_3 = 0.1 sin(x1) cos(x2) and noise move it
+    """D = 3: starts on the circle in the x1-x2 plane; without noise only the wind's vertical
+    component g_3 = 0.1 sin(x1) cos(x2) can move an agent out of that plane."""
+    def vertical(wind_scale: float) -> np.ndarray:
+        out = tmp_path / f"d3_{wind_scale}"
+        args = ["run", "--set", "dim=3", "--set", "noise_std=0", "--set", f"wind_scale={wind_scale}",
+                "--out", str(out)]
+        assert main(args + QUICK) == 0
+        with np.load(out / "rollout.npz", allow_pickle=False) as r:
+            states, plans = r["states"], r["plans"]
+        assert states.shape == (3, 3, 3) and plans.shape == (2, 3, 14, 3)
+        return states[:, :, 2]
+
+    windy, calm = vertical(0.1), vertical(0.0)
+    assert np.all(windy[0] == 0.0) and np.all(calm == 0.0)
+    assert np.all(np.abs(windy[1:]) > 1e-4)  # every agent leaves the plane, pushed by g_3
 
 
 def test_single_agent_run_summarizes_without_pairs(tmp_path, capsys):

@@ -1,4 +1,4 @@
-"""Gradient tuning of rho and the risk split (torch_gpmpc.tuning.tuner, ``gpmpc tune``).
+"""Gradient tuning of rho and the risk split (torch_gpmpc.tuning, ``gpmpc tune``).
 
 Independent answers: central finite differences (Richardson-extrapolated) for the
 gradient, the closed-form margin-equalizing split for the two-agent test, a grid search
@@ -15,13 +15,13 @@ import torch
 
 import torch_gpmpc  # noqa: F401  (float64 default)
 from torch_gpmpc.coordination.admm import ADMM
-from torch_gpmpc.cli.parser import main
-from torch_gpmpc.config.schema import Config, load_config
+from torch_gpmpc.cli import main
+from torch_gpmpc.config import Config, load_config
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.dynamics.systems import NominalModel
 from torch_gpmpc.report.tensorboard import read_scalars
 from tests.helpers import ConstantVarianceGP
-from torch_gpmpc.tuning.tuner import (
+from torch_gpmpc.tuning import (
     ObjectiveWeights,
     Tuner,
     TuneSettings,
@@ -44,7 +44,7 @@ def _small_objective(seeds, settings: TuneSettings, variances=(0.01, 0.02, 0.04)
     cfg = Config(**SMALL)
     admm = ADMM(cfg, cfg.method, NominalModel(2), None, [ConstantVarianceGP(v) for v in variances])
     instances = with_warm_starts(admm, make_instances(cfg, seeds, settings))
-    return TuningObjective(admm, instances, settings.weights(), settings.admm_iters, settings.mpc_steps)
+    return TuningObjective(admm, instances, ObjectiveWeights.from_settings(settings), settings.admm_iters, settings.mpc_steps)
 
 
 @pytest.mark.parametrize("mpc_steps", [1, 2])
@@ -87,11 +87,11 @@ def test_tuned_parameters_beat_defaults_on_heldout_seeds():
     tuner = Tuner(train, params, settings)
     tuner.run(6)
     with torch.no_grad():
-        default = float(heldout(rho=torch.tensor(20.0), split=0.5).loss)
+        default = float(heldout(rho=torch.tensor(20.0, dtype=torch.float64), split=0.5).loss)
         tuned = float(heldout(params).loss)
     grid = grid_search_rho(train, [math.exp(i * math.log(200) / 7) for i in range(8)], split=0.5)
     with torch.no_grad():
-        grid_heldout = float(heldout(rho=torch.tensor(grid["best_rho"]), split=0.5).loss)
+        grid_heldout = float(heldout(rho=torch.tensor(grid["best_rho"], dtype=torch.float64), split=0.5).loss)
     assert tuner.history[-1].loss < tuner.history[0].loss
     assert tuned < 0.75 * default, (tuned, default)
     assert tuned < 1.1 * grid_heldout, (tuned, grid_heldout)
@@ -122,9 +122,9 @@ def test_split_moves_risk_to_the_uncertain_agent_and_equalizes_margins():
     assert s_tuned < 0.5  # eps_1 = eps (1 - s) > eps_0: risk moved to the uncertain agent
     assert abs(s_tuned - s_star) < 0.01, (s_tuned, s_star)
     q = torch.distributions.Normal(0.0, 1.0).icdf
-    m_tuned = max(float(q(torch.tensor(1 - cfg.eps * s_tuned))) * sigma[0],
-                  float(q(torch.tensor(1 - cfg.eps * (1 - s_tuned)))) * sigma[1])
-    m_star = float(q(torch.tensor(1 - cfg.eps * s_star))) * sigma[0]
+    m_tuned = max(float(q(torch.tensor(1 - cfg.eps * s_tuned, dtype=torch.float64))) * sigma[0],
+                  float(q(torch.tensor(1 - cfg.eps * (1 - s_tuned), dtype=torch.float64))) * sigma[1])
+    m_star = float(q(torch.tensor(1 - cfg.eps * s_star, dtype=torch.float64))) * sigma[0]
     assert m_tuned < 1.02 * m_star  # the larger margin is within 2% of its minimum
     assert tuner.history[-1].loss < tuner.history[0].loss
 
@@ -222,15 +222,15 @@ def test_paper_scenario_tuning_beats_defaults_and_grid():
     settings = TuneSettings(admm_iters=6, lr=0.3)
     admm = ADMM(cfg, cfg.method, NominalModel(2), None, [ConstantVarianceGP(0.01)] * 3)
     train = TuningObjective(admm, with_warm_starts(admm, make_instances(cfg, [0, 1], settings)),
-                            settings.weights(), settings.admm_iters)
+                            ObjectiveWeights.from_settings(settings), settings.admm_iters)
     heldout = TuningObjective(admm, with_warm_starts(admm, make_instances(cfg, [100, 101], settings)),
-                              settings.weights(), settings.admm_iters)
+                              ObjectiveWeights.from_settings(settings), settings.admm_iters)
     params = TuningParameters(3)
     Tuner(train, params, settings).run(20)
     grid = grid_search_rho(train, [math.exp(i * math.log(200) / 7) for i in range(8)], split=0.5)
     with torch.no_grad():
-        default = float(heldout(rho=torch.tensor(20.0), split=0.5).loss)
+        default = float(heldout(rho=torch.tensor(20.0, dtype=torch.float64), split=0.5).loss)
         tuned = float(heldout(params).loss)
-        grid_best = float(heldout(rho=torch.tensor(grid["best_rho"]), split=0.5).loss)
+        grid_best = float(heldout(rho=torch.tensor(grid["best_rho"], dtype=torch.float64), split=0.5).loss)
     assert tuned < 0.5 * default
     assert tuned < 1.1 * grid_best, (tuned, grid_best, grid, float(params.rho()))

@@ -15,11 +15,11 @@ __version__ = "0.1.0"
 
 _EXPORTS = {
     "Config": "config.schema",
-    "load_config": "config.schema",
+    "load_config": "config.load",
     "GpmpcError": "errors",
     "Transitions": "data.transitions",
     "ResidualGP": "gp.model",
-    "fit_residual_gp": "gp.model",
+    "fit_residual_gp": "gp.fit",
     "LocalMPC": "control.solvers.conic",
     "ADMM": "coordination.admm",
     "simulate": "sim.closed_loop",

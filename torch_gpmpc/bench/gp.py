@@ -24,8 +24,8 @@ from typing import Callable
 
 import torch
 
-from torch_gpmpc.data.transitions import collect_transitions
-from torch_gpmpc.gp.model import ResidualGP, fit_residual_gp
+from torch_gpmpc.data import collect_transitions
+from torch_gpmpc.gp import ResidualGP, fit_residual_gp
 from torch_gpmpc.dynamics.systems import NominalModel, make_system
 
 NUM_POINTS = 42

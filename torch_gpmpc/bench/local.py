@@ -1,4 +1,4 @@
-"""``gpmpc bench`` section ``local``: time per agent-local MPC problem (issue 7, design.md section 6).
+"""``gpmpc bench`` section ``local``: time per agent-local MPC problem.
 
 Paper size (D = 2, T = 13, M = 2 neighbours), realistic crossing instances, batch 3 (one
 ADMM iteration of the paper scenario) and 64. Paths, all measured in the same run on the
@@ -33,10 +33,10 @@ import cvxpy as cp
 import torch
 
 from torch_gpmpc.control.solvers.interior_point import FastLocalMPC
-from torch_gpmpc.control.linearize import linearize_plan
-from torch_gpmpc.control.solvers.conic import LocalMPC, LocalProblemData, collision_rows
-from torch_gpmpc.control.risk import chance_margins, collision_normals, pair_risks, state_covariances
-from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
+from torch_gpmpc.control.examples import crossing_instance
+from torch_gpmpc.control.problem import LocalProblemData
+from torch_gpmpc.control.solvers.conic import LocalMPC
+from torch_gpmpc.dynamics.systems import NominalModel
 
 logger = logging.getLogger(__name__)
 
@@ -50,44 +50,16 @@ def crossing_instances(batch: int, seed: int = 0) -> LocalProblemData:
     """``batch`` agents mid-way through the paper's crossing, each with 2 neighbours.
 
     Agent and neighbours start on a circle of radius 1.2 and head through the centre
-    at 0.15 per step (references at 0.2); linearization points are these straight
-    lines, dynamics are the vortex wind linearized along them (``nonlinear``), margins
-    use a constant variance ``SYNTHETIC_VAR`` and the paper's risk 0.05 per agent.
-    Consensus variables are the straight lines plus 0.02 noise, multipliers 0.1 noise.
+    at 0.15 per step (references at 0.2); dynamics are the vortex wind linearized along
+    these lines (``nonlinear``), margins use a constant variance ``SYNTHETIC_VAR`` and the
+    paper's risk 0.05 per agent (:func:`~torch_gpmpc.control.examples.crossing_instance`).
 
     Returns:
         Problem data with B = ``batch``, shapes as in :class:`LocalProblemData`.
     """
-    g = torch.Generator().manual_seed(seed)
-    T, D, M = HORIZON, DIM, NEIGHBORS
-    steps = torch.arange(T + 1, dtype=torch.float64)[:, None]
-
-    def lines(angle: torch.Tensor, speed: float) -> torch.Tensor:
-        start = 1.2 * torch.stack([torch.cos(angle), torch.sin(angle)], -1)
-        return start[..., None, :] - speed * steps * start[..., None, :] / 1.2
-
-    angle = 2 * torch.pi * torch.rand(batch, generator=g, dtype=torch.float64)
-    nbr_angle = angle[:, None] + 2 * torch.pi * torch.arange(1, M + 1) / (M + 1) \
-        + 0.3 * torch.rand(batch, M, generator=g, dtype=torch.float64)
-    xbar, xbar_nbr = lines(angle, 0.15), lines(nbr_angle, 0.15)
-    lin = linearize_plan("nonlinear", xbar, NominalModel(DIM), VortexWind())
-    sigma = state_covariances("pointwise", torch.full_like(xbar, SYNTHETIC_VAR), lin.dyn_A)
-    normals = collision_normals(xbar, xbar_nbr)
-    eps_low, _ = pair_risks(EPS, 0.5)
-    margins = chance_margins(normals, sigma, eps_low * torch.ones(batch, M))
-    active = torch.ones(batch, M, dtype=torch.bool)
-    rows, bounds = collision_rows(normals, margins, R_SAFE, active)
-
-    def noise(*shape: int) -> torch.Tensor:
-        return torch.randn(*shape, generator=g, dtype=torch.float64)
-
-    return LocalProblemData(
-        x0=xbar[:, 0].clone(), xref=lines(angle, 0.2), dyn_A=lin.dyn_A, dyn_c=lin.dyn_c,
-        normals=rows, bounds=bounds, active=active, rho=torch.tensor(RHO),
-        z_own=xbar[:, None].expand(batch, M, T + 1, D) + 0.02 * noise(batch, M, T + 1, D),
-        z_nbr=xbar_nbr + 0.02 * noise(batch, M, T + 1, D),
-        lam_own=0.1 * noise(batch, M, T + 1, D), lam_nbr=0.1 * noise(batch, M, T + 1, D),
-    )
+    inst = crossing_instance(batch, NEIGHBORS, horizon=HORIZON, radius=1.2, speed=0.15, ref_speed=0.2, spread=0.3,
+                             method="nonlinear", variance=SYNTHETIC_VAR, seed=seed)
+    return inst.problem_data(rho=RHO, eps=EPS, r_safe=R_SAFE)
 
 
 def _with_grad(data: LocalProblemData) -> LocalProblemData:

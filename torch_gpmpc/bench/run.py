@@ -31,11 +31,11 @@ import torch
 
 #: (module, attribute, label) of the functions timed inside the closed loop.
 TIMED = (
-    ("torch_gpmpc.sim.closed_loop", "train_agent_gps", "gp_fit"),
+    ("torch_gpmpc.gp.fit", "fit_agent_gps", "gp_fit"),
     ("torch_gpmpc.coordination.admm.ADMM", "solve_step", "admm_step"),
-    ("torch_gpmpc.coordination.admm.ADMM", "_problem_data", "assembly"),
-    ("torch_gpmpc.coordination.admm", "linearize_plan", "linearize"),
-    ("torch_gpmpc.coordination.admm.ADMM", "_solve", "solve"),
+    ("torch_gpmpc.coordination.agent_step.LocalStep", "assemble", "assembly"),
+    ("torch_gpmpc.coordination.agent_step", "linearize_plan", "linearize"),
+    ("torch_gpmpc.coordination.agent_step.LocalStep", "solve", "solve"),
     ("torch_gpmpc.control.solvers.interior_point", "canonicalize", "canonicalize"),
     ("torch_gpmpc.control.solvers.ipm_kernel", "solve_batch", "kernel"),
     ("torch_gpmpc.coordination.admm", "consensus_update", "consensus"),
@@ -73,7 +73,7 @@ def _timers():
 def _command_wall(out: Path) -> float:
     """Seconds of ``gpmpc run --out out`` in a child process (the README's main job)."""
     start = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "torch_gpmpc.cli.parser", "run", "--out", str(out)], check=True,
+    subprocess.run([sys.executable, "-m", "torch_gpmpc.cli.entry", "run", "--out", str(out)], check=True,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, "OMP_NUM_THREADS": "1"})
     return time.perf_counter() - start
 

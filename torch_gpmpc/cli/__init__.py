@@ -1,5 +1,5 @@
-"""The ``gpmpc`` command line: argument parsing and one module per command."""
+"""The ``gpmpc`` command line: the parser, the entry point, one module per command."""
 
-from torch_gpmpc.cli.parser import main
+from torch_gpmpc.cli.entry import main
 
 __all__ = ["main"]

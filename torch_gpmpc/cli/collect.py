@@ -1,6 +1,6 @@
-"""``gpmpc collect``: log transitions of the true system (paper data recipe, design.md §3).
+"""``gpmpc collect``: log transitions of the true system (paper data recipe).
 
-Thin over :func:`torch_gpmpc.data.transitions.collect_transitions`; writes ``.npz`` or ``.csv``
+Thin over :func:`torch_gpmpc.data.collect.collect_transitions`; writes ``.npz`` or ``.csv``
 by the suffix of ``--out``, atomically.
 """
 
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 
-from torch_gpmpc.data.transitions import MAX_COLLECT_ROWS, check_suffix, collect_transitions
+from torch_gpmpc.data import MAX_COLLECT_ROWS, check_suffix, collect_transitions
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.dynamics.systems import make_system
 

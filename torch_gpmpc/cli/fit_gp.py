@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from torch_gpmpc.data.transitions import Transitions
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.gp.model import check_training_size, fit_residual_gp, holdout_metrics
+from torch_gpmpc.gp import check_training_size, fit_residual_gp, holdout_metrics
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 from torch_gpmpc.report.tensorboard import TBLogger
 
@@ -63,7 +63,7 @@ def _summary(gp, train: Transitions, holdout: dict | None, final_loss: float) ->
     hp = gp.hyperparameters()
     fmt = lambda xs: "[" + ", ".join(f"{x:.4g}" for x in xs) + "]"  # noqa: E731
     lines = [
-        f"fit-gp: N={train.num_samples} ({train.source}), D={gp.output_dim}, inputs={gp.input_kind} "
+        f"fit-gp: N={train.num_samples} ({train.source}), D={gp.output_dim}, inputs={gp.gp_inputs} "
         f"(Din={gp.input_dim})",
         f"  NLL (raw units, sum over dims) = {gp.negative_log_marginal_likelihood():.4f}; "
         f"final loss (standardized, per datum) = {final_loss:.6f}",
@@ -84,7 +84,7 @@ def main(args) -> int:
     data = _load(args)
     train, test = data.split(args.holdout, seed=args.seed) if args.holdout > 0 else (data, None)
     nominal = NominalModel(dim=data.state_dim)
-    X, Y = train.residuals(nominal, inputs=args.gp_inputs)
+    X, Y = train.residuals(nominal, gp_inputs=args.gp_inputs)
     check_training_size(X.shape[0])  # before the progress bar and the TensorBoard directory
     last = {"loss": float("nan")}
     with TBLogger(args.logdir) as tb, tqdm(total=args.iters + 1, desc="fit-gp", unit="step",
@@ -96,10 +96,10 @@ def main(args) -> int:
             bar.update(1)
 
         gp = fit_residual_gp(X, Y, optimizer=args.optimizer, iters=args.iters, seed=args.seed,
-                             callback=callback, input_kind=args.gp_inputs)
+                             callback=callback, gp_inputs=args.gp_inputs)
         metrics = None
         if test is not None:
-            metrics = holdout_metrics(gp, *test.residuals(nominal, inputs=args.gp_inputs))
+            metrics = holdout_metrics(gp, *test.residuals(nominal, gp_inputs=args.gp_inputs))
             for d, (r, c) in enumerate(zip(metrics["rmse"], metrics["coverage95"], strict=True)):
                 tb.scalar(f"gp/holdout_rmse/d{d}", r, args.iters)
                 tb.scalar(f"gp/holdout_coverage95/d{d}", c, args.iters)

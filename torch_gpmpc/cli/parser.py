@@ -1,34 +1,11 @@
-"""The ``gpmpc`` command line (contract: design.md §2).
-
-This module only parses arguments and turns user errors into one clear line on
-stderr; each command's work is a ``main(args)`` in ``training/`` or ``eval/``,
-which are thin over the library.
-"""
+"""The ``gpmpc`` argument parser: every command, flag and default (the entry point that runs
+them is :mod:`~torch_gpmpc.cli.entry`)."""
 
 from __future__ import annotations
 
 import argparse
-import errno
-import importlib
-import logging
-import sys
 
 from torch_gpmpc.config.schema import METHODS
-from torch_gpmpc.errors import GpmpcError
-
-#: OSError numbers without a file name that are still the user's storage: disk full, quota, read-only.
-_STORAGE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
-
-# command -> module holding its main(args)
-_COMMANDS = {
-    "collect": "torch_gpmpc.cli.collect",
-    "fit-gp": "torch_gpmpc.cli.fit_gp",
-    "tune": "torch_gpmpc.cli.tune",
-    "run": "torch_gpmpc.cli.run",
-    "reproduce": "torch_gpmpc.cli.reproduce",
-    "bench": "torch_gpmpc.cli.bench",
-}
-
 
 class _Parser(argparse.ArgumentParser):
     """argparse that reports a usage error as one line (no usage dump)."""
@@ -111,44 +88,3 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sections", default="gp,local,scale,run", help="comma-separated: gp, local, scale, run")
     p.add_argument("--quick", action="store_true", help="fewer repetitions (for CI smoke runs)")
     return parser
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``gpmpc`` console script; returns the exit code."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
-    if args.threads < 1:
-        print(f"gpmpc: error: --threads must be >= 1, got {args.threads}", file=sys.stderr)
-        return 2
-    import torch
-
-    torch.set_num_threads(args.threads)
-    try:
-        module = importlib.import_module(_COMMANDS[args.command])
-        code = module.main(args)
-    except GpmpcError as exc:
-        if args.debug:
-            raise
-        print(f"gpmpc {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:  # unwritable/unreadable path, disk full: the user's environment, not a bug
-        if args.debug or (exc.filename is None and exc.errno not in _STORAGE_ERRNOS):
-            raise  # e.g. a network error of the distributed backend: keep its traceback
-        where = f" {exc.filename!r}" if exc.filename else ""
-        why = ("a part of the path is an existing file, not a directory"
-               if isinstance(exc, (FileExistsError, NotADirectoryError)) else exc.strerror or str(exc))
-        print(f"gpmpc {args.command}: error: cannot access{where}: {why}; "
-              "check the path and its permissions", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"gpmpc {args.command}: interrupted", file=sys.stderr)
-        return 130
-    return int(code or 0)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

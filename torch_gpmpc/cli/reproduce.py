@@ -18,9 +18,10 @@ from tqdm import tqdm
 from torch_gpmpc.config.schema import METHODS
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.sim.experiments import (
-    Task, execute, mean_residual_profile, summarize, sweep_config, table_csv, table_markdown,
+    Task, execute, mean_residual_profile, summarize, sweep_config,
 )
 from torch_gpmpc.fileio import write_text
+from torch_gpmpc.report.tables import table_csv, table_markdown
 from torch_gpmpc.sim.rollout import Rollout
 
 from torch_gpmpc.cli.run import config_from_args
@@ -70,11 +71,11 @@ def _execute_all(tasks: list[Task], workers: int) -> None:
 def _fig1(cfg, path: Path) -> None:
     """Fig. 1: the wind field beside the GP mean of agent 0 (seed ``cfg.seed``)."""
     from torch_gpmpc.report.gp_figures import plot_gp_field
-    from torch_gpmpc.sim.closed_loop import train_agent_gps
+    from torch_gpmpc.gp import fit_agent_gps
     from torch_gpmpc.dynamics.systems import make_system
 
     system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
-    gp = train_agent_gps(cfg, system, 1)[0]
+    gp = fit_agent_gps(cfg, system, 1)[0]
     plot_gp_field(gp, system.wind, gp.train_inputs_raw, path, box=cfg.circle_radius,
                   title=f"wind g vs GP mean (agent 0, seed {cfg.seed}, N = {cfg.gp_samples})")
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from torch_gpmpc.config.schema import load_config, parse_overrides
+from torch_gpmpc.config import load_config, parse_overrides
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.fileio import write_json
 
@@ -26,18 +26,18 @@ def config_from_args(args):
 
 
 def main(args) -> int:
-    from torch_gpmpc.gp.model import ResidualGP
+    from torch_gpmpc.coordination.distributed.transport import is_agent_rank
+    from torch_gpmpc.gp import ResidualGP, check_gp_inputs
+    from torch_gpmpc.report.tensorboard import TBLogger
+    from torch_gpmpc.sim.closed_loop import needs_gp, simulate
     from torch_gpmpc.sim.metrics import compute_metrics
     from torch_gpmpc.sim.scenarios import make_scenario
-    from torch_gpmpc.sim.closed_loop import check_gp_inputs, needs_gp, simulate
-    from torch_gpmpc.report.tensorboard import TBLogger
 
     distributed = args.backend == "distributed"
-    if distributed:
-        from torch_gpmpc.coordination.distributed import world as dist_backend
+    if distributed and is_agent_rank():  # torchrun / env launch: ranks > 0 serve agents, rank 0 writes
+        from torch_gpmpc.coordination.distributed.agent_process import agent_main
 
-        if dist_backend.is_agent_rank():  # torchrun / env launch: ranks > 0 serve agents, rank 0 writes
-            return dist_backend.agent_main(threads=getattr(args, "threads", 1))
+        return agent_main(threads=getattr(args, "threads", 1))
     # validate everything (config, scenario, model, output path) before any work or output
     cfg = config_from_args(args)
     scenario = make_scenario(cfg, args.scenario)
@@ -51,16 +51,18 @@ def main(args) -> int:
     tb = TBLogger(out / "tb")
     bar = tqdm(total=cfg.max_steps, desc=f"{cfg.method} seed {cfg.seed}", unit="step", leave=False)
 
-    def on_step(t: int, info: dict) -> None:
+    def on_step(t: int, info) -> None:
         bar.update(1)
-        bar.set_postfix(admm_it=info["iterations"], min_dist=f"{info['min_distance']:.3f}")
+        bar.set_postfix(admm_it=info.iterations, min_dist=f"{info.min_distance:.3f}")
 
     try:
         if distributed:  # every agent process loads --gp-model (or trains its own GP) itself
-            rollout, report = dist_backend.simulate_distributed(
+            from torch_gpmpc.sim.distributed import simulate_distributed
+
+            rollout, report = simulate_distributed(
                 cfg, scenario, gp_model=args.gp_model, on_step=on_step, tb=tb,
                 agents_per_process=getattr(args, "agents_per_process", 1),
-                timeout_s=getattr(args, "timeout", dist_backend.DEFAULT_TIMEOUT_S), log_dir=out / "agent_logs")
+                timeout_s=args.timeout, log_dir=out / "agent_logs")
         else:
             rollout = simulate(cfg, scenario, gps=gps, on_step=on_step, tb=tb)
     finally:

@@ -1,9 +1,9 @@
 """``gpmpc tune``: gradient tuning of rho and the per-pair risk split -> DIR/tuned.json, DIR/tb/.
 
-Thin over :mod:`torch_gpmpc.tuning.tuner` (the objective, the parameters, the optimizer loop).
+Thin over :mod:`torch_gpmpc.tuning` (the objective, the parameters, the optimizer loop).
 
 Settings: run-config keys as everywhere (``--config FILE``, ``--set NAME=VALUE``), and
-tuning settings (:class:`~torch_gpmpc.tuning.tuner.TuneSettings`) as ``--set tune.NAME=VALUE``
+tuning settings (:class:`~torch_gpmpc.config.TuneSettings`) as ``--set tune.NAME=VALUE``
 or in a ``[tune]`` table of the config file (a ``tuned.json`` is accepted too: its
 ``config`` and ``tune`` tables are used). ``--iters N`` is the *total* number of
 optimizer iterations: with ``--resume`` the run continues from ``DIR/checkpoint.pt``
@@ -35,59 +35,25 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from torch_gpmpc.config.schema import from_mapping, parse_overrides, read_mapping
+from torch_gpmpc.config import load_settings, parse_overrides
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.fileio import write_json
 
 log = logging.getLogger(__name__)
 
-_TUNE_PREFIX = "tune."
-
-
-def load_settings(config_path: str | None, set_items: list[str] | None):
-    """Config and tune settings: defaults < file (incl. its ``[tune]`` table) < ``--set``.
-
-    Returns:
-        ``(Config, TuneSettings)``.
-
-    Raises:
-        GpmpcError: unknown keys (nearest valid key named), bad values, unreadable file.
-    """
-    from torch_gpmpc.tuning.tuner import TuneSettings
-
-    cfg_data: dict[str, Any] = {}
-    tune_data: dict[str, Any] = {}
-    if config_path is not None:
-        data = read_mapping(config_path)
-        tune_table = data.get("tune")
-        if isinstance(data.get("config"), dict):  # a tuned.json
-            data = data["config"]
-        else:
-            data = {k: v for k, v in data.items() if k != "tune"}
-        cfg_data.update(data)
-        if isinstance(tune_table, dict):
-            tune_data.update(tune_table)
-    for key, value in parse_overrides(set_items).items():
-        if key.startswith(_TUNE_PREFIX):
-            tune_data[key[len(_TUNE_PREFIX):]] = value
-        else:
-            cfg_data[key] = value
-    return from_mapping(cfg_data), TuneSettings.from_mapping(tune_data)
-
-
 def main(args) -> int:
     """Run ``gpmpc tune`` (see the module docstring)."""
-    from torch_gpmpc.tuning import tuner as tuning
-    from torch_gpmpc.coordination.admm import ADMM
+    from torch_gpmpc import tuning
+    from torch_gpmpc.coordination.controller import make_controller
+    from torch_gpmpc.gp import fit_agent_gps
     from torch_gpmpc.sim.scenarios import make_scenario
-    from torch_gpmpc.sim.closed_loop import needs_gp, train_agent_gps
     from torch_gpmpc.dynamics.systems import make_system
     from torch_gpmpc.report.tensorboard import TBLogger
 
     if args.iters < 0:
         raise GpmpcError(f"--iters must be >= 0, got {args.iters}")
-    cfg, settings = load_settings(args.config, args.set)
+    cfg, settings = load_settings(args.config, parse_overrides(args.set))
     out = Path(args.out)
     ckpt = out / "checkpoint.pt"
     if args.resume and not ckpt.is_file():
@@ -99,16 +65,15 @@ def main(args) -> int:
     scenario = make_scenario(cfg)
     num_agents = scenario.num_agents
     system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
-    gps = train_agent_gps(cfg, system, num_agents) if needs_gp(cfg.method) else None
-    wind = system.wind if Method.parse(cfg.method).needs_wind else None
-    admm = ADMM(cfg, cfg.method, system.nominal, wind, gps)
+    gps = fit_agent_gps(cfg, system, num_agents) if Method.parse(cfg.method).needs_gp else None
+    admm = make_controller(cfg, system, gps)
 
     def build_objective(seeds) -> tuning.TuningObjective:
         instances = tuning.make_instances(cfg, seeds, settings, scenario)
         if settings.warm_start:
             instances = tuning.with_warm_starts(admm, instances, settings.warm_rho, settings.warm_tol,
                                                 settings.warm_max_iter)
-        return tuning.TuningObjective(admm, instances, settings.weights(), settings.admm_iters,
+        return tuning.TuningObjective(admm, instances, tuning.ObjectiveWeights.from_settings(settings), settings.admm_iters,
                                       settings.mpc_steps, settings.warmup_iters, system)
 
     objective = build_objective(settings.seeds)
@@ -144,7 +109,7 @@ def main(args) -> int:
         "wall_time_s": time.perf_counter() - started,
         "note": ("config.risk_split is the mean of risk_split_per_edge (Config has one scalar split); "
                  "ADMM.solve_step accepts the per-edge split as a (K, K) tensor: "
-                 "torch_gpmpc.tuning.tuner.load_risk_split(path, K)"),
+                 "torch_gpmpc.tuning.load_risk_split(path, K)"),
     })
     write_json(out / "tuned.json", payload)
     print(_summary(payload, out))
@@ -153,7 +118,7 @@ def main(args) -> int:
 
 def log_record(tb, record) -> None:
     """Write one tuning record to TensorBoard under ``tune/``."""
-    from torch_gpmpc.tuning.tuner import PARTS
+    from torch_gpmpc.tuning import PARTS
 
     step = record.iteration
     tb.scalar("tune/loss", record.loss, step)
@@ -167,7 +132,7 @@ def log_record(tb, record) -> None:
 
 def _evaluate(settings, objective, params, cfg, build_objective) -> dict[str, Any]:
     """Held-out comparison (defaults vs tuned) and the optional rho grid search."""
-    from torch_gpmpc.tuning.tuner import grid_search_rho
+    from torch_gpmpc.tuning import grid_search_rho
 
     result: dict[str, Any] = {}
     default_split = torch.tensor(float(cfg.risk_split))

@@ -1,6 +1,10 @@
-"""Run configuration: the schema (:mod:`.schema`) and the strict file reader."""
+"""Settings: the run configuration and the tuning settings in one schema machinery
+(:mod:`.fields`), read from files by one reader (:mod:`.reader`)."""
 
-from torch_gpmpc.config.schema import *  # noqa: F401,F403
-from torch_gpmpc.config.schema import Config, load_config
+from torch_gpmpc.config.load import load_config, load_settings, read_mapping
+from torch_gpmpc.config.reader import parse_overrides, parse_value, read_table
+from torch_gpmpc.config.schema import METHODS, REFERENCES, SCENARIOS, SOLVERS, UNCERTAINTY_MODES, Config, from_mapping
+from torch_gpmpc.config.tune_settings import TuneSettings
 
-__all__ = ["Config", "load_config"]
+__all__ = ["METHODS", "REFERENCES", "SCENARIOS", "SOLVERS", "UNCERTAINTY_MODES", "Config", "TuneSettings",
+           "from_mapping", "load_config", "load_settings", "parse_overrides", "parse_value", "read_mapping", "read_table"]

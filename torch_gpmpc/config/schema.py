@@ -2,21 +2,18 @@
 
 Keys work the same in a TOML/YAML/JSON file and as ``--set NAME=VALUE``. Unknown
 keys and wrong types raise :class:`~torch_gpmpc.errors.GpmpcError` naming the
-nearest valid key; out-of-range values raise naming the allowed range.
+nearest valid key; out-of-range values raise naming the allowed range
+(:mod:`~torch_gpmpc.config.fields` checks every settings class the same way).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import difflib
-import json
-import math
-import tomllib
 import typing
-from dataclasses import dataclass, fields
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any, Mapping
 
+from torch_gpmpc.config.fields import Rules, build, validate
 from torch_gpmpc.dynamics.methods import METHOD_NAMES
 from torch_gpmpc.errors import GpmpcError
 
@@ -29,7 +26,7 @@ SCENARIOS = ("paper", "circle", "random")
 
 @dataclass(frozen=True)
 class Config:
-    """All tunable settings of a run. Defaults are the paper scenario (design.md §3).
+    """All tunable settings of a run. Defaults are the paper scenario.
 
     Attributes:
         horizon: MPC horizon T (plans have T+1 states, T inputs).
@@ -104,7 +101,12 @@ class Config:
     wind_scale: float = 0.1
 
     def __post_init__(self) -> None:
-        _validate(self)
+        validate(self, RULES)
+        if self.scenario == "paper" and self.num_agents != 3:
+            raise GpmpcError(
+                f"config key 'num_agents': the paper scenario has 3 agents, got {self.num_agents}; "
+                "use scenario=circle or scenario=random for other team sizes"
+            )
 
     def replace(self, **changes: Any) -> "Config":
         """Return a copy with ``changes`` applied (same checks as loading)."""
@@ -156,63 +158,7 @@ _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
 }
 
 
-def _field_types() -> dict[str, Any]:
-    hints = typing.get_type_hints(Config)
-    return {f.name: hints[f.name] for f in fields(Config)}
-
-
-def _validate(cfg: Config) -> None:
-    for name, typ in _field_types().items():
-        value = getattr(cfg, name)
-        _check_type(name, value, typ)
-        if isinstance(value, float) and not math.isfinite(value):
-            raise GpmpcError(f"config key '{name}': {value!r} is not finite; give a finite number")
-    for name, choices in _CHOICES.items():
-        if getattr(cfg, name) not in choices:
-            raise GpmpcError(
-                f"config key '{name}': {getattr(cfg, name)!r} is not one of {', '.join(choices)}"
-            )
-    for name, (ok, allowed) in _RANGES.items():
-        if not ok(getattr(cfg, name)):
-            raise GpmpcError(f"config key '{name}': {getattr(cfg, name)!r} is out of range; use {allowed}")
-    if cfg.scenario == "paper" and cfg.num_agents != 3:
-        raise GpmpcError(
-            f"config key 'num_agents': the paper scenario has 3 agents, got {cfg.num_agents}; "
-            "use scenario=circle or scenario=random for other team sizes"
-        )
-
-
-def _check_type(name: str, value: Any, typ: Any) -> None:
-    allowed = typing.get_args(typ) or (typ,)
-    if value is None and type(None) in allowed:
-        return
-    base = [t for t in allowed if t is not type(None)][0]
-    ok = (
-        (base is bool and isinstance(value, bool))
-        or (base is int and isinstance(value, int) and not isinstance(value, bool))
-        or (base is float and isinstance(value, (int, float)) and not isinstance(value, bool))
-        or (base is str and isinstance(value, str))
-    )
-    if not ok:
-        raise GpmpcError(
-            f"config key '{name}': expected {base.__name__}, got {type(value).__name__} {value!r}"
-        )
-
-
-def nearest_key(name: str) -> str:
-    """The valid config key closest to ``name`` (for error messages)."""
-    keys = [f.name for f in fields(Config)]
-    match = difflib.get_close_matches(name, keys, n=1, cutoff=0.0)
-    return match[0] if match else keys[0]
-
-
-def _coerce(name: str, value: Any) -> Any:
-    """Accept ints for float keys; leave everything else for the type check."""
-    typ = _field_types()[name]
-    allowed = typing.get_args(typ) or (typ,)
-    if float in allowed and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    return value
+RULES = Rules("config key", "", _CHOICES, _RANGES)
 
 
 def from_mapping(data: Mapping[str, Any]) -> Config:
@@ -221,84 +167,4 @@ def from_mapping(data: Mapping[str, Any]) -> Config:
     Raises:
         GpmpcError: unknown key (with the nearest valid key), wrong type or range.
     """
-    known = {f.name for f in fields(Config)}
-    values = {}
-    for key, value in data.items():
-        if key not in known:
-            raise GpmpcError(f"unknown config key '{key}'; did you mean '{nearest_key(key)}'?")
-        values[key] = _coerce(key, value)
-    return Config(**values)
-
-
-def parse_value(text: str) -> Any:
-    """Parse the VALUE of ``--set NAME=VALUE``: JSON literals (numbers, true/false, null) or a bare string."""
-    lowered = text.strip().lower()
-    if lowered in ("none", "null"):
-        return None
-    if lowered in ("true", "false"):
-        return lowered == "true"
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        return text
-
-
-def parse_overrides(items: list[str] | None) -> dict[str, Any]:
-    """Turn ``["rho=5", "method=gp"]`` into ``{"rho": 5, "method": "gp"}``."""
-    out: dict[str, Any] = {}
-    for item in items or []:
-        if "=" not in item:
-            raise GpmpcError(f"--set {item!r}: expected NAME=VALUE, e.g. --set rho=20")
-        key, text = item.split("=", 1)
-        out[key.strip()] = parse_value(text)
-    return out
-
-
-def read_mapping(path: str | Path) -> dict[str, Any]:
-    """Read a flat mapping from a ``.toml``, ``.json``, ``.yaml`` or ``.yml`` file.
-
-    Raises:
-        GpmpcError: missing file, unknown suffix, or unparsable content.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise GpmpcError(f"config file {str(path)!r} does not exist; check the path")
-    suffix = path.suffix.lower()
-    try:
-        if suffix == ".toml":
-            data = tomllib.loads(path.read_text())
-        elif suffix == ".json":
-            data = json.loads(path.read_text())
-        elif suffix in (".yaml", ".yml"):
-            try:
-                import yaml  # optional dependency
-            except ImportError as exc:  # pragma: no cover - depends on environment
-                raise GpmpcError(
-                    f"config file {str(path)!r}: YAML needs PyYAML (pip install pyyaml), or use TOML/JSON"
-                ) from exc
-            data = yaml.safe_load(path.read_text())
-        else:
-            raise GpmpcError(f"config file {str(path)!r}: unknown suffix {suffix!r}; use .toml, .json or .yaml")
-    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise GpmpcError(f"config file {str(path)!r} cannot be parsed: {exc}") from exc
-    except Exception as exc:
-        if exc.__class__.__name__ == "YAMLError" or "yaml" in type(exc).__module__:
-            raise GpmpcError(f"config file {str(path)!r} cannot be parsed: {exc}") from exc
-        raise
-    if not isinstance(data, dict):
-        raise GpmpcError(f"config file {str(path)!r}: expected a table of NAME = VALUE pairs")
-    return data
-
-
-def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:
-    """Defaults, then the file's keys, then ``overrides`` (later wins).
-
-    A ``tuned.json`` written by ``gpmpc tune`` is accepted: its ``config`` table is used.
-    """
-    data: dict[str, Any] = {}
-    if path is not None:
-        file_data = read_mapping(path)
-        # a tuned.json from `gpmpc tune` keeps its keys under "config"
-        data.update(file_data["config"] if isinstance(file_data.get("config"), dict) else file_data)
-    data.update(overrides or {})
-    return from_mapping(data)
+    return build(Config, data, RULES)

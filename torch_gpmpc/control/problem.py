@@ -1,19 +1,17 @@
 """The agent-local MPC problem's data contract, shared by every solver.
 
 :class:`LocalProblemData` (inputs) and :class:`LocalSolution` (outputs) of the
-agent-local problem (paper eq. 27), the acceptance rule for a returned answer, and
-:func:`get_local_mpc`, which picks the solver: the structure-exploiting
-:class:`~torch_gpmpc.control.solvers.interior_point.FastLocalMPC` (default) or the cvxpylayers
-:class:`~torch_gpmpc.control.solvers.conic.LocalMPC`. Importing this module does not import cvxpy.
+agent-local problem (paper eq. 27), the collision rows, and the acceptance rule for a
+returned answer. Every solver in :mod:`torch_gpmpc.control.solvers` maps the one to the
+other; this module imports no solver and no cvxpy.
 """
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass, fields
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.dynamics.systems import NominalModel
@@ -136,39 +134,58 @@ def collision_rows(normals: Tensor, margins: Tensor, r_safe: float, active: Tens
     Returns:
         ``(normals (B, M, T, D), bounds (B, M, T))``.
     """
-    act = active[:, :, None]
-    rows = torch.where(act[..., None], normals[:, :, 1:], torch.zeros_like(normals[:, :, 1:]))
-    bounds = torch.where(act, r_safe + margins[:, :, 1:], -torch.ones_like(margins[:, :, 1:]))
-    return rows, bounds
+    return mask_inactive_rows(normals[:, :, 1:], r_safe + margins[:, :, 1:], active)
 
 
-@functools.lru_cache(maxsize=32)
-def get_local_mpc(
-    horizon: int,
-    dim: int,
-    num_neighbors: int,
-    nominal: NominalModel,
-    u_max: float,
-    alpha: float,
-    slack_penalty: float = 1e4,
-    solver: str = "clarabel",
-) -> nn.Module:
-    """A shared local-problem module per (T, D, M, constants, solver) (building one is slow).
+def mask_inactive_rows(normals: Tensor, bounds: Tensor, active: Tensor) -> tuple[Tensor, Tensor]:
+    """Collision rows of inactive slots made trivially satisfied: normal 0, bound -1.
 
-    ``solver='fast'`` gives the structure-exploiting interior-point
-    :class:`~torch_gpmpc.control.solvers.interior_point.FastLocalMPC` (same problem, same inputs and outputs);
-    ``clarabel`` and ``reference`` give the cvxpylayers :class:`~torch_gpmpc.control.solvers.conic.LocalMPC`. Arguments are
-    those of :class:`~torch_gpmpc.control.solvers.conic.LocalMPC`; the returned module is shared, do not modify it.
+    Args:
+        normals: (B, M, T, D). bounds: (B, M, T). active: (B, M), bool.
+
+    Returns:
+        ``(normals, bounds)`` of the same shapes.
     """
-    if solver == "fast":
-        from torch_gpmpc.control.solvers.interior_point import FastLocalMPC
+    act = active.to(torch.bool)[:, :, None]
+    return (torch.where(act[..., None], normals, torch.zeros_like(normals)),
+            torch.where(act, bounds, -torch.ones_like(bounds)))
 
-        return FastLocalMPC(horizon, dim, num_neighbors, nominal, float(u_max), float(alpha),
-                            float(slack_penalty))
-    from torch_gpmpc.control.solvers.conic import LocalMPC  # imports cvxpy/cvxpylayers only when a cvxpylayers path is asked for
 
-    return LocalMPC(horizon, dim, num_neighbors, nominal, float(u_max), float(alpha),
-                    float(slack_penalty), solver)
+@dataclass
+class ConsensusTerms:
+    """The local problem's consensus terms, with inactive slots neutralised (they add nothing).
+
+    Attributes:
+        w_own: ``rho z_own - lam_own`` per slot, 0 on inactive slots, shape (B, M, T+1, D).
+        w_nbr: ``rho z_nbr - lam_nbr`` per slot, 0 on inactive slots, shape (B, M, T+1, D).
+        c_x: quadratic weight of the own plan, ``1 + sum_{active j} rho_j / 2``, shape (B,).
+        rho_y: quadratic weight of each neighbour copy (1 on inactive slots), shape (B, M).
+        normals: collision normals (0 on inactive slots), shape (B, M, T, D).
+        bounds: collision bounds (-1 on inactive slots), shape (B, M, T).
+    """
+
+    w_own: Tensor
+    w_nbr: Tensor
+    c_x: Tensor
+    rho_y: Tensor
+    normals: Tensor
+    bounds: Tensor
+
+    @classmethod
+    def of(cls, data: LocalProblemData) -> "ConsensusTerms":
+        """The terms of ``data`` (differentiable)."""
+        batch, M = data.active.shape
+        active = data.active.to(torch.bool)
+        act4 = active[:, :, None, None]
+        rho = data.rho.expand(batch, M) if data.rho.dim() == 0 else data.rho
+        rho4 = rho[:, :, None, None]
+        zero = data.z_own.new_zeros(())
+        normals, bounds = mask_inactive_rows(data.normals, data.bounds, active)
+        return cls(w_own=torch.where(act4, rho4 * data.z_own - data.lam_own, zero),
+                   w_nbr=torch.where(act4, rho4 * data.z_nbr - data.lam_nbr, zero),
+                   c_x=1.0 + 0.5 * torch.where(active, rho, torch.zeros_like(rho)).sum(dim=1),
+                   rho_y=torch.where(active, rho, torch.ones_like(rho)),
+                   normals=normals, bounds=bounds)
 
 
 def acceptance_failures(data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor,

@@ -39,7 +39,7 @@ def pair_risks(eps: Tensor | float, split: Tensor | float) -> tuple[Tensor, Tens
         ``(eps_low, eps_high) = (eps * split, eps * (1 - split))``: the risks of the
         lower- and higher-indexed agent; they sum to ``eps``.
     """
-    eps = torch.as_tensor(eps, dtype=torch.get_default_dtype())
+    eps = torch.as_tensor(eps, dtype=torch.float64)
     split = torch.as_tensor(split, dtype=eps.dtype)
     return eps * split, eps * (1.0 - split)
 
@@ -53,7 +53,7 @@ def chance_quantile(eps_k: Tensor | float) -> Tensor:
     Returns:
         Quantiles, same shape as ``eps_k``.
     """
-    eps_k = torch.as_tensor(eps_k, dtype=torch.get_default_dtype())
+    eps_k = torch.as_tensor(eps_k, dtype=torch.float64)
     return torch.special.ndtri(1.0 - eps_k)
 
 

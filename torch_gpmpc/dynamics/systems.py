@@ -132,3 +132,10 @@ class TrueSystem:
 def make_system(dim: int = 2, noise_std: float = 0.1, wind_scale: float = 0.1) -> TrueSystem:
     """The paper's true system (A = I, B = 0.1 I, vortex wind) in ``dim`` dimensions."""
     return TrueSystem(NominalModel(dim=dim), VortexWind(scale=wind_scale), noise_std=noise_std)
+
+
+def clip_norm(u: Tensor, u_max: float) -> Tensor:
+    """Project inputs (..., Du) onto the ball ``||u|| <= u_max`` (guards solver tolerance and
+    fallback plans before an input is applied to the system)."""
+    norm = u.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    return u * torch.clamp(u_max / norm, max=1.0)

@@ -16,7 +16,7 @@ prior mean is the empirical mean of ``y`` and whose hyperparameters are the raw-
 values reported by :attr:`ResidualGP.lengthscales`, :attr:`ResidualGP.outputscales`
 and :attr:`ResidualGP.noise`. Users pass raw units and get raw units back.
 
-After fitting, :meth:`ResidualGP.refresh` caches the Cholesky factor of
+After fitting, :meth:`ResidualGP.refresh` caches (:mod:`~torch_gpmpc.gp.cache`) the Cholesky factor of
 ``K_d + s_d^2 I`` and ``alpha_d = (K_d + s_d^2 I)^{-1} Y_d``; :meth:`ResidualGP.linearize`
 then evaluates mean, Jacobian and variance for a batch of points with a few batched
 torch ops (no GPyTorch predictive machinery), because the controller calls it every
@@ -25,42 +25,28 @@ ADMM iteration.
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
 import logging
 import math
-import pickle
-import warnings
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import gpytorch
 import torch
-from linear_operator.utils.errors import NotPSDError
 from torch import Tensor
 
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.fileio import atomic_path
+from torch_gpmpc.gp.cache import PredictionCache, safe_cholesky, squared_distances
+from torch_gpmpc.gp.io import FORMAT, VERSION, read_payload, verify_checksum, write_payload
+from torch_gpmpc.gp.normalization import Standardization
 
 log = logging.getLogger(__name__)
 
-FORMAT = "torch_gpmpc.ResidualGP"
-VERSION = 1
-INPUT_KINDS = ("state", "state_input")
-#: Most training points :func:`fit_residual_gp` accepts: an exact GP needs O(N^2)
-#: memory and O(N^3) time per output dimension (5000 points: ~0.4 GB for D = 2).
-MAX_TRAINING_POINTS = 5000
-#: Jitter levels (added to the kernel diagonal, standardized units) tried when a
-#: Cholesky factorization fails; ``None`` is GPyTorch's default.
-JITTERS = (None, 1e-6, 1e-4)
+#: What a GP's inputs are: the state (the paper) or the state and the input.
+GP_INPUTS = ("state", "state_input")
 #: GPyTorch switches to iterative solvers above this size; we always want Cholesky.
-_MAX_CHOLESKY = 1_000_000
-_Z95 = 1.959963984540054
+MAX_CHOLESKY_SIZE = 1_000_000
 #: Standardized initial hyperparameters (inputs and outputs have unit variance).
 _INIT = {"lengthscale": 1.0, "outputscale": 1.0, "noise": 0.1}
-
-Callback = Callable[[int, float, dict], None]
 
 
 class _BatchExactGP(gpytorch.models.ExactGP):
@@ -86,27 +72,6 @@ class _BatchExactGP(gpytorch.models.ExactGP):
         return gpytorch.distributions.MultivariateNormal(self.mean_module(x), self.covar_module(x))
 
 
-@dataclass
-class _Cache:
-    """Everything :meth:`ResidualGP.linearize` needs (standardized units unless noted).
-
-    Shapes: D outputs, N training points, Din inputs.
-    """
-
-    x_mean: Tensor  # (Din,) raw
-    x_std: Tensor  # (Din,) raw
-    ls: Tensor  # (D, 1, Din) standardized lengthscales
-    x_scale: Tensor  # (D, 1, Din) raw: x_std * lengthscale
-    S: Tensor  # (D, N, Din) training inputs / lengthscale (standardized)
-    S_cols: tuple[Tensor, ...]  # Din contiguous columns of S, each (D, 1, N)
-    outputscale: Tensor  # (D,)
-    chol: Tensor  # (D, N, N) lower Cholesky factor of K + s^2 I
-    alpha: Tensor  # (D, N) (K + s^2 I)^{-1} y
-    y_mean: Tensor  # (D,) raw
-    y_std: Tensor  # (D,) raw
-    noise_raw: Tensor  # (D,) raw noise variance
-
-
 class ResidualGP(torch.nn.Module):
     """Residual GP ``x -> y`` with D independent outputs (one GP per state dimension).
 
@@ -117,7 +82,7 @@ class ResidualGP(torch.nn.Module):
     Args:
         inputs: raw training inputs, shape (N, Din).
         y: raw training targets (residuals), shape (N, D).
-        input_kind: what the inputs are: ``"state"`` (Din = D, the paper) or
+        gp_inputs: what the inputs are: ``"state"`` (Din = D, the paper) or
             ``"state_input"`` (Din = D + Du). Stored in the model file.
         normalization: optional ``(x_mean (Din,), x_std (Din,), y_mean (D,), y_std (D,))``;
             computed from the data when ``None``.
@@ -127,16 +92,18 @@ class ResidualGP(torch.nn.Module):
         likelihood: its ``GaussianLikelihood`` (batch_shape [D]).
     """
 
-    def __init__(self, inputs: Tensor, y: Tensor, input_kind: str = "state",
-                 normalization: tuple[Tensor, Tensor, Tensor, Tensor] | None = None):
+    def __init__(self, inputs: Tensor, y: Tensor, gp_inputs: str = "state",
+                 normalization: Standardization | None = None):
         super().__init__()
         inputs, y = _check_training_data(inputs, y)
-        if input_kind not in INPUT_KINDS:
-            raise GpmpcError(f"input_kind must be one of {INPUT_KINDS}, got {input_kind!r}")
-        self.input_kind = input_kind
+        if gp_inputs not in GP_INPUTS:
+            raise GpmpcError(f"gp_inputs must be one of {GP_INPUTS}, got {gp_inputs!r}")
+        self.gp_inputs = gp_inputs
         self.train_inputs_raw = inputs
         self.train_y_raw = y
-        x_mean, x_std, y_mean, y_std = normalization or _normalization(inputs, y)
+        self.standardization = normalization or Standardization.from_data(inputs, y)
+        x_mean, x_std, y_mean, y_std = (self.standardization.x_mean, self.standardization.x_std,
+                                        self.standardization.y_mean, self.standardization.y_std)
         self.x_mean, self.x_std, self.y_mean, self.y_std = x_mean, x_std, y_mean, y_std
         D, (N, Din) = y.shape[1], inputs.shape
         z = ((inputs - x_mean) / x_std).expand(D, N, Din)
@@ -146,7 +113,7 @@ class ResidualGP(torch.nn.Module):
         self.model.covar_module.base_kernel.lengthscale = _INIT["lengthscale"]
         self.model.covar_module.outputscale = _INIT["outputscale"]
         self.likelihood.noise = _INIT["noise"]
-        self._cache: _Cache | None = None
+        self._cache: PredictionCache | None = None
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -190,7 +157,7 @@ class ResidualGP(torch.nn.Module):
             "input_dim": self.input_dim,
             "output_dim": self.output_dim,
             "num_data": self.num_data,
-            "input_kind": self.input_kind,
+            "gp_inputs": self.gp_inputs,
         }
 
     # ------------------------------------------------------------------ cache
@@ -213,22 +180,22 @@ class ResidualGP(torch.nn.Module):
             noise = self.likelihood.noise.detach().reshape(D)
             z = (self.train_inputs_raw - self.x_mean) / self.x_std
             S = z / ls
-            K = outputscale[:, None, None] * torch.exp(-0.5 * _sqdist(S, S))
+            K = outputscale[:, None, None] * torch.exp(-0.5 * squared_distances(S, S))
             K = K + noise[:, None, None] * torch.eye(self.num_data, dtype=K.dtype)
-            chol = _safe_cholesky(K, outputscale)
+            chol = safe_cholesky(K, outputscale)
             ys = ((self.train_y_raw - self.y_mean) / self.y_std).T.unsqueeze(-1)
             alpha = torch.cholesky_solve(ys, chol).squeeze(-1)
         S_cols = tuple(S[:, None, :, i].contiguous() for i in range(Din))
-        self._cache = _Cache(self.x_mean, self.x_std, ls, self.x_std * ls, S, S_cols, outputscale, chol, alpha,
+        self._cache = PredictionCache(self.x_mean, self.x_std, ls, self.x_std * ls, S, S_cols, outputscale, chol, alpha,
                              self.y_mean, self.y_std, noise * self.y_std ** 2)
         return self
 
-    def _get_cache(self) -> _Cache:
+    def _get_cache(self) -> PredictionCache:
         if self._cache is None:
             self.refresh()
         return self._cache
 
-    def _cross(self, x: Tensor) -> tuple[_Cache, Tensor, Tensor]:
+    def _cross(self, x: Tensor) -> tuple[PredictionCache, Tensor, Tensor]:
         """Scaled query points s (D, n, Din) and cross-covariances k (D, n, N)."""
         c = self._get_cache()
         x = self._check_query(x)
@@ -244,11 +211,11 @@ class ResidualGP(torch.nn.Module):
         if not isinstance(x, Tensor) or x.ndim != 2 or x.shape[1] != self.input_dim:
             shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
             raise GpmpcError(f"GP query points must have shape (n, {self.input_dim}) "
-                             f"({self.input_kind} inputs), got {shape}")
+                             f"({self.gp_inputs} inputs), got {shape}")
         return x.to(torch.float64)
 
     @staticmethod
-    def _variance(c: _Cache, k: Tensor) -> Tensor:
+    def _variance(c: PredictionCache, k: Tensor) -> Tensor:
         """Latent variance in standardized units, shape (D, n)."""
         v = torch.linalg.solve_triangular(c.chol, k.mT, upper=False)
         return (c.outputscale[:, None] - v.square().sum(-2)).clamp_min(0.0)
@@ -301,7 +268,7 @@ class ResidualGP(torch.nn.Module):
         return mean, jac, var
 
     @staticmethod
-    def _mean_jac(c: _Cache, s: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
+    def _mean_jac(c: PredictionCache, s: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
         """Raw-unit mean (n, D) and Jacobian (n, D, Din) from one cross-covariance k (D, n, N)."""
         W = k * c.alpha[:, None, :]  # (D, n, N)
         mean_std = W.sum(-1)  # (D, n)
@@ -324,7 +291,7 @@ class ResidualGP(torch.nn.Module):
         self.model.eval()
         self.likelihood.eval()
         z = ((x - self.x_mean) / self.x_std).expand(self.output_dim, *x.shape)
-        with gpytorch.settings.max_cholesky_size(_MAX_CHOLESKY):
+        with gpytorch.settings.max_cholesky_size(MAX_CHOLESKY_SIZE):
             post = self.model(z)
             if include_noise:
                 post = self.likelihood(post)
@@ -351,16 +318,14 @@ class ResidualGP(torch.nn.Module):
         payload = {
             "format": FORMAT,
             "version": VERSION,
-            "input_kind": self.input_kind,
+            "input_kind": self.gp_inputs,
             "train_inputs": self.train_inputs_raw.detach().clone(),
             "train_y": self.train_y_raw.detach().clone(),
             "x_mean": self.x_mean.clone(), "x_std": self.x_std.clone(),
             "y_mean": self.y_mean.clone(), "y_std": self.y_std.clone(),
             "state_dict": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
         }
-        payload["checksum"] = _checksum(payload)
-        with atomic_path(path) as tmp:
-            torch.save(payload, tmp)
+        write_payload(path, payload)
 
     @classmethod
     def load(cls, path: str | Path, expected_dim: int | None = None,
@@ -377,35 +342,70 @@ class ResidualGP(torch.nn.Module):
                 pickle content, invalid content, or dimension mismatch.
         """
         src = f"GP model file {str(path)!r}"
-        payload = _torch_load(Path(path), src)
-        gp = _from_payload(payload, src)
+        gp = cls.from_payload(read_payload(Path(path), src), src)
         if expected_dim is not None and gp.output_dim != int(expected_dim):
             raise GpmpcError(f"{src}: the model predicts D={gp.output_dim} residual dimensions but "
                              f"D={expected_dim} is required; fit a model on data of dimension {expected_dim}")
         if expected_input_dim is not None and gp.input_dim != int(expected_input_dim):
-            raise GpmpcError(f"{src}: the model takes Din={gp.input_dim} inputs ({gp.input_kind}) but "
-                             f"Din={expected_input_dim} is required; refit with the matching --inputs "
+            raise GpmpcError(f"{src}: the model takes Din={gp.input_dim} inputs ({gp.gp_inputs}) but "
+                             f"Din={expected_input_dim} is required; refit with the matching --gp-inputs "
                              "(state: Din = D, state_input: Din = D + Du)")
         return gp
 
+    @classmethod
+    def from_payload(cls, payload: Any, src: str) -> "ResidualGP":
+        """Validate a dict read from a model file and rebuild the model.
 
-# ---------------------------------------------------------------------- helpers
-def _sqdist(a: Tensor, b: Tensor) -> Tensor:
-    """Squared Euclidean distances, shape (..., n, m), computed without the mm trick."""
-    return torch.cdist(a, b, compute_mode="donot_use_mm_for_euclid_dist").square()
+        Raises:
+            GpmpcError: naming ``src`` and the first invalid entry.
+        """
+        if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+            raise GpmpcError(f"{src}: not a torch_gpmpc ResidualGP file (missing format tag {FORMAT!r})")
+        if payload.get("version") != VERSION:
+            raise GpmpcError(f"{src}: unsupported version {payload.get('version')!r}; expected {VERSION}")
+        tensors = {}
+        for key in ("train_inputs", "train_y", "x_mean", "x_std", "y_mean", "y_std"):
+            value = payload.get(key)
+            if not isinstance(value, Tensor) or not value.is_floating_point():
+                raise GpmpcError(f"{src}: entry {key!r} is missing or not a float tensor (corrupt file)")
+            if not bool(torch.isfinite(value).all()):
+                raise GpmpcError(f"{src}: entry {key!r} has NaN/inf values (corrupt file)")
+            tensors[key] = value.to(torch.float64)
+        X, Y = tensors["train_inputs"], tensors["train_y"]
+        if X.ndim != 2 or Y.ndim != 2 or X.shape[0] != Y.shape[0] or X.shape[0] < 2:
+            raise GpmpcError(f"{src}: training data shapes {tuple(X.shape)} / {tuple(Y.shape)} are "
+                             "inconsistent (corrupt file)")
+        expect = {"x_mean": X.shape[1], "x_std": X.shape[1], "y_mean": Y.shape[1], "y_std": Y.shape[1]}
+        for key, size in expect.items():
+            if tuple(tensors[key].shape) != (size,) or (key.endswith("std") and bool((tensors[key] <= 0).any())):
+                raise GpmpcError(f"{src}: entry {key!r} has shape {tuple(tensors[key].shape)} or values "
+                                 f"inconsistent with the training data (expected ({size},), std > 0)")
+        kind = payload.get("input_kind")  # the file's name for gp_inputs
+        if kind not in GP_INPUTS:
+            raise GpmpcError(f"{src}: entry 'input_kind' must be one of {GP_INPUTS}, got {kind!r}")
+        gp = cls(X, Y, gp_inputs=kind, normalization=Standardization(
+            tensors["x_mean"], tensors["x_std"], tensors["y_mean"], tensors["y_std"]))
+        gp._load_state(payload.get("state_dict"), src)
+        # last: the checks above give more specific messages; this catches what they cannot see
+        verify_checksum(payload, src)
+        return gp.refresh()
 
 
-def _safe_cholesky(K: Tensor, outputscale: Tensor) -> Tensor:
-    """Lower Cholesky factor of K (D, N, N), retrying with relative jitter."""
-    eye = torch.eye(K.shape[-1], dtype=K.dtype)
-    for jitter in (0.0, 1e-10, 1e-8, 1e-6, 1e-4):
-        chol, info = torch.linalg.cholesky_ex(K + jitter * outputscale[:, None, None] * eye)
-        if not bool(info.any()):
-            if jitter:
-                log.warning("GP cache: added jitter %.0e x outputscale to the kernel diagonal", jitter)
-            return chol
-    raise GpmpcError("GP kernel matrix is not positive definite even with jitter 1e-4; "
-                     "check the training data for duplicated inputs or extreme scales")
+
+    def _load_state(self, state: Any, src: str) -> None:
+        reference = self.model.state_dict()
+        if not isinstance(state, dict) or set(state) != set(reference):
+            got = sorted(state) if isinstance(state, dict) else type(state).__name__
+            raise GpmpcError(f"{src}: entry 'state_dict' does not hold the expected hyperparameters "
+                             f"{sorted(reference)} (got {got})")
+        for key, ref in reference.items():
+            value = state[key]
+            if not isinstance(value, Tensor) or value.shape != ref.shape:
+                raise GpmpcError(f"{src}: hyperparameter {key!r} has the wrong shape "
+                                 f"(expected {tuple(ref.shape)})")
+            if value.is_floating_point() and not bool(torch.isfinite(value).all()) and "bound" not in key:
+                raise GpmpcError(f"{src}: hyperparameter {key!r} has NaN/inf values (corrupt file)")
+        self.model.load_state_dict({k: v.to(reference[k].dtype) for k, v in state.items()})
 
 
 def _check_training_data(inputs: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
@@ -420,276 +420,3 @@ def _check_training_data(inputs: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
     if not (torch.isfinite(inputs).all() and torch.isfinite(y).all()):
         raise GpmpcError("GP training data contains NaN or inf; clean the transitions first")
     return inputs.detach().clone(), y.detach().clone()
-
-
-def _normalization(inputs: Tensor, y: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Per-dimension means and standard deviations (a constant dimension gets std 1)."""
-    def std(a: Tensor) -> Tensor:
-        s = a.std(dim=0)
-        return torch.where(s > 1e-12 * (1.0 + a.abs().max(dim=0).values), s, torch.ones_like(s))
-    return inputs.mean(0), std(inputs), y.mean(0), std(y)
-
-
-def _torch_load(path: Path, src: str) -> Any:
-    """``torch.load(weights_only=True)`` with every failure turned into a GpmpcError."""
-    if not path.is_file():
-        raise GpmpcError(f"{src}: file not found; fit one with `gpmpc fit-gp --out FILE`")
-    if path.stat().st_size == 0:
-        raise GpmpcError(f"{src}: cannot be read: the file is empty (an interrupted copy?); "
-                         "fit one with `gpmpc fit-gp --out FILE`")
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # e.g. "Detected pickle protocol 4"
-            return torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as exc:
-        if "GLOBAL" in str(exc):
-            raise GpmpcError(f"{src}: refused to load: it references Python code or objects other "
-                             "than tensors (an unsafe or foreign pickle); only files written by "
-                             "ResidualGP.save are accepted") from None
-        raise GpmpcError(f"{src}: cannot be read (corrupt or truncated file, or unsupported "
-                         "pickle content); only files written by ResidualGP.save are accepted") from None
-    except Exception as exc:  # torch raises RuntimeError/EOFError/ValueError... on garbage
-        first = (str(exc).splitlines() or [""])[0].split(". ")[0]  # torch's miniz errors run on
-        raise GpmpcError(f"{src}: cannot be read (corrupt, truncated or not a torch file): "
-                         f"{type(exc).__name__}: {first}") from None
-
-
-def _checksum(payload: dict) -> str:
-    """SHA-256 over every entry except ``checksum`` (names, dtypes, shapes and bytes of tensors).
-
-    torch's zip container does not verify its CRCs on load, so without this a damaged
-    tensor (a flipped bit) would load as a silently different model.
-    """
-    digest = hashlib.sha256()
-
-    def feed(key: str, value: Any) -> None:
-        digest.update(key.encode())
-        if isinstance(value, dict):
-            for k in sorted(value):
-                feed(f"{key}/{k}", value[k])
-        elif isinstance(value, Tensor):
-            t = value.detach().cpu().contiguous()
-            digest.update(f"{t.dtype}{tuple(t.shape)}".encode())
-            digest.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
-        else:
-            digest.update(repr(value).encode())
-
-    for key in sorted(k for k in payload if k != "checksum"):
-        feed(key, payload[key])
-    return digest.hexdigest()
-
-
-def _from_payload(payload: Any, src: str) -> ResidualGP:
-    """Validate a loaded dict and rebuild the model (raises GpmpcError)."""
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise GpmpcError(f"{src}: not a torch_gpmpc ResidualGP file (missing format tag {FORMAT!r})")
-    if payload.get("version") != VERSION:
-        raise GpmpcError(f"{src}: unsupported version {payload.get('version')!r}; expected {VERSION}")
-    tensors = {}
-    for key in ("train_inputs", "train_y", "x_mean", "x_std", "y_mean", "y_std"):
-        value = payload.get(key)
-        if not isinstance(value, Tensor) or not value.is_floating_point():
-            raise GpmpcError(f"{src}: entry {key!r} is missing or not a float tensor (corrupt file)")
-        if not bool(torch.isfinite(value).all()):
-            raise GpmpcError(f"{src}: entry {key!r} has NaN/inf values (corrupt file)")
-        tensors[key] = value.to(torch.float64)
-    X, Y = tensors["train_inputs"], tensors["train_y"]
-    if X.ndim != 2 or Y.ndim != 2 or X.shape[0] != Y.shape[0] or X.shape[0] < 2:
-        raise GpmpcError(f"{src}: training data shapes {tuple(X.shape)} / {tuple(Y.shape)} are "
-                         "inconsistent (corrupt file)")
-    expect = {"x_mean": X.shape[1], "x_std": X.shape[1], "y_mean": Y.shape[1], "y_std": Y.shape[1]}
-    for key, size in expect.items():
-        if tuple(tensors[key].shape) != (size,) or (key.endswith("std") and bool((tensors[key] <= 0).any())):
-            raise GpmpcError(f"{src}: entry {key!r} has shape {tuple(tensors[key].shape)} or values "
-                             f"inconsistent with the training data (expected ({size},), std > 0)")
-    kind = payload.get("input_kind")
-    if kind not in INPUT_KINDS:
-        raise GpmpcError(f"{src}: entry 'input_kind' must be one of {INPUT_KINDS}, got {kind!r}")
-    gp = ResidualGP(X, Y, input_kind=kind,
-                    normalization=(tensors["x_mean"], tensors["x_std"], tensors["y_mean"], tensors["y_std"]))
-    _load_state(gp, payload.get("state_dict"), src)
-    # last: the checks above give more specific messages; this catches what they cannot see
-    if "checksum" in payload:  # files written before the checksum existed have none
-        if payload["checksum"] != _checksum(payload):
-            raise GpmpcError(f"{src}: checksum mismatch, the file is corrupt (damaged or modified after "
-                             "it was written); copy it again or refit with `gpmpc fit-gp`")
-    return gp.refresh()
-
-
-def _load_state(gp: ResidualGP, state: Any, src: str) -> None:
-    reference = gp.model.state_dict()
-    if not isinstance(state, dict) or set(state) != set(reference):
-        got = sorted(state) if isinstance(state, dict) else type(state).__name__
-        raise GpmpcError(f"{src}: entry 'state_dict' does not hold the expected hyperparameters "
-                         f"{sorted(reference)} (got {got})")
-    for key, ref in reference.items():
-        value = state[key]
-        if not isinstance(value, Tensor) or value.shape != ref.shape:
-            raise GpmpcError(f"{src}: hyperparameter {key!r} has the wrong shape "
-                             f"(expected {tuple(ref.shape)})")
-        if value.is_floating_point() and not bool(torch.isfinite(value).all()) and "bound" not in key:
-            raise GpmpcError(f"{src}: hyperparameter {key!r} has NaN/inf values (corrupt file)")
-    gp.model.load_state_dict({k: v.to(reference[k].dtype) for k, v in state.items()})
-
-
-# ---------------------------------------------------------------------- fitting
-def _neg_mll(model: _BatchExactGP, mll: gpytorch.mlls.ExactMarginalLogLikelihood) -> Tensor:
-    """Negative exact marginal log likelihood per datum, summed over outputs.
-
-    Retries with increasing Cholesky jitter; raises GpmpcError when all fail.
-    """
-    last: Exception | None = None
-    for jitter in JITTERS:
-        ctx = (gpytorch.settings.cholesky_jitter(float_value=jitter, double_value=jitter)
-               if jitter is not None else contextlib.nullcontext())
-        try:
-            with ctx, gpytorch.settings.max_cholesky_size(_MAX_CHOLESKY):
-                out = model(*model.train_inputs)
-                return -mll(out, model.train_targets).sum()
-        except (NotPSDError, torch.linalg.LinAlgError) as exc:
-            last = exc
-            log.warning("GP fit: Cholesky failed (jitter %s), retrying with more jitter", jitter)
-    raise GpmpcError(f"GP fit failed: kernel matrix not positive definite even with jitter "
-                     f"{JITTERS[-1]:g} ({last}); check for duplicated or extreme training data")
-
-
-def fit_residual_gp(inputs: Tensor, y: Tensor, optimizer: str = "lbfgs", iters: int = 50, seed: int = 0,
-                    callback: Callback | None = None, lr: float | None = None,
-                    input_kind: str = "state") -> ResidualGP:
-    """Fit a :class:`ResidualGP` by maximizing the exact marginal log likelihood.
-
-    Args:
-        inputs: raw training inputs, shape (N, Din).
-        y: raw residual targets, shape (N, D).
-        optimizer: ``"lbfgs"`` (``torch.optim.LBFGS`` with strong-Wolfe line search,
-            the paper's choice) or ``"adam"``.
-        iters: number of optimizer steps (L-BFGS iterations or Adam steps).
-        seed: seeds torch's RNG for the fit (the exact fit itself is deterministic).
-        callback: called as ``callback(step, loss, hyperparameters)`` for steps
-            ``0..iters`` with the loss (negative MLL per datum, standardized units,
-            summed over outputs) and the raw-unit :meth:`ResidualGP.hyperparameters`
-            at which it was evaluated (step ``iters`` is the final model).
-        lr: learning rate (default 1.0 for L-BFGS, 0.1 for Adam).
-        input_kind: ``"state"`` or ``"state_input"`` (recorded in the model).
-
-    Returns:
-        The fitted model in eval mode with its prediction cache built.
-
-    Raises:
-        GpmpcError: bad arguments, non-PD kernel matrices, or a diverged fit.
-    """
-    if optimizer not in ("lbfgs", "adam"):
-        raise GpmpcError(f"optimizer must be 'lbfgs' or 'adam', got {optimizer!r}")
-    if int(iters) < 0:
-        raise GpmpcError(f"iters must be >= 0, got {iters}")
-    inputs = torch.as_tensor(inputs)
-    check_training_size(int(inputs.shape[0]) if inputs.ndim else 0)
-    gp = ResidualGP(inputs, y, input_kind=input_kind)
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(int(seed))
-        _optimize(gp, optimizer, int(iters), callback, lr)
-    return gp.refresh()
-
-
-def check_training_size(num_points: int) -> None:
-    """Raise if ``num_points`` exceeds :data:`MAX_TRAINING_POINTS`.
-
-    Raises:
-        GpmpcError: naming the size, the limit and the fix.
-    """
-    if num_points > MAX_TRAINING_POINTS:
-        raise GpmpcError(f"GP training data: N={num_points} points is more than an exact GP fits in "
-                         f"reasonable time and memory (at most {MAX_TRAINING_POINTS}); subsample the "
-                         "transitions or fit one agent's rows (fit-gp --agent K)")
-
-
-def _optimize(gp: ResidualGP, optimizer: str, iters: int, callback: Callback | None,
-              lr: float | None) -> None:
-    model = gp.model
-    model.train()
-    gp.likelihood.train()
-    mll = gpytorch.mlls.ExactMarginalLogLikelihood(gp.likelihood, model)
-    params = [p for p in model.parameters() if p.requires_grad]
-    if optimizer == "lbfgs":
-        opt = torch.optim.LBFGS(params, lr=lr or 1.0, max_iter=1, line_search_fn="strong_wolfe")
-    else:
-        opt = torch.optim.Adam(params, lr=lr or 0.1)
-
-    def closure() -> Tensor:
-        opt.zero_grad()
-        loss = _neg_mll(model, mll)
-        loss.backward()
-        return loss
-
-    for step in range(iters + 1):
-        hp = gp.hyperparameters()
-        if step == iters:
-            with torch.no_grad():
-                loss = _neg_mll(model, mll)
-        else:
-            loss = opt.step(closure)
-        value = float(loss.detach())
-        if not math.isfinite(value):
-            raise GpmpcError(f"GP fit diverged (loss {value}) at step {step}; try --optimizer lbfgs, "
-                             "fewer --iters or check the data")
-        if callback is not None:
-            callback(step, value, hp)
-
-
-def holdout_metrics(gp: ResidualGP, inputs: Tensor, y: Tensor) -> dict[str, Any]:
-    """Held-out accuracy: RMSE of the mean and coverage of 95% predictive intervals.
-
-    Args:
-        gp: a fitted model.
-        inputs: held-out inputs, shape (m, Din).
-        y: held-out residual targets, shape (m, D).
-
-    Returns:
-        ``{"rmse": [D floats], "coverage95": [D floats], "coverage95_all": float, "num": m}``
-        where coverage uses ``predict(include_noise=True)``.
-    """
-    with torch.no_grad():
-        mean, var = gp.predict(inputs, include_noise=True)
-        err = y - mean
-        inside = (err.abs() <= _Z95 * var.sqrt()).to(torch.float64)
-    return {
-        "rmse": err.square().mean(0).sqrt().tolist(),
-        "coverage95": inside.mean(0).tolist(),
-        "coverage95_all": float(inside.mean()),
-        "num": int(y.shape[0]),
-    }
-
-
-def fit_from_transitions(transitions, nominal=None, inputs: str = "state", agent: int | None = None,
-                         **fit_kwargs: Any) -> ResidualGP:
-    """Fit a residual GP to logged transitions (paper eq. 2: ``y = x' - f(x, u)``).
-
-    Args:
-        transitions: a :class:`~torch_gpmpc.data.transitions.Transitions`.
-        nominal: the known model f; default ``NominalModel(dim=D)`` (A = I, B = 0.1 I).
-        inputs: ``"state"`` (paper) or ``"state_input"``.
-        agent: fit only this agent's rows (``None`` = all rows).
-        **fit_kwargs: passed to :func:`fit_residual_gp` (optimizer, iters, seed, callback, lr).
-
-    Returns:
-        The fitted model.
-    """
-    from torch_gpmpc.dynamics.systems import NominalModel
-
-    nominal = nominal if nominal is not None else NominalModel(dim=transitions.state_dim)
-    if agent is not None:
-        transitions = transitions.for_agent(agent)
-    X, Y = transitions.residuals(nominal, inputs=inputs)
-    return fit_residual_gp(X, Y, input_kind=inputs, **fit_kwargs)
-
-
-def fit_per_agent(transitions, nominal=None, inputs: str = "state", **fit_kwargs: Any) -> dict[int, ResidualGP]:
-    """One GP per agent id in ``transitions`` (each agent learns its own residual).
-
-    Returns:
-        ``{agent_id: ResidualGP}``.
-    """
-    ids = transitions.agent_ids
-    if not ids:
-        raise GpmpcError(f"{transitions.source}: no 'agent' column, cannot fit one GP per agent")
-    return {k: fit_from_transitions(transitions, nominal, inputs, agent=k, **fit_kwargs) for k in ids}

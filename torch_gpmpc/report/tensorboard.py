@@ -3,7 +3,7 @@
 :class:`TBLogger` wraps ``torch.utils.tensorboard.SummaryWriter``; with
 ``logdir=None`` it is a no-op, so library code can log unconditionally. Tags used in
 the package start with ``gp/``, ``admm/``, ``safety/``, ``tune/`` or ``perf/``
-(design.md §2). :func:`read_scalars` reads the scalars back (used by tests).
+. :func:`read_scalars` reads the scalars back (used by tests).
 """
 
 from __future__ import annotations

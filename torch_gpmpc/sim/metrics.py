@@ -1,4 +1,4 @@
-"""Metrics of one closed-loop run (the ``metrics.json`` contract, design.md §2).
+"""Metrics of one closed-loop run (the ``metrics.json`` contract).
 
 Shapes use S = steps taken, K = agents, D = state dimension, P = K(K-1)/2 pairs.
 Pairs are ordered as :func:`pair_index` returns them: (0,1), (0,2), ..., (K-2,K-1).
@@ -18,7 +18,7 @@ from torch_gpmpc.sim.rollout import Rollout
 
 logger = logging.getLogger(__name__)
 
-#: Keys every ``metrics.json`` has (design.md §2), in output order.
+#: Keys every ``metrics.json`` has, in output order.
 CONTRACT_KEYS = (
     "method", "seed", "num_agents", "steps", "reached", "time_to_target", "min_pair_distance",
     "violations", "path_length", "straight_line_length", "admm_iterations_mean",

@@ -6,7 +6,7 @@ Generated scenarios (``Config.scenario``):
 
 * ``paper``: K = 3 starts on a circle of radius ``circle_radius`` at angles
   2*pi*k/K in the x1-x2 plane (third coordinate 0 in 3D), targets the antipodes
-  (design.md §3; the straight paths all cross the centre).
+  (the straight paths all cross the centre).
 * ``circle``: the same construction for any K = ``num_agents``.
 * ``random``: K starts and K targets uniform in ``[-circle_radius, circle_radius]^D``,
   drawn from a generator seeded with ``Config.seed``; starts are pairwise at least
@@ -23,11 +23,8 @@ A scenario file (JSON or TOML) overrides ``Config.scenario``::
 
 from __future__ import annotations
 
-import difflib
-import json
 import logging
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,6 +32,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torch_gpmpc.config.fields import nearest_key
+from torch_gpmpc.config.reader import read_table
 from torch_gpmpc.config.schema import REFERENCES, Config
 from torch_gpmpc.errors import GpmpcError
 
@@ -247,13 +246,12 @@ def load_scenario_file(path: str | Path, cfg: Config) -> Scenario:
     """
     path = Path(path)
     where = f"scenario file {str(path)!r}"
-    data = _read_table(path, where)
-    unknown = [key for key in data if key not in SCENARIO_KEYS]
-    if unknown:
-        key = unknown[0]
-        near = difflib.get_close_matches(str(key), SCENARIO_KEYS, n=1, cutoff=0.0)
-        raise GpmpcError(f"{where}: unknown key {key!r}; did you mean {near[0]!r}? "
-                         f"(valid keys: {', '.join(SCENARIO_KEYS)})")
+    data = read_table(path, "scenario file", suffixes=(".json", ".toml"),
+                      expect="a table with keys 'starts' and 'targets'")
+    for key in data:
+        if key not in SCENARIO_KEYS:
+            raise GpmpcError(f"{where}: unknown key {key!r}; did you mean {nearest_key(key, SCENARIO_KEYS)!r}? "
+                             f"(valid keys: {', '.join(SCENARIO_KEYS)})")
     for key in ("starts", "targets"):
         if key not in data:
             raise GpmpcError(f"{where}: missing key {key!r}; give {key} as a K x D list of numbers")
@@ -270,23 +268,6 @@ def load_scenario_file(path: str | Path, cfg: Config) -> Scenario:
     if starts.shape[0] != cfg.num_agents:
         logger.info("%s has %d agents; it overrides num_agents=%d", where, starts.shape[0], cfg.num_agents)
     return Scenario(starts, targets, reference, ref_points, name)
-
-
-def _read_table(path: Path, where: str) -> dict[str, Any]:
-    """Parse a ``.json`` or ``.toml`` file into a dict."""
-    if not path.is_file():
-        raise GpmpcError(f"{where} does not exist; check the path")
-    suffix = path.suffix.lower()
-    if suffix not in (".json", ".toml"):
-        raise GpmpcError(f"{where}: unknown suffix {suffix!r}; use .json or .toml")
-    try:
-        text = path.read_text()
-        data = json.loads(text) if suffix == ".json" else tomllib.loads(text)
-    except (json.JSONDecodeError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise GpmpcError(f"{where} cannot be parsed: {exc}") from exc
-    if not isinstance(data, dict):
-        raise GpmpcError(f"{where}: expected a table with keys 'starts' and 'targets'")
-    return data
 
 
 def _parse_matrix(value: Any, key: str, where: str) -> Tensor:

@@ -20,9 +20,8 @@ from torch import Tensor, nn
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.dynamics.systems import NominalModel
 
-from torch_gpmpc.control.problem import (  # noqa: F401  (re-exported: the problem's contract lives there)
-    FAIL_EXCEPTION, FAIL_INACCURATE, FAIL_NONE, FAIL_NONFINITE, FAILURE_KINDS, FEASIBILITY_TOL,
-    SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures, collision_rows, get_local_mpc,
+from torch_gpmpc.control.problem import (
+    ConsensusTerms, FAIL_EXCEPTION, FAIL_NONE, SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures,
 )
 
 logger = logging.getLogger(__name__)
@@ -76,7 +75,7 @@ class LocalMPC(nn.Module):
     up to constants the objective is
     ``c_X ||X||^2 - (2 Xref + sum_j w_own_j) . X + sum_j (rho_j/2 ||Y_j||^2 - w_nbr_j . Y_j)
     + alpha ||U||^2 + slack_penalty sum(s)`` with ``c_X = 1 + sum_j rho_j / 2``. Completing
-    the squares (variables scaled by square roots of the weights, design.md section 4)::
+    the squares (variables scaled by square roots of the weights)::
 
         ||sqrt(c_X) X - (Xref + sum_j w_own_j / 2) / sqrt(c_X)||^2
         + sum_j ||sqrt(rho_j/2) Y_j - w_nbr_j / (2 sqrt(rho_j/2))||^2 + ...
@@ -180,24 +179,15 @@ class LocalMPC(nn.Module):
             ``[scale_Y, shift_Y_0.., normal_0.., bounds]`` (see the class docstring).
         """
         M = self.num_neighbors
-        batch = data.x0.shape[0]
-        active = data.active.to(torch.bool)
-        act = active[:, :, None, None]
-        rho = data.rho.expand(batch, M) if data.rho.dim() == 0 else data.rho
-        rho_b = rho[:, :, None, None]
-        w_own = torch.where(act, rho_b * data.z_own - data.lam_own, torch.zeros_like(data.z_own))
-        w_nbr = torch.where(act, rho_b * data.z_nbr - data.lam_nbr, torch.zeros_like(data.z_nbr))
-        c_x = 1.0 + 0.5 * torch.where(active, rho, torch.zeros_like(rho)).sum(dim=1)
-        scale_x = torch.sqrt(c_x)
-        shift_x = (data.xref + 0.5 * w_own.sum(dim=1)) / scale_x[:, None, None]
+        terms = ConsensusTerms.of(data)
+        scale_x = torch.sqrt(terms.c_x)
+        shift_x = (data.xref + 0.5 * terms.w_own.sum(dim=1)) / scale_x[:, None, None]
         params = [data.x0, scale_x, shift_x, *[data.dyn_A[..., e] for e in range(self.dim)], data.dyn_c]
         if M > 0:
-            scale_y = torch.sqrt(0.5 * torch.where(active, rho, torch.ones_like(rho)))
-            shift_y = w_nbr / (2.0 * scale_y[:, :, None, None])
-            normals = torch.where(act, data.normals, torch.zeros_like(data.normals))
-            bounds = torch.where(active[:, :, None], data.bounds, -torch.ones_like(data.bounds))
+            scale_y = torch.sqrt(0.5 * terms.rho_y)
+            shift_y = terms.w_nbr / (2.0 * scale_y[:, :, None, None])
             params += [scale_y, *[shift_y[:, j] for j in range(M)],
-                       *[normals[:, j] for j in range(M)], bounds]
+                       *[terms.normals[:, j] for j in range(M)], terms.bounds]
         return params
 
     def forward(self, data: LocalProblemData, solver_args: dict[str, Any] | None = None) -> LocalSolution:

@@ -21,7 +21,7 @@ from torch import Tensor, nn
 from torch_gpmpc.control.solvers import ipm_kernel as ipm
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.control.problem import (
-    FAIL_INACCURATE, FAIL_NONFINITE, SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures,
+    ConsensusTerms, FAIL_INACCURATE, FAIL_NONFINITE, SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures,
 )
 from torch_gpmpc.dynamics.systems import NominalModel
 
@@ -49,7 +49,7 @@ def condense_dynamics(x0: Tensor, dyn_A: Tensor, dyn_c: Tensor, b: float) -> tup
         x0: initial states, shape (B, D).
         dyn_A: state matrices, shape (B, T, D, D).
         dyn_c: offsets, shape (B, T, D).
-        b: the input gain (``B = b I``).
+        b: the input gain (the nominal input matrix is ``b I``).
 
     Returns:
         ``(G, h)`` with G of shape (B, T*D, T*D) and h of shape (B, T*D), states and
@@ -110,23 +110,12 @@ def canonicalize(data: LocalProblemData, b: float) -> CanonicalData:
     Inactive slots get ``rho = 1``, ``w = 0`` (so ``Y_j = 0``), normal 0 and bound -1,
     and contribute nothing to the state cost (as in :class:`~torch_gpmpc.control.solvers.conic.LocalMPC`).
     """
-    batch, M = data.active.shape
-    active = data.active.to(torch.bool)
-    rho = data.rho.expand(batch, M) if data.rho.dim() == 0 else data.rho
-    act4 = active[:, :, None, None]
-    rho4 = rho[:, :, None, None]
-    zero4 = data.z_own.new_zeros(())
-    w_own = torch.where(act4, rho4 * data.z_own - data.lam_own, zero4)
-    w_nbr = torch.where(act4, rho4 * data.z_nbr - data.lam_nbr, zero4)
-    rho_y = torch.where(active, rho, torch.ones_like(rho))
-    c_x = 1.0 + 0.5 * torch.where(active, rho, torch.zeros_like(rho)).sum(dim=1)
-    l_x = (2.0 * data.xref[:, 1:] + w_own[:, :, 1:].sum(dim=1)).flatten(1)
-    normals = torch.where(act4, data.normals, zero4)
-    bounds = torch.where(active[:, :, None], data.bounds, -torch.ones_like(data.bounds))
+    terms = ConsensusTerms.of(data)
+    l_x = (2.0 * data.xref[:, 1:] + terms.w_own[:, :, 1:].sum(dim=1)).flatten(1)
     G, h = condense_dynamics(data.x0, data.dyn_A, data.dyn_c, b)
-    y0 = w_nbr[:, :, 0] / rho_y[:, :, None]
-    return CanonicalData(G=G, h=h, c_x=c_x, l_x=l_x, rho_y=rho_y, w_y=w_nbr[:, :, 1:], y0=y0,
-                         normals=normals, bounds=bounds)
+    y0 = terms.w_nbr[:, :, 0] / terms.rho_y[:, :, None]
+    return CanonicalData(G=G, h=h, c_x=terms.c_x, l_x=l_x, rho_y=terms.rho_y, w_y=terms.w_nbr[:, :, 1:], y0=y0,
+                         normals=terms.normals, bounds=terms.bounds)
 
 
 # ------------------------------------------------------------------------ differentiation
@@ -139,7 +128,7 @@ def _stationarity_pairing(G: Tensor, h: Tensor, c_x: Tensor, l_x: Tensor, rho_y:
     respect to theta, negated, is the implicit-function-theorem vector-Jacobian product.
 
     Shapes: G (B, n, n), h (B, n), c_x (B,), l_x (B, n), rho_y (B, M), w_y (B, M, T, D),
-    normals (B, M, T, D), bounds (B, M, T); u, a_u (B, n); y, a_y (B, K, D); zc, xi (B, K).
+    normals (B, M, T, D), bounds (B, M, T); u, a_u (B, n); y, a_y (B, R, D); zc, xi (B, R).
     """
     B, M, T, D = normals.shape
     x1 = _mv(G, u) + h
@@ -161,7 +150,7 @@ def _kernel_arrays(tensors: tuple[Tensor, ...]) -> list[np.ndarray]:
 
 @dataclass
 class _Iterate:
-    """Primal-dual point of B problems (NumPy): u (B, n), y (B, K, D), w and z (B, 2K + T)."""
+    """Primal-dual point of B problems (NumPy): u (B, n), y (B, R, D), w and z (B, 2R + T)."""
 
     u: np.ndarray
     y: np.ndarray
@@ -185,8 +174,8 @@ class _LocalQpFunction(torch.autograd.Function):
         alpha, u_max, penalty, tol, max_iter, stats = settings
         arrays = _kernel_arrays((G, h, c_x, l_x, rho_y, w_y, normals, bounds))
         B, M, T, D = normals.shape
-        K, n = M * T, T * D
-        point = _Iterate(np.empty((B, n)), np.empty((B, K, D)), np.empty((B, 2 * K + T)), np.empty((B, 2 * K + T)))
+        R, n = M * T, T * D
+        point = _Iterate(np.empty((B, n)), np.empty((B, R, D)), np.empty((B, 2 * R + T)), np.empty((B, 2 * R + T)))
         converged, iterations, kkt_error = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
         ipm.solve_batch(*arrays, alpha, u_max, penalty, tol, max_iter, point.u, point.y, point.w, point.z, False,
                         converged, iterations, kkt_error)
@@ -200,7 +189,7 @@ class _LocalQpFunction(torch.autograd.Function):
 
         converged_t = torch.from_numpy(converged).to(h.device)
         ctx.mark_non_differentiable(converged_t)
-        return (out(point.u, B, n), out(point.y, B, M, T, D), out(point.w[:, K:2 * K], B, M, T), converged_t)
+        return (out(point.u, B, n), out(point.y, B, M, T, D), out(point.w[:, R:2 * R], B, M, T), converged_t)
 
     @staticmethod
     def backward(ctx, g_u, g_y, g_s, _g_conv):  # noqa: D102
@@ -208,7 +197,7 @@ class _LocalQpFunction(torch.autograd.Function):
         alpha, u_max, penalty, tol = ctx.settings
         inputs = ctx.saved_tensors  # (autograd checks these were not modified in place)
         arrays = _kernel_arrays(inputs)
-        B, K, D = point.y.shape
+        B, R, D = point.y.shape
         n = point.u.shape[1]
         ref = inputs[1]
 
@@ -230,14 +219,14 @@ class _LocalQpFunction(torch.autograd.Function):
         keep = ~ctx.converged | p_conv | (p_err <= ctx.kkt_error)
         at = _Iterate(*(np.where(keep.reshape(-1, *[1] * (a.ndim - 1)), a, b) for a, b in
                         zip((polished.u, polished.y, polished.w, polished.z), (point.u, point.y, point.w, point.z))))
-        a_u, a_y, xi, failed = np.empty((B, n)), np.empty((B, K, D)), np.empty((B, K)), np.empty(B, dtype=np.bool_)
-        ipm.adjoint_batch(*arrays, alpha, at.u, at.w, at.z, arr(g_u, B, n), arr(g_y, B, K, D), arr(g_s, B, K),
+        a_u, a_y, xi, failed = np.empty((B, n)), np.empty((B, R, D)), np.empty((B, R)), np.empty(B, dtype=np.bool_)
+        ipm.adjoint_batch(*arrays, alpha, at.u, at.w, at.z, arr(g_u, B, n), arr(g_y, B, R, D), arr(g_s, B, R),
                           a_u, a_y, xi, failed)
         a_u, a_y, xi = (ten(np.nan_to_num(a)) for a in (a_u, a_y, xi))
         needs = ctx.needs_input_grad[:8]
         with torch.enable_grad():
             leaves = [t.detach().requires_grad_(n) for t, n in zip(inputs, needs)]
-            pairing = _stationarity_pairing(*leaves, ten(at.u), ten(at.y), ten(at.z[:, :K]), a_u, a_y, xi)
+            pairing = _stationarity_pairing(*leaves, ten(at.u), ten(at.y), ten(at.z[:, :R]), a_u, a_y, xi)
             wanted = [leaf for leaf, n in zip(leaves, needs) if n]
             grads = iter(torch.autograd.grad(pairing, wanted, allow_unused=True)) if wanted else iter(())
         out = []

@@ -1,19 +1,19 @@
 """The interior-point kernel of :class:`~torch_gpmpc.control.solvers.interior_point.FastLocalMPC`, compiled by numba.
 
 One local problem (paper eq. 27) after condensing the dynamics, in the variables
-``u = vec(U)`` (n = T D), the neighbour copies ``y`` (K = M T rows of D) and the
-collision slacks ``s`` (K)::
+``u = vec(U)`` (n = T D), the neighbour copies ``y`` (R = M T rows of D; R counts collision rows) and the
+collision slacks ``s`` (R)::
 
     minimize    1/2 u^T H u + g0^T u + sum_k (rho_k / 2 ||y_k||^2 - wy_k . y_k) + P sum(s)
-    subject to  g_c = A u - N.y + s - bt >= 0        (K collision rows)
-                s >= 0                               (K)
+    subject to  g_c = A u - N.y + s - bt >= 0        (R collision rows)
+                s >= 0                               (R)
                 g_q = (u_max^2 - ||U_t||^2) / 2 >= 0 (T input bounds)
 
 with ``H = 2 c_x G^T G + 2 alpha I``, ``g0 = G^T (2 c_x h - l_x)``, ``A_k = G_t^T n_k`` and
 ``bt_k = bound_k - n_k . h_t`` for row ``k = j T + t`` (built by :func:`_setup`).
 
 Inequalities ``g >= 0`` get slacks ``w`` and multipliers ``z`` (both of length
-``m = 2 K + T``), ordered ``[collision rows | s | input bounds]``. Method: primal-dual
+``m = 2 R + T``), ordered ``[collision rows | s | input bounds]``. Method: primal-dual
 Mehrotra predictor-corrector from an infeasible start, one step length, fraction to the
 boundary 0.99, inputs projected onto ``||U_t|| <= u_max`` after each step (globalization).
 
@@ -25,10 +25,10 @@ is ``-U_t`` in block t), solved through the Schur complement
 ``diag(w_q/z_q) + E S0^-1 E^T`` (T x T, positive definite): two Cholesky factorizations,
 no 1/mu-sized entry (eliminating ``dz_q`` instead would add ``(z_q/w_q) U_t U_t^T`` to S0).
 
-Why numba: the closed loop solves batches of 3 problems of ~80 unknowns. The previous
-version of this method, written as batched NumPy/torch operations, spent about 0.85 ms
-per interior-point iteration at batch 3, almost all of it in the dispatch overhead of
-~180 small-array calls; compiled loops take about 25 us per problem and iteration.
+Why numba: the closed loop solves batches of 3 problems of ~80 unknowns. Written as
+batched NumPy/torch operations, one interior-point iteration costs about 0.85 ms at batch
+3, almost all of it the dispatch overhead of ~180 small-array calls; compiled loops take
+about 25 us per problem and iteration.
 The Cholesky and triangular solves are written out because LAPACK's per-call overhead
 dominates at n = 26. Everything is float64, serial and IEEE (no fastmath), so results
 are reproducible; compiled code is cached on disk (``cache=True``).
@@ -140,7 +140,7 @@ def _setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, alpha, H, g0, A, bt, rho
     """Fill the problem arrays of one problem from its canonical data (see module docstring).
 
     Shapes: G (n, n), h (n,), l_x (n,), rho_y (M,), w_y (M, T, D), normals (M, T, D),
-    bounds (M, T); outputs H (n, n), g0 (n,), A (K, n), bt (K,), rho (K,), N (K, D), wy (K, D).
+    bounds (M, T); outputs H (n, n), g0 (n,), A (R, n), bt (R,), rho (R,), N (R, D), wy (R, D).
     """
     n = h.shape[0]
     M, T, D = normals.shape
@@ -179,55 +179,55 @@ def _setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, alpha, H, g0, A, bt, rho
 def _initial_point(N, bt, rho, wy, u_max2, penalty, u, y, w, z) -> None:
     """Infeasible start: ``u = 0``, unconstrained copies, ``z_c + z_s = P`` (dual feasible
     in s) and ``s z_s = 1``, so every complementarity product starts near 1."""
-    K, D = N.shape
-    T = w.shape[0] - 2 * K
+    R, D = N.shape
+    T = w.shape[0] - 2 * R
     zc0 = min(1.0, 0.5 * penalty)
     zs0 = penalty - zc0
     _fill(u, 0.0)
-    for k in range(K):
+    for k in range(R):
         s = 1.0 / zs0
         gc = s - bt[k]
         for d in range(D):
             y[k, d] = wy[k, d] / rho[k]
             gc -= N[k, d] * y[k, d]
         w[k] = max(gc, 1.0)
-        w[K + k] = s
+        w[R + k] = s
         z[k] = zc0
-        z[K + k] = zs0
+        z[R + k] = zs0
     for t in range(T):
-        w[2 * K + t] = 0.5 * u_max2
-        z[2 * K + t] = 1.0
+        w[2 * R + t] = 0.5 * u_max2
+        z[2 * R + t] = 1.0
 
 
 @_jit
 def _residuals(H, g0, A, N, bt, rho, wy, u_max2, penalty, D, u, y, w, z, r_u, r_y, r_s, r_pc, r_pq) -> None:
-    """Dual residuals ``r_u (n,), r_y (K, D), r_s (K,)`` and primal residuals
-    ``r_pc (K,), r_pq (T,)`` at ``(u, y, w, z)``, written in place."""
+    """Dual residuals ``r_u (n,), r_y (R, D), r_s (R,)`` and primal residuals
+    ``r_pc (R,), r_pq (T,)`` at ``(u, y, w, z)``, written in place."""
     n = u.shape[0]
-    K = N.shape[0]
+    R = N.shape[0]
     T = r_pq.shape[0]
     for i in range(n):
-        v = g0[i] + z[2 * K + i // D] * u[i]
+        v = g0[i] + z[2 * R + i // D] * u[i]
         for j in range(n):
             v += H[i, j] * u[j]
         r_u[i] = v
-    for k in range(K):
+    for k in range(R):
         zc = z[k]
         for i in range(n):
             r_u[i] -= A[k, i] * zc
-        v = w[K + k] - bt[k] - w[k]
+        v = w[R + k] - bt[k] - w[k]
         for i in range(n):
             v += A[k, i] * u[i]
         for d in range(D):
             r_y[k, d] = rho[k] * y[k, d] - wy[k, d] + zc * N[k, d]
             v -= N[k, d] * y[k, d]
         r_pc[k] = v
-        r_s[k] = penalty - zc - z[K + k]
+        r_s[k] = penalty - zc - z[R + k]
     for t in range(T):
         v = u_max2
         for d in range(D):
             v -= u[t * D + d] * u[t * D + d]
-        r_pq[t] = 0.5 * v - w[2 * K + t]
+        r_pq[t] = 0.5 * v - w[2 * R + t]
 
 
 @_jit
@@ -253,22 +253,22 @@ def _kkt_error(r_u, r_y, r_s, r_pc, r_pq, w, z, scale_u, scale_y, scale_p, penal
 def _factor(H, A, N, rho, D, u, w, z, deff, S, V, Sch) -> bool:
     """Factor the reduced Newton matrix at ``(u, w, z)`` (see the module docstring).
 
-    Writes ``deff (K,)``, the Cholesky factor of S0 into ``S (n, n)``, ``V = L^-1 E^T``
+    Writes ``deff (R,)``, the Cholesky factor of S0 into ``S (n, n)``, ``V = L^-1 E^T``
     stored by rows into ``V (T, n)`` and the Cholesky factor of the Schur complement into
     ``Sch (T, T)``. Returns False if a factorization breaks down.
     """
     n = u.shape[0]
-    K = N.shape[0]
+    R = N.shape[0]
     T = V.shape[0]
     for i in range(n):
         for j in range(i + 1):
             S[i, j] = H[i, j]
-        S[i, i] += z[2 * K + i // D]
-    for k in range(K):
+        S[i, i] += z[2 * R + i // D]
+    for k in range(R):
         nn = 0.0
         for d in range(D):
             nn += N[k, d] * N[k, d]
-        dk = 1.0 / (w[k] / z[k] + nn / rho[k] + w[K + k] / z[K + k])
+        dk = 1.0 / (w[k] / z[k] + nn / rho[k] + w[R + k] / z[R + k])
         deff[k] = dk
         for i in range(n):
             a = dk * A[k, i]
@@ -288,7 +288,7 @@ def _factor(H, A, N, rho, D, u, w, z, deff, S, V, Sch) -> bool:
             for i in range(n):
                 v += V[t1, i] * V[t2, i]
             Sch[t1, t2] = v
-        Sch[t1, t1] += w[2 * K + t1] / z[2 * K + t1]
+        Sch[t1, t1] += w[2 * R + t1] / z[2 * R + t1]
     return _cholesky(Sch, T)
 
 
@@ -320,46 +320,46 @@ def _direction(A, N, rho, D, u, w, z, deff, S, V, Sch, r_u, r_y, r_s, r_pc, r_pq
                du, dy, dw, dz, rhs1, rhs2, gam, dq) -> None:
     """Newton direction for the complementarity residual ``rc`` (``z dw + w dz = -rc``), shape (m,).
 
-    Writes ``du (n,), dy (K, D), dw (m,), dz (m,)``; ``rhs1 (n,), rhs2 (T,), gam (K,),
+    Writes ``du (n,), dy (R, D), dw (m,), dz (m,)``; ``rhs1 (n,), rhs2 (T,), gam (R,),
     dq (T,)`` are work space.
     """
     n = u.shape[0]
-    K = N.shape[0]
+    R = N.shape[0]
     T = rhs2.shape[0]
     for i in range(n):
         rhs1[i] = -r_u[i]
-    for k in range(K):
+    for k in range(R):
         v = 0.0
         for d in range(D):
             v += N[k, d] * r_y[k, d]
-        s_zs = w[K + k] / z[K + k]
-        rt_s = -r_s[k] - rc[K + k] / w[K + k]
+        s_zs = w[R + k] / z[R + k]
+        rt_s = -r_s[k] - rc[R + k] / w[R + k]
         gam[k] = v / rho[k] + rt_s * s_zs + r_pc[k] + rc[k] / z[k]  # gam + rho_c
         c = deff[k] * gam[k]
         for i in range(n):
             rhs1[i] -= A[k, i] * c
     for t in range(T):
-        rhs2[t] = -r_pq[t] - rc[2 * K + t] / z[2 * K + t]
+        rhs2[t] = -r_pq[t] - rc[2 * R + t] / z[2 * R + t]
     _solve(S, V, Sch, rhs1, rhs2, du, dq)
-    for k in range(K):
+    for k in range(R):
         v = gam[k]
         for i in range(n):
             v += A[k, i] * du[i]
         xi = deff[k] * v
         for d in range(D):
             dy[k, d] = (N[k, d] * xi - r_y[k, d]) / rho[k]
-        s_zs = w[K + k] / z[K + k]
-        rt_s = -r_s[k] - rc[K + k] / w[K + k]
+        s_zs = w[R + k] / z[R + k]
+        rt_s = -r_s[k] - rc[R + k] / w[R + k]
         dw[k] = (w[k] * xi - rc[k]) / z[k]
-        dw[K + k] = s_zs * (rt_s - xi)
+        dw[R + k] = s_zs * (rt_s - xi)
         dz[k] = -xi
-        dz[K + k] = r_s[k] + xi
+        dz[R + k] = r_s[k] + xi
     for t in range(T):
         v = r_pq[t]
         for d in range(D):
             v -= u[t * D + d] * du[t * D + d]
-        dw[2 * K + t] = v
-        dz[2 * K + t] = -dq[t]
+        dw[2 * R + t] = v
+        dz[2 * R + t] = -dq[t]
 
 
 @_jit
@@ -380,16 +380,16 @@ def _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, D, tol, max_iter, u, y, 
         or whose step is not finite stops there, unconverged.
     """
     n = u.shape[0]
-    K = N.shape[0]
+    R = N.shape[0]
     m = w.shape[0]
-    T = m - 2 * K
+    T = m - 2 * R
     radius2 = TRUST_RADIUS * TRUST_RADIUS * u_max2
     scale_u = 1.0 + _absmax(g0)
     scale_y = 1.0 + _absmax2(wy)
     scale_p = 1.0 + max(_absmax(bt), u_max2)
     r_u, rhs1, du = np.empty(n), np.empty(n), np.empty(n)
-    r_y, dy = np.empty((K, D)), np.empty((K, D))
-    r_s, r_pc, deff, gam = np.empty(K), np.empty(K), np.empty(K), np.empty(K)
+    r_y, dy = np.empty((R, D)), np.empty((R, D))
+    r_s, r_pc, deff, gam = np.empty(R), np.empty(R), np.empty(R), np.empty(R)
     r_pq, rhs2, dq = np.empty(T), np.empty(T), np.empty(T)
     wz, rc, dw, dz = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
     S, V, Sch = np.empty((n, n)), np.empty((T, n)), np.empty((T, T))
@@ -433,7 +433,7 @@ def _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, D, tol, max_iter, u, y, 
                 shrink = np.sqrt(radius2 / norm2)
                 for d in range(D):
                     u[t * D + d] *= shrink
-        for k in range(K):
+        for k in range(R):
             for d in range(D):
                 y[k, d] += step * dy[k, d]
         for i in range(m):
@@ -452,7 +452,7 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, alpha, u_max, penal
         G (B, n, n), h (B, n), c_x (B,), l_x (B, n), rho_y (B, M), w_y (B, M, T, D),
         normals (B, M, T, D), bounds (B, M, T): the canonical data (float64, C-contiguous).
         alpha, u_max, penalty, tol: floats; max_iter: int.
-        u (B, n), y (B, K, D), w (B, m), z (B, m): the primal-dual iterate, written in
+        u (B, n), y (B, R, D), w (B, m), z (B, m): the primal-dual iterate, written in
             place; read as the starting point when ``warm`` (needs ``w, z > 0``).
         warm: start from the given iterate instead of the default initial point.
         converged (B,) bool, iterations (B,) int64, kkt_error (B,) float: written.
@@ -463,10 +463,10 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, alpha, u_max, penal
     """
     B, n = h.shape
     M, T, D = normals.shape[1], normals.shape[2], normals.shape[3]
-    K = M * T
+    R = M * T
     u_max2 = u_max * u_max
-    H, g0, A = np.empty((n, n)), np.empty(n), np.empty((K, n))
-    bt, rho, N, wy = np.empty(K), np.empty(K), np.empty((K, D)), np.empty((K, D))
+    H, g0, A = np.empty((n, n)), np.empty(n), np.empty((R, n))
+    bt, rho, N, wy = np.empty(R), np.empty(R), np.empty((R, D)), np.empty((R, D))
     for b in range(B):
         _setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], alpha, H, g0, A, bt, rho, N, wy)
         if not warm:
@@ -482,38 +482,38 @@ def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, alpha, u, w, z, g
     ``(g_u, g_y, g_s)`` (the implicit-function adjoint; the system is symmetric).
 
     Shapes: canonical data as in :func:`solve_batch`; ``u, g_u, a_u`` (B, n);
-    ``g_y, a_y`` (B, K, D); ``w, z`` (B, m); ``g_s, xi`` (B, K). Writes ``a_u, a_y`` and
+    ``g_y, a_y`` (B, R, D); ``w, z`` (B, m); ``g_s, xi`` (B, R). Writes ``a_u, a_y`` and
     ``xi``, the scaled multiplier ``(z_c / w_c) (grad g_c . a)`` of the collision rows,
     and ``failed (B,)`` bool: problems whose matrix cannot be factored (they get zeros).
     """
     B, n = h.shape
     M, T, D = normals.shape[1], normals.shape[2], normals.shape[3]
-    K = M * T
-    H, g0, A = np.empty((n, n)), np.empty(n), np.empty((K, n))
-    bt, rho, N, wy = np.empty(K), np.empty(K), np.empty((K, D)), np.empty((K, D))
+    R = M * T
+    H, g0, A = np.empty((n, n)), np.empty(n), np.empty((R, n))
+    bt, rho, N, wy = np.empty(R), np.empty(R), np.empty((R, D)), np.empty((R, D))
     S, V, Sch = np.empty((n, n)), np.empty((T, n)), np.empty((T, T))
-    deff, rhs1, rhs2, dq = np.empty(K), np.empty(n), np.zeros(T), np.empty(T)
+    deff, rhs1, rhs2, dq = np.empty(R), np.empty(n), np.zeros(T), np.empty(T)
     for b in range(B):
         failed[b] = False
         _setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], alpha, H, g0, A, bt, rho, N, wy)
         _fill(a_u[b], 0.0)
         _fill(xi[b], 0.0)
-        for k in range(K):
+        for k in range(R):
             _fill(a_y[b, k], 0.0)
         if not _factor(H, A, N, rho, D, u[b], w[b], z[b], deff, S, V, Sch):
             failed[b] = True
             continue
         _copy(g_u[b], rhs1)
-        for k in range(K):
+        for k in range(R):
             v = 0.0
             for d in range(D):
                 v -= N[k, d] * g_y[b, k, d]
-            v = v / rho[k] + g_s[b, k] * w[b, K + k] / z[b, K + k]  # gam
+            v = v / rho[k] + g_s[b, k] * w[b, R + k] / z[b, R + k]  # gam
             xi[b, k] = v
             for i in range(n):
                 rhs1[i] -= A[k, i] * deff[k] * v
         _solve(S, V, Sch, rhs1, rhs2, a_u[b], dq)
-        for k in range(K):
+        for k in range(R):
             v = xi[b, k]
             for i in range(n):
                 v += A[k, i] * a_u[b, i]
@@ -529,11 +529,11 @@ def warm_up() -> None:
     instead of each compiling it (about 10 s of one core, once per installation).
     """
     B, M, T, D = 1, 1, 1, 1
-    K, n, m = M * T, T * D, 2 * M * T + T
+    R, n, m = M * T, T * D, 2 * M * T + T
     canonical = (np.eye(n)[None], np.zeros((B, n)), np.ones(B), np.zeros((B, n)), np.ones((B, M)),
                  np.zeros((B, M, T, D)), np.ones((B, M, T, D)), -np.ones((B, M, T)))
-    u, y, w, z = np.empty((B, n)), np.empty((B, K, D)), np.empty((B, m)), np.empty((B, m))
+    u, y, w, z = np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m))
     flags, counts, errors = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
     solve_batch(*canonical, 1e-3, 1.0, 1e4, 1e-8, 30, u, y, w, z, False, flags, counts, errors)
-    adjoint_batch(*canonical, 1e-3, u, w, z, np.ones((B, n)), np.ones((B, K, D)), np.ones((B, K)),
-                  np.empty((B, n)), np.empty((B, K, D)), np.empty((B, K)), flags)
+    adjoint_batch(*canonical, 1e-3, u, w, z, np.ones((B, n)), np.ones((B, R, D)), np.ones((B, R)),
+                  np.empty((B, n)), np.empty((B, R, D)), np.empty((B, R)), flags)

@@ -1,0 +1,33 @@
+"""training/ and eval/ are scripts over the library, not installed packages."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("script, command", [("training/collect.py", "collect"), ("training/fit_gp.py", "fit-gp"),
+                                             ("training/tune.py", "tune"), ("eval/run.py", "run"),
+                                             ("eval/reproduce.py", "reproduce"), ("eval/bench.py", "bench")])
+def test_script_is_the_gpmpc_command(script, command):
+    out = subprocess.run([sys.executable, str(ROOT / script), "--help"], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith(f"usage: gpmpc {command}")
+
+
+@pytest.mark.parametrize("name", ["eval", "training"])
+def test_no_generic_top_level_package_is_installed(name):
+    out = subprocess.run([sys.executable, "-c", f"import {name}"], capture_output=True, text=True, cwd="/")
+    assert out.returncode != 0 and "No module named" in out.stderr
+
+
+def test_importing_the_package_leaves_torch_defaults_alone():
+    code = ("import torch; torch.set_default_dtype(torch.float32); import torch_gpmpc, torch_gpmpc.sim.closed_loop; "
+            "assert torch.get_default_dtype() == torch.float32")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd="/")
+    assert out.returncode == 0, out.stderr

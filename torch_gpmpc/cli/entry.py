@@ -1,0 +1,69 @@
+"""The ``gpmpc`` entry point: parse, run the command's module, turn user errors into one line.
+
+Each command's work is ``main(args)`` in its own module of this package.
+"""
+
+from __future__ import annotations
+
+import errno
+import importlib
+import logging
+import sys
+
+from torch_gpmpc.cli.parser import build_parser
+from torch_gpmpc.errors import GpmpcError
+
+#: OSError numbers without a file name that are still the user's storage: disk full, quota, read-only.
+_STORAGE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
+
+# command -> module holding its main(args)
+_COMMANDS = {
+    "collect": "torch_gpmpc.cli.collect",
+    "fit-gp": "torch_gpmpc.cli.fit_gp",
+    "tune": "torch_gpmpc.cli.tune",
+    "run": "torch_gpmpc.cli.run",
+    "reproduce": "torch_gpmpc.cli.reproduce",
+    "bench": "torch_gpmpc.cli.bench",
+}
+
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``gpmpc`` console script; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    if args.threads < 1:
+        print(f"gpmpc: error: --threads must be >= 1, got {args.threads}", file=sys.stderr)
+        return 2
+    import torch
+
+    torch.set_num_threads(args.threads)
+    try:
+        module = importlib.import_module(_COMMANDS[args.command])
+        code = module.main(args)
+    except GpmpcError as exc:
+        if args.debug:
+            raise
+        print(f"gpmpc {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # unwritable/unreadable path, disk full: the user's environment, not a bug
+        if args.debug or (exc.filename is None and exc.errno not in _STORAGE_ERRNOS):
+            raise  # e.g. a network error of the distributed backend: keep its traceback
+        where = f" {exc.filename!r}" if exc.filename else ""
+        why = ("a part of the path is an existing file, not a directory"
+               if isinstance(exc, (FileExistsError, NotADirectoryError)) else exc.strerror or str(exc))
+        print(f"gpmpc {args.command}: error: cannot access{where}: {why}; "
+              "check the path and its permissions", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"gpmpc {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return int(code or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,121 @@
+"""The one validation machinery of the settings dataclasses (:class:`~.schema.Config`,
+:class:`~.tune_settings.TuneSettings`): types, finiteness, choices and ranges, and
+building from a flat mapping in which an unknown key is named with the nearest valid one.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import typing
+from dataclasses import dataclass, field, fields
+from typing import Any, Callable, Iterable, Mapping
+
+from torch_gpmpc.errors import GpmpcError
+
+#: (predicate, description of the allowed values).
+Range = tuple[Callable[[Any], bool], str]
+
+
+@dataclass(frozen=True)
+class Rules:
+    """How the fields of one settings class are checked and named in errors.
+
+    Attributes:
+        what: the name of one field in messages (``config key``, ``tune setting``).
+        prefix: how the user writes a key (``tune.`` for ``--set tune.NAME=VALUE``).
+        choices: field -> its allowed values.
+        ranges: field -> (predicate, description).
+    """
+
+    what: str
+    prefix: str = ""
+    choices: Mapping[str, tuple] = field(default_factory=dict)
+    ranges: Mapping[str, Range] = field(default_factory=dict)
+
+
+def nearest_key(name: str, keys: Iterable[str]) -> str:
+    """The key in ``keys`` closest to ``name`` (for "did you mean" messages)."""
+    keys = list(keys)
+    match = difflib.get_close_matches(str(name), keys, n=1, cutoff=0.0)
+    return match[0] if match else keys[0]
+
+
+def check_keys(data: Mapping[str, Any], keys: Iterable[str], what: str, prefix: str = "") -> None:
+    """Raise on the first key of ``data`` not in ``keys``, naming the nearest valid key.
+
+    Raises:
+        GpmpcError: ``unknown <what> 'key'; did you mean '<prefix>near'?``.
+    """
+    keys = list(keys)
+    for key in data:
+        if key not in keys:
+            raise GpmpcError(f"unknown {what} '{key}'; did you mean '{prefix}{nearest_key(key, keys)}'?")
+
+
+def field_types(cls: type) -> dict[str, Any]:
+    """Field name -> resolved type annotation of a dataclass."""
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in fields(cls)}
+
+
+def build(cls: type, data: Mapping[str, Any], rules: Rules):
+    """``cls(**data)`` after checking the keys and accepting ints for float fields.
+
+    Raises:
+        GpmpcError: unknown key (with the nearest valid key), or what ``validate`` finds.
+    """
+    types = field_types(cls)
+    check_keys(data, types, rules.what, rules.prefix)
+    return cls(**{key: _coerce(types[key], value) for key, value in data.items()})
+
+
+def validate(obj: Any, rules: Rules) -> None:
+    """Check every field of ``obj`` against its type, finiteness, choices and ranges.
+
+    Raises:
+        GpmpcError: ``<what> '<name>': ...`` naming the field and the allowed values.
+    """
+    for name, typ in field_types(type(obj)).items():
+        value = getattr(obj, name)
+        _check_type(rules.what, name, value, typ)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise GpmpcError(f"{rules.what} '{name}': {value!r} is not finite; give a finite number")
+    for name, choices in rules.choices.items():
+        if getattr(obj, name) not in choices:
+            raise GpmpcError(f"{rules.what} '{name}': {getattr(obj, name)!r} is not one of {', '.join(choices)}")
+    for name, (ok, allowed) in rules.ranges.items():
+        if not ok(getattr(obj, name)):
+            raise GpmpcError(f"{rules.what} '{name}': {getattr(obj, name)!r} is out of range; use {allowed}")
+
+
+def _coerce(typ: Any, value: Any) -> Any:
+    """Accept ints for float fields; leave everything else for the type check."""
+    allowed = typing.get_args(typ) or (typ,)
+    if float in allowed and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
+
+
+def _is(base: Any, value: Any) -> bool:
+    if base is bool:
+        return isinstance(value, bool)
+    if base is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if base is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    return isinstance(value, base)
+
+
+def _check_type(what: str, name: str, value: Any, typ: Any) -> None:
+    if typing.get_origin(typ) is tuple:  # tuple[int, ...]
+        item = typing.get_args(typ)[0]
+        if isinstance(value, tuple) and all(_is(item, v) for v in value):
+            return
+        raise GpmpcError(f"{what} '{name}': expected a list of {item.__name__}, got {value!r}")
+    allowed = typing.get_args(typ) or (typ,)
+    if value is None and type(None) in allowed:
+        return
+    base = [t for t in allowed if t is not type(None)][0]
+    if not _is(base, value):
+        raise GpmpcError(f"{what} '{name}': expected {base.__name__}, got {type(value).__name__} {value!r}")

@@ -1,0 +1,243 @@
+"""One agent's side of the distributed ADMM: its state, its GP, its local step and updates.
+
+No communication happens here; the hosting process (:mod:`.agent_process`) moves the
+messages. Each agent sees its neighbourhood as a *star graph* over the global agent ids
+(only its own edges) and keeps an :class:`~torch_gpmpc.coordination.state.ADMMState`
+over all K ids in which only its own row and its neighbours' plan rows are meaningful;
+that lets it call the batched per-agent step (:mod:`~torch_gpmpc.coordination.agent_step`)
+unchanged, so it computes exactly the in-process ADMM's row k.
+
+Each agent computes ``z_e`` (eq. 28; both ends compute the same mean of the same two
+copies) and its *own* ``lambda_{e,k}`` (eq. 29). No agent ever receives another agent's
+covariance, GP or data. A lost neighbour is treated as an obstacle following its last
+shared plan: its missing copy is replaced by ``[own plan; last shared plan]``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torch_gpmpc.config.schema import Config
+from torch_gpmpc.control.problem import FAILURE_KINDS, LocalSolution
+from torch_gpmpc.coordination.admm import consensus_update
+from torch_gpmpc.coordination.agent_step import edge_copies, fall_back_to_previous, slot_risks
+from torch_gpmpc.coordination.controller import make_controller
+from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
+from torch_gpmpc.coordination.graph import graph_from_edges
+from torch_gpmpc.coordination.state import ADMMState, StepResult, adapt_state, initial_state
+from torch_gpmpc.dynamics.systems import make_system
+
+log = logging.getLogger(__name__)
+
+
+def reference_window(path: Tensor, t: int, horizon: int) -> Tensor:
+    """Points ``t..t+T`` of a reference path (R, D), holding its last point; shape (T+1, D)."""
+    steps = torch.arange(int(t), int(t) + int(horizon) + 1).clamp(max=path.shape[0] - 1)
+    return path[steps]
+
+
+def rows_like(v: Tensor, num_rows: int) -> Tensor:
+    """An uninitialised (num_rows, *v.shape[1:]) tensor whose rows have ``v[0]``'s memory layout.
+
+    The layer returns plans in a column-major layout, and some torch kernels (e.g. the
+    norm in :func:`~torch_gpmpc.control.risk.collision_normals`) round differently in the last
+    bit for other layouts; keeping the layer's layout keeps the agent's arithmetic
+    identical to the in-process backend's.
+    """
+    inner = v[0]
+    order = sorted(range(inner.dim()), key=lambda d: inner.stride(d), reverse=True)
+    buf = v.new_empty((num_rows, *[inner.shape[d] for d in order]))
+    return buf.permute(0, *[order.index(d) + 1 for d in range(inner.dim())])
+
+
+def embed_row(sol: LocalSolution, k: int, state: ADMMState) -> LocalSolution:
+    """Place a batch-1 solution in row k of a K-row solution (other rows: the known plans,
+    ``ok``), so the batched per-agent step functions apply to the agent's view.
+
+    Args:
+        sol: the agent's own solution (batch 1).
+        k: its id.
+        state: its view of the iterate (K rows).
+    """
+    num_agents = state.plans.shape[0]
+    values: dict[str, Any] = {}
+    for f in dataclasses.fields(LocalSolution):
+        v = getattr(sol, f.name)
+        if not isinstance(v, Tensor):
+            values[f.name] = v
+            continue
+        full = rows_like(v, num_agents)
+        if f.name == "X":
+            full.copy_(state.plans)
+        elif f.name == "U":
+            full.copy_(state.inputs)
+        elif f.name == "ok":
+            full.fill_(True)
+        else:
+            full.zero_()
+        full[k] = v[0]
+        values[f.name] = full
+    return LocalSolution(**values)
+
+
+class AgentController:
+    """One agent's side of Algorithm 1: its state, its GP, its local solve and updates.
+
+    No communication happens here; the hosting process moves the messages.
+
+    Args:
+        k: agent id.
+        num_agents: K (ids are global).
+        cfg: run configuration.
+        reference: the agent's own reference path, shape (R, D): the window at step t is
+            points ``t..t+T``, holding the last point (as the scenario's reference window).
+        gp: the agent's own residual GP (or ``None`` if the method needs none).
+    """
+
+    def __init__(self, k: int, num_agents: int, cfg: Config, reference: Tensor, gp=None) -> None:
+        self.k, self.num_agents, self.cfg = k, num_agents, cfg
+        self.reference = torch.as_tensor(reference, dtype=DTYPE)
+        system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
+        # indexed by agent id; this process holds only its own GP
+        gps = None if gp is None else [gp if j == k else None for j in range(self.num_agents)]
+        self.local = make_controller(cfg, system, gps).local
+        self.rho = torch.as_tensor(cfg.rho, dtype=DTYPE)
+        self.state: ADMMState | None = None
+        self.known = torch.zeros(num_agents, dtype=torch.bool)
+        self.nbrs: list[int] = []
+        self.dead: set[int] = set()
+        self.graph = graph_from_edges(num_agents, [])
+        self.counters = dict.fromkeys(TELEMETRY_KEYS, 0.0)
+
+    # --- step set-up
+    def begin_step(self, t: int, x0: Tensor, nbr_ids: list[int]) -> list[int]:
+        """Take the measurement; return the neighbours new to this agent (plan exchange).
+
+        Args:
+            t: step.
+            x0: own measured state, shape (D,).
+            nbr_ids: ids of agents in communication range.
+        """
+        cfg, k, K = self.cfg, self.k, self.num_agents
+        self.x0 = x0
+        self.xref = reference_window(self.reference, t, cfg.horizon)[None]
+        if self.state is None:  # cold start: the plan is to stay (initial_state's rule)
+            own = initial_state(x0[None], cfg.horizon, graph_from_edges(1, []))
+            plans = x0.new_zeros(K, cfg.horizon + 1, cfg.dim)
+            inputs = x0.new_zeros(K, cfg.horizon, cfg.dim)
+            plans[k], inputs[k] = own.plans[0], own.inputs[0]
+            self.state = ADMMState(plans, inputs, torch.zeros(0, 2, dtype=torch.long),
+                                   x0.new_zeros(0, 2, cfg.horizon + 1, cfg.dim),
+                                   x0.new_zeros(0, 2, 2, cfg.horizon + 1, cfg.dim))
+        else:
+            self.state = ADMMState(self.state.plans.clone(), self.state.inputs, self.state.edges,
+                                   self.state.z, self.state.lam)
+        self.known[k] = True
+        self._next_nbrs = sorted(int(j) for j in nbr_ids if int(j) != k)
+        return [j for j in self._next_nbrs if j not in self.nbrs]
+
+    def own_plan(self) -> Tensor:
+        """The warm-start plan sent to new neighbours, shape (T+1, D)."""
+        return self.state.plans[self.k]
+
+    def set_neighbour_plan(self, j: int, plan: Tensor) -> None:
+        """Store neighbour j's plan (T+1, D) (from a plan message or its copy's own half)."""
+        self.state.plans[j] = plan
+        self.known[j] = True
+
+    def finish_setup(self) -> None:
+        """Build the star graph of this step, carry z/lambda over (``adapt_state``)."""
+        cfg, k = self.cfg, self.k
+        nbrs = []
+        for j in self._next_nbrs:
+            if j in self.dead and not bool(self.known[j]):
+                log.warning("agent %d: agent %d is in range but lost and never shared a plan; ignored", k, j)
+                continue
+            nbrs.append(j)
+        self.nbrs = nbrs
+        self.graph = graph_from_edges(self.num_agents, [(k, j) for j in nbrs])
+        self.state = adapt_state(self.state, self.graph)
+        self.eps_self = slot_risks(self.graph, cfg.eps, cfg.risk_split)[k:k + 1]
+        self.layer = self.local.solver(self.graph.num_slots)
+        self.frozen = self.state.plans
+        self.result = StepResult(plans=self.state.plans, inputs=self.state.inputs, state=self.state,
+                                 iterations=0, converged=False)
+        m = torch.arange(self.graph.num_slots)
+        self.slot_e = self.graph.slot_edge[k, m]
+        self.slot_a = self.graph.slot_side[k, m]
+
+    # --- one ADMM iteration
+    def solve(self) -> dict[int, Tensor]:
+        """Local solve (27) and fallback; returns own copies ``y_{kj,k}`` (2, T+1, D) per neighbour."""
+        cfg, k, state = self.cfg, self.k, self.state
+        lin_state = state if cfg.relinearize else ADMMState(self.frozen, state.inputs, state.edges,
+                                                             state.z, state.lam)
+        data, max_margin = self.local.assemble(self.x0[None], self.xref, lin_state, self.graph, self.rho,
+                                               self.eps_self, rows=slice(k, k + 1))
+        t0 = time.perf_counter()
+        sol = self.local.solve(self.layer, data)
+        self.result.solve_time_s += time.perf_counter() - t0
+        full = embed_row(sol, k, state)
+        self.local.count_failures(full, self.result)
+        full = fall_back_to_previous(full, state, self.graph)
+        self.result.infeasible_solves += int((full.slack_active | ~full.ok)[k])
+        self.result.max_margin = float(max_margin)
+        self.solution = full
+        self.copies = edge_copies(full, self.graph) if self.graph.num_edges else None
+        return {j: self.copies[self.slot_e[m], self.slot_a[m]].clone() for m, j in enumerate(self.nbrs)}
+
+    def update(self, received: dict[int, Tensor | None]) -> tuple[float, float]:
+        """Consensus (28) and own duals (29) from the neighbours' copies.
+
+        Args:
+            received: neighbour id -> its copy ``y_{kj,j}`` (2, T+1, D), or ``None`` if lost.
+
+        Returns:
+            ``(largest ||y_{e,k} - z_e|| over own edges, largest rho ||z_e - z_e_prev||)``.
+        """
+        k, state, sol = self.k, self.state, self.solution
+        plans = sol.X.clone()  # row k: own plan; neighbour rows are overwritten below (same layout)
+        inputs = state.inputs.clone()
+        inputs[k] = sol.U[k]
+        if self.graph.num_edges:
+            copies = self.copies
+            for m, j in enumerate(self.nbrs):
+                e, a = self.slot_e[m], self.slot_a[m]
+                msg = received.get(j)
+                if msg is None:  # lost neighbour: an obstacle following its last shared plan
+                    msg = torch.empty_like(copies[e, a])
+                    msg[a], msg[1 - a] = sol.X[k], state.plans[j]
+                else:
+                    plans[j] = msg[1 - a]
+                copies[e, 1 - a] = msg
+            z_new, lam, gap_norms, dual_norms = consensus_update(copies, state.z, state.lam, self.rho)
+            lam[self.slot_e, 1 - self.slot_a] = 0.0  # the neighbour's dual is the neighbour's
+            primal = gap_norms[self.slot_e, self.slot_a].max()
+            dual = dual_norms.max()
+        else:
+            z_new, lam = state.z, state.lam
+            primal = dual = self.x0.new_zeros(())
+        self.state = ADMMState(plans, inputs, self.graph.edges, z_new, lam)
+        self.result.iterations += 1
+        self.counters["iterations_total"] += 1
+        return float(primal), float(dual)
+
+    def end_step(self) -> Telemetry:
+        """The step's telemetry (input, plan, counters); shifts the state for the next warm start."""
+        k, res, c = self.k, self.result, self.counters
+        slack = self.solution.slack[k] if hasattr(self, "solution") else torch.zeros(0)
+        c["slack_max"] = float(slack.max()) if slack.numel() else 0.0
+        c["infeasible"], c["failed"] = res.infeasible_solves, res.failed_solves
+        for kind in FAILURE_KINDS:
+            c[f"failed_{kind}"] = res.failed_by_kind.get(kind, 0)
+        c["solve_time"], c["max_margin"] = res.solve_time_s, res.max_margin
+        record = Telemetry(self.state.inputs[k, 0].clone(), self.state.plans[k].clone(),
+                           self.state.inputs[k].clone(), dict(c))
+        self.state = self.state.shifted()
+        return record

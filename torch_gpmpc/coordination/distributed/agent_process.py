@@ -1,0 +1,235 @@
+"""An agent process: hosts one or more agents, moves their messages, runs until told to stop.
+
+Started by the world's launcher as ``python -m torch_gpmpc.coordination.distributed.agent_process``
+(or by torchrun with ``RANK``/``WORLD_SIZE``/``MASTER_*`` set); it needs no arguments: the
+world sends each rank its mission (the run configuration, its agents' starts and
+reference paths). Messages between agents hosted by the same process are delivered in
+memory but counted the same.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+import time
+
+import torch
+from torch import Tensor
+
+from torch_gpmpc.config.schema import from_mapping
+from torch_gpmpc.coordination.distributed.agent import AgentController
+from torch_gpmpc.coordination.distributed.protocol import (
+    CMD_STOP, DEFAULT_SETUP_TIMEOUT_S, DTYPE, FLOAT_BYTES, Kind, rank_of, sensing_size, tag, telemetry_size,
+)
+from torch_gpmpc.coordination.distributed.transport import Network, destroy_group, init_group
+from torch_gpmpc.dynamics.methods import Method
+from torch_gpmpc.dynamics.systems import make_system
+
+log = logging.getLogger(__name__)
+
+#: Exit codes of an agent process.
+EXIT_OK, EXIT_LOST_WORLD, EXIT_SETUP_FAILED = 0, 3, 4
+
+
+class _LostWorld(Exception):
+    """The world process stopped answering."""
+
+
+def agent_gp(cfg, k: int, gp_model: str | None = None):
+    """Agent k's own residual GP: loaded from ``gp_model``, or trained by the one per-agent
+    recipe (:func:`~torch_gpmpc.gp.fit.fit_agent_gp`) in this process, from its own data."""
+    from torch_gpmpc.gp import ResidualGP, fit_agent_gp
+
+    if gp_model:
+        return ResidualGP.load(gp_model, expected_dim=cfg.dim, expected_input_dim=cfg.dim)
+    return fit_agent_gp(cfg, make_system(cfg.dim, cfg.noise_std, cfg.wind_scale), k)
+
+
+class AgentHost:
+    """The agents of one rank and their message exchange with neighbours and the world.
+
+    Args:
+        net: this rank's :class:`~.transport.Network`.
+        mission: the decoded mission message (config, agents, their references, ...).
+        timeout_s: seconds a receive waits before the peer counts as lost.
+    """
+
+    def __init__(self, net: Network, mission: dict, timeout_s: float) -> None:
+        self.net = net
+        self.cfg = from_mapping(mission["config"])
+        self.agents: list[int] = mission["agents"]
+        self.num_agents, self.per = int(mission["num_agents"]), int(mission["agents_per_process"])
+        self.timeout_s = timeout_s
+        self.mission = mission
+        self.controllers: dict[int, AgentController] = {}
+
+    def build(self) -> None:
+        """Train (or load) each hosted agent's GP and build its controller and solver."""
+        cfg = self.cfg
+        for k in self.agents:
+            t0 = time.perf_counter()
+            reference = torch.tensor(self.mission["missions"][str(k)]["reference"], dtype=DTYPE)
+            gp = agent_gp(cfg, k, self.mission.get("gp_model")) if Method.parse(cfg.method).needs_gp else None
+            fit_s = time.perf_counter() - t0
+            ctrl = AgentController(k, self.num_agents, cfg, reference, gp)
+            ctrl.local.solver(0)  # build the solver before the clock starts
+            ctrl.counters["gp_fit_s"] = fit_s
+            ctrl.counters["setup_s"] = time.perf_counter() - t0
+            self.controllers[k] = ctrl
+
+    def serve(self, first_wait_s: float) -> int:
+        """Serve steps until the world says stop; returns the exit code."""
+        wait = first_wait_s
+        try:
+            while True:
+                sensed = self._receive(sensing_size(self.num_agents, self.cfg.dim), Kind.SENSE, wait)
+                wait = max(4 * self.timeout_s, 60.0)
+                if float(sensed[0][0]) == CMD_STOP:
+                    return EXIT_OK
+                comm_time = self._begin_step(sensed)
+                comm_time += self._iterate()
+                self._send_telemetry(comm_time)
+        except _LostWorld:
+            log.error("rank %d: lost the world process (rank 0); stopping", self.net.rank)
+            return EXIT_LOST_WORLD
+
+    def _receive(self, size: int, kind: Kind, wait_s: float, sends: list | None = None) -> list[Tensor]:
+        """One message of ``kind`` from the world per hosted agent (after ``sends``)."""
+        msgs = self.net.exchange(sends or [], [((size,), 0, tag(kind, 0, k)) for k in self.agents], wait_s)
+        if any(m is None for m in msgs):
+            raise _LostWorld
+        return msgs
+
+    def _begin_step(self, sensed: list[Tensor]) -> float:
+        """Take the measurements, exchange plans on new edges; returns the communication time."""
+        cfg, D = self.cfg, self.cfg.dim
+        t0 = time.perf_counter()
+        t = int(sensed[0][1])
+        new_edges = {}
+        for k, m in zip(self.agents, sensed):
+            nbr_ids = [int(v) for v in m[3 + D:3 + D + int(m[2])]]
+            new_edges[k] = self.controllers[k].begin_step(t, m[3:3 + D].clone(), nbr_ids)
+        sends, recvs, meta = [], [], []
+        for k in self.agents:
+            ctrl = self.controllers[k]
+            for j in new_edges[k]:
+                rj = rank_of(j, self.per)
+                if rj in self.net.dead:
+                    ctrl.dead.add(j)
+                    continue
+                ctrl.counters["plan_bytes"] += FLOAT_BYTES * (cfg.horizon + 1) * D
+                if j in self.controllers:
+                    self.controllers[j].set_neighbour_plan(k, ctrl.own_plan().clone())
+                else:
+                    sends.append((ctrl.own_plan().clone(), rj, tag(Kind.PLAN, k, j)))
+                    recvs.append(((cfg.horizon + 1, D), rj, tag(Kind.PLAN, j, k)))
+                    meta.append((k, j))
+        for (k, j), plan in zip(meta, self.net.exchange(sends, recvs, self.timeout_s)):
+            if plan is None:
+                self.controllers[k].dead.add(j)
+            else:
+                self.controllers[k].set_neighbour_plan(j, plan)
+        for k in self.agents:
+            self.controllers[k].finish_setup()
+        return time.perf_counter() - t0
+
+    def _iterate(self) -> float:
+        """ADMM iterations until the world's stop flag; returns the communication time."""
+        comm_time = 0.0
+        while True:
+            own = {k: self.controllers[k].solve() for k in self.agents}
+            t0 = time.perf_counter()
+            received = self._exchange_copies(own)
+            resid = {k: self.controllers[k].update(received[k]) for k in self.agents}
+            sends = [(torch.tensor(resid[k], dtype=DTYPE), 0, tag(Kind.RESID, k)) for k in self.agents]
+            for k in self.agents:
+                self.controllers[k].counters["reduce_bytes"] += 2 * FLOAT_BYTES
+            decisions = self._receive(3, Kind.DECIDE, max(4 * self.timeout_s, 60.0), sends)
+            comm_time += time.perf_counter() - t0
+            stop = float(decisions[0][2])
+            if stop > 0.5:
+                for k in self.agents:
+                    self.controllers[k].result.converged = stop > 1.5
+                return comm_time
+
+    def _exchange_copies(self, own: dict[int, dict[int, Tensor]]) -> dict[int, dict[int, Tensor | None]]:
+        """Send every agent's copies to its neighbours and collect theirs (``None``: lost)."""
+        T, D = self.cfg.horizon, self.cfg.dim
+        sends, recvs, meta = [], [], []
+        received: dict[int, dict[int, Tensor | None]] = {k: {} for k in self.agents}
+        for k in self.agents:
+            ctrl = self.controllers[k]
+            for j, copy in own[k].items():
+                if j in ctrl.dead or rank_of(j, self.per) in self.net.dead:
+                    ctrl.dead.add(j)
+                    continue
+                ctrl.counters["copy_bytes"] += FLOAT_BYTES * copy.numel()
+                if j in self.controllers:
+                    received[j][k] = copy
+                else:
+                    sends.append((copy, rank_of(j, self.per), tag(Kind.COPY, k, j)))
+                    recvs.append(((2, T + 1, D), rank_of(j, self.per), tag(Kind.COPY, j, k)))
+                    meta.append((k, j))
+        for (k, j), msg in zip(meta, self.net.exchange(sends, recvs, self.timeout_s)):
+            received[k][j] = msg
+            if msg is None:
+                self.controllers[k].dead.add(j)
+        return received
+
+    def _send_telemetry(self, comm_time: float) -> None:
+        sends = []
+        for k in self.agents:
+            ctrl = self.controllers[k]
+            ctrl.counters["comm_time"] += comm_time / len(self.agents)
+            ctrl.counters["telemetry_bytes"] += FLOAT_BYTES * telemetry_size(self.cfg)
+            sends.append((ctrl.end_step().pack(), 0, tag(Kind.TELEM, k)))
+        self.net.exchange(sends, [], self.timeout_s)
+
+
+def run_agent_process(rank: int, world_size: int, timeout_s: float | None = None,
+                      setup_timeout_s: float = DEFAULT_SETUP_TIMEOUT_S) -> int:
+    """Body of an agent rank (> 0): receive the mission, train own GPs, serve until STOP.
+
+    The process group must already be initialised. Returns an exit code (0 = clean stop,
+    3 = lost the world process, 4 = failed during set-up).
+    """
+    net = Network(rank)
+    raw = net.recv_bytes(0, tag(Kind.MISSION, rank), setup_timeout_s)
+    if raw is None:
+        log.error("rank %d: no mission from the world process (rank 0)", rank)
+        return EXIT_LOST_WORLD
+    mission = json.loads(raw.decode())
+    if not mission["agents"]:
+        log.info("rank %d: no agents to host; exiting", rank)
+        return EXIT_OK
+    host = AgentHost(net, mission, float(mission["timeout_s"] if timeout_s is None else timeout_s))
+    status = 1.0
+    try:
+        host.build()
+    except Exception:  # noqa: BLE001 - reported to the world, then the process exits
+        log.exception("rank %d: set-up failed", rank)
+        status = 0.0
+    net.exchange([(torch.tensor([status], dtype=DTYPE), 0, tag(Kind.READY, rank))], [], setup_timeout_s)
+    if status == 0.0:
+        return EXIT_SETUP_FAILED
+    return host.serve(setup_timeout_s)
+
+
+def agent_main(threads: int = 1) -> int:
+    """Entry of an agent rank launched with ``RANK``/``WORLD_SIZE``/``MASTER_*`` set."""
+    torch.set_num_threads(threads)
+    rank, world_size = int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
+    setup = float(os.environ.get("GPMPC_SETUP_TIMEOUT", DEFAULT_SETUP_TIMEOUT_S))
+    init_group(rank, world_size, setup)
+    try:
+        return run_agent_process(rank, world_size, setup_timeout_s=setup)
+    finally:
+        destroy_group()
+
+
+if __name__ == "__main__":  # pragma: no cover - process entry
+    logging.basicConfig(level=logging.WARNING,
+                        format=f"%(levelname)s rank{os.environ.get('RANK', '?')} %(name)s: %(message)s")
+    sys.exit(agent_main())

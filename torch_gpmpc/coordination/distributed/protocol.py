@@ -1,0 +1,123 @@
+"""The distributed backend's wire protocol: message kinds, tags, sizes and the telemetry record.
+
+Every message is a point-to-point float64 tensor of a size both ends know, so no
+headers are sent. One step, between the world (rank 0) and the agents:
+
+============================  ===============================  ===========================
+message                       size (float64 numbers)           when
+============================  ===============================  ===========================
+world -> agent k: sensing     ``3 + D + (K-1)``: command,      every step
+                              step, number of neighbours, own
+                              state ``x_k``, neighbour ids
+agent k -> neighbour j: copy  ``2 (T+1) D``: ``y_{kj,k}``      every ADMM iteration
+                              (eq. 19)
+agent k -> world: residuals   2: max ``||y_{e,k} - z_e||`` and every ADMM iteration
+                              max ``rho ||z_e - z_e_prev||``
+world -> agent k: decision    3: the global maxima and the     every ADMM iteration
+                              stop flag
+agent k -> neighbour j: plan  ``(T+1) D``: k's warm-start      once, when the edge appears
+                              plan
+agent k -> world: telemetry   :func:`telemetry_size`: input    every step
+                              ``u_k``, plan, inputs, counters
+============================  ===============================  ===========================
+
+The global stopping test is a max over all edges of two floats per iteration, routed
+through rank 0 (reduce, then broadcast) rather than a gloo collective so that a crashed
+agent cannot block it.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torch_gpmpc.config.schema import Config
+from torch_gpmpc.control.problem import FAILURE_KINDS
+
+DTYPE = torch.float64
+#: Bytes of one float64 number on the wire.
+FLOAT_BYTES = 8
+#: Default seconds a receive waits for a peer before the peer counts as lost.
+DEFAULT_TIMEOUT_S = 30.0
+#: Default seconds for start-up (process launch, GP training, solver build).
+DEFAULT_SETUP_TIMEOUT_S = 300.0
+#: Largest team the message tags can address.
+MAX_AGENTS = 1024
+
+
+class Kind(enum.IntEnum):
+    """Message kinds; a message's tag is ``kind * 2**20 + src * MAX_AGENTS + dst``."""
+
+    MISSION = 1
+    READY = 2
+    SENSE = 3
+    RESID = 4
+    DECIDE = 5
+    TELEM = 6
+    COPY = 7
+    PLAN = 8
+
+
+#: Commands in the first entry of the sensing message.
+CMD_STOP, CMD_STEP = 0.0, 1.0
+
+#: Counters in the telemetry message, after u (D), plan X ((T+1) D) and inputs U (T D).
+TELEMETRY_KEYS = ("slack_max", "infeasible", "failed", *[f"failed_{k}" for k in FAILURE_KINDS],
+                  "solve_time", "max_margin", "iterations_total", "copy_bytes", "reduce_bytes",
+                  "plan_bytes", "telemetry_bytes", "comm_time", "setup_s", "gp_fit_s")
+
+
+def tag(kind: Kind, src: int = 0, dst: int = 0) -> int:
+    """The message tag of ``kind`` from agent (or rank) ``src`` to ``dst``."""
+    return int(kind) * (1 << 20) + src * MAX_AGENTS + dst
+
+
+def rank_of(k: int, per_process: int) -> int:
+    """The rank hosting agent ``k`` when every agent process hosts ``per_process`` agents."""
+    return 1 + k // per_process
+
+
+def sensing_size(num_agents: int, dim: int) -> int:
+    """Numbers in one sensing message (world -> agent, once per step)."""
+    return 3 + dim + num_agents - 1
+
+
+def telemetry_size(cfg: Config) -> int:
+    """Numbers in one telemetry message (agent -> world, once per step)."""
+    T, D = cfg.horizon, cfg.dim
+    return D + (T + 1) * D + T * D + len(TELEMETRY_KEYS)
+
+
+@dataclass
+class Telemetry:
+    """What an agent reports to the world at the end of a step.
+
+    Attributes:
+        u: the input it applies, shape (D,).
+        plan: its planned states, shape (T+1, D).
+        inputs: its planned inputs, shape (T, D).
+        counters: ``{key: value}`` for every key of :data:`TELEMETRY_KEYS`.
+    """
+
+    u: Tensor
+    plan: Tensor
+    inputs: Tensor
+    counters: dict[str, float]
+
+    def pack(self) -> Tensor:
+        """The message, a float64 vector of :func:`telemetry_size` numbers."""
+        values = torch.tensor([float(self.counters[key]) for key in TELEMETRY_KEYS], dtype=DTYPE)
+        return torch.cat([self.u, self.plan.flatten(), self.inputs.flatten(), values])
+
+    @classmethod
+    def unpack(cls, vec: Tensor, cfg: Config) -> "Telemetry":
+        """Read a message packed by :meth:`pack`."""
+        T, D = cfg.horizon, cfg.dim
+        u = vec[:D]
+        plan = vec[D:D + (T + 1) * D].reshape(T + 1, D)
+        inputs = vec[D + (T + 1) * D:D + (2 * T + 1) * D].reshape(T, D)
+        counters = dict(zip(TELEMETRY_KEYS, vec[D + (2 * T + 1) * D:].tolist()))
+        return cls(u, plan, inputs, counters)

@@ -1,0 +1,126 @@
+"""The ADMM iterate of one control step and what a step returns.
+
+:class:`ADMMState` is what is warm-started from step to step (plans, consensus ``z`` and
+duals ``lam`` per edge); :class:`StepResult` is the outcome of one step's ADMM.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from torch_gpmpc.control.problem import FAILURE_KINDS, LocalSolution
+from torch_gpmpc.coordination.graph import Graph
+
+
+@dataclass
+class ADMMState:
+    """Warm-startable iterate of one time step.
+
+    Attributes:
+        plans: (K, T+1, D) each agent's own planned states (also the linearization points).
+        inputs: (K, T, D) each agent's planned inputs.
+        edges: (E, 2) the edges ``z`` and ``lam`` belong to.
+        z: (E, 2, T+1, D) consensus trajectories ``[X_lo; X_hi]`` per edge.
+        lam: (E, 2, 2, T+1, D) duals; ``lam[e, a]`` is held by the edge's end ``a``
+            (0 = lo, 1 = hi) and has the shape of ``z_e``.
+    """
+
+    plans: Tensor
+    inputs: Tensor
+    edges: Tensor
+    z: Tensor
+    lam: Tensor
+
+    def shifted(self) -> "ADMMState":
+        """Shift everything one step forward in time (drop the first point, hold the last)."""
+        return ADMMState(
+            plans=shift_in_time(self.plans, dim=1),
+            inputs=shift_in_time(self.inputs, dim=1),
+            edges=self.edges,
+            z=shift_in_time(self.z, dim=2),
+            lam=shift_in_time(self.lam, dim=3),
+        )
+
+
+@dataclass
+class StepResult:
+    """Outcome of ADMM at one time step.
+
+    Attributes:
+        plans: (K, T+1, D) final planned states.
+        inputs: (K, T, D) final planned inputs (apply ``inputs[:, 0]``).
+        state: the final :class:`ADMMState` (shift it to warm-start the next step).
+        iterations: ADMM iterations run.
+        converged: whether the stopping criterion was met.
+        primal_residuals: per iteration, largest ``||y_{e,k} - z_e||``.
+        dual_residuals: per iteration, largest ``rho ||z_e - z_e_prev||``.
+        slack_max: largest collision slack of the final iterate.
+        infeasible_solves: local solves with active slack or failure, summed over iterations.
+        failed_solves: local solves that failed (fallback plan used), summed over iterations.
+        failed_by_kind: ``failed_solves`` split by kind, ``{kind: count}`` for every kind
+            in :data:`~torch_gpmpc.control.problem.FAILURE_KINDS` (exception, non-finite, inaccurate).
+        solve_time_s: seconds spent in local solves.
+        max_margin: largest chance margin of the final iterate (0 for deterministic methods).
+        messages: (K,) numbers each agent sends per iteration.
+        solution: the final :class:`LocalSolution` (kept for gradients and diagnostics).
+        lost_agents: agents a distributed run has lost (they follow their last plans).
+    """
+
+    plans: Tensor
+    inputs: Tensor
+    state: ADMMState
+    iterations: int
+    converged: bool
+    primal_residuals: list[float] = field(default_factory=list)
+    dual_residuals: list[float] = field(default_factory=list)
+    slack_max: float = 0.0
+    infeasible_solves: int = 0
+    failed_solves: int = 0
+    failed_by_kind: dict[str, int] = field(default_factory=lambda: dict.fromkeys(FAILURE_KINDS, 0))
+    solve_time_s: float = 0.0
+    max_margin: float = 0.0
+    messages: Tensor | None = None
+    solution: LocalSolution | None = None
+    lost_agents: list[int] = field(default_factory=list)
+
+
+def shift_in_time(x: Tensor, dim: int) -> Tensor:
+    """Drop index 0 along ``dim`` and repeat the last entry: a plan one step later, holding its
+    last point (the warm start of the next control step)."""
+    if x.shape[dim] == 0:
+        return x
+    last = x.narrow(dim, x.shape[dim] - 1, 1)
+    return torch.cat([x.narrow(dim, 1, x.shape[dim] - 1), last], dim=dim)
+
+
+def initial_state(x0: Tensor, horizon: int, graph: Graph) -> ADMMState:
+    """Cold start: every agent plans to stay where it is; z from those plans, lam = 0.
+
+    Args:
+        x0: (K, D) current states.
+        horizon: T.
+        graph: the communication graph.
+    """
+    plans = x0.unsqueeze(1).expand(-1, horizon + 1, -1).clone()
+    inputs = x0.new_zeros(x0.shape[0], horizon, x0.shape[1])
+    z = plans[graph.edges].clone() if graph.num_edges else x0.new_zeros(0, 2, horizon + 1, x0.shape[1])
+    lam = x0.new_zeros(graph.num_edges, 2, 2, horizon + 1, x0.shape[1])
+    return ADMMState(plans, inputs, graph.edges, z, lam)
+
+
+def adapt_state(state: ADMMState, graph: Graph) -> ADMMState:
+    """Carry ``z``/``lam`` over to a new graph: kept edges keep theirs, new edges start
+    from the current plans with zero duals."""
+    if torch.equal(state.edges, graph.edges):
+        return state
+    old = {tuple(e.tolist()): i for i, e in enumerate(state.edges)}
+    z = state.plans[graph.edges].clone() if graph.num_edges else state.z[:0]
+    lam = state.lam.new_zeros(graph.num_edges, *state.lam.shape[1:])
+    for i, e in enumerate(graph.edges.tolist()):
+        if tuple(e) in old:
+            z[i] = state.z[old[tuple(e)]]
+            lam[i] = state.lam[old[tuple(e)]]
+    return ADMMState(state.plans, state.inputs, graph.edges, z, lam)

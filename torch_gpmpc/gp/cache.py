@@ -1,0 +1,57 @@
+"""The prediction cache of a fitted :class:`~torch_gpmpc.gp.model.ResidualGP`.
+
+Like GPyTorch's exact prediction strategy, the fitted model keeps the Cholesky factor of
+``K + s^2 I`` and ``alpha = (K + s^2 I)^{-1} y`` in one object, rebuilt by
+``ResidualGP.refresh()`` whenever the hyperparameters change.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torch_gpmpc.errors import GpmpcError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PredictionCache:
+    """Everything ``ResidualGP.linearize`` needs (standardized units unless noted).
+
+    Shapes: D outputs, N training points, Din inputs.
+    """
+
+    x_mean: Tensor  # (Din,) raw
+    x_std: Tensor  # (Din,) raw
+    ls: Tensor  # (D, 1, Din) standardized lengthscales
+    x_scale: Tensor  # (D, 1, Din) raw: x_std * lengthscale
+    S: Tensor  # (D, N, Din) training inputs / lengthscale (standardized)
+    S_cols: tuple[Tensor, ...]  # Din contiguous columns of S, each (D, 1, N)
+    outputscale: Tensor  # (D,)
+    chol: Tensor  # (D, N, N) lower Cholesky factor of K + s^2 I
+    alpha: Tensor  # (D, N) (K + s^2 I)^{-1} y
+    y_mean: Tensor  # (D,) raw
+    y_std: Tensor  # (D,) raw
+    noise_raw: Tensor  # (D,) raw noise variance
+
+
+def squared_distances(a: Tensor, b: Tensor) -> Tensor:
+    """Squared Euclidean distances, shape (..., n, m), computed without the mm trick."""
+    return torch.cdist(a, b, compute_mode="donot_use_mm_for_euclid_dist").square()
+
+
+def safe_cholesky(K: Tensor, outputscale: Tensor) -> Tensor:
+    """Lower Cholesky factor of K (D, N, N), retrying with relative jitter."""
+    eye = torch.eye(K.shape[-1], dtype=K.dtype)
+    for jitter in (0.0, 1e-10, 1e-8, 1e-6, 1e-4):
+        chol, info = torch.linalg.cholesky_ex(K + jitter * outputscale[:, None, None] * eye)
+        if not bool(info.any()):
+            if jitter:
+                log.warning("GP cache: added jitter %.0e x outputscale to the kernel diagonal", jitter)
+            return chol
+    raise GpmpcError("GP kernel matrix is not positive definite even with jitter 1e-4; "
+                     "check the training data for duplicated inputs or extreme scales")

@@ -1,0 +1,218 @@
+"""Fitting residual GPs: the free function :func:`fit_residual_gp` (as botorch's
+``fit_gpytorch_mll``), fits from logged transitions, and the one per-agent recipe the
+closed loop and the distributed agents use (:func:`fit_agent_gps`, :func:`fit_agent_gp`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+from typing import Any, Callable
+
+import gpytorch
+import torch
+from linear_operator.utils.errors import NotPSDError
+from torch import Tensor
+
+from torch_gpmpc.config.schema import Config
+from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.gp.model import MAX_CHOLESKY_SIZE, ResidualGP
+
+log = logging.getLogger(__name__)
+
+#: Most training points :func:`fit_residual_gp` accepts: an exact GP needs O(N^2)
+#: memory and O(N^3) time per output dimension (5000 points: ~0.4 GB for D = 2).
+MAX_TRAINING_POINTS = 5000
+#: Jitter levels (added to the kernel diagonal, standardized units) tried when a
+#: Cholesky factorization fails; ``None`` is GPyTorch's default.
+JITTERS = (None, 1e-6, 1e-4)
+
+Callback = Callable[[int, float, dict], None]
+
+
+def _neg_mll(model: gpytorch.models.ExactGP, mll: gpytorch.mlls.ExactMarginalLogLikelihood) -> Tensor:
+    """Negative exact marginal log likelihood per datum, summed over outputs.
+
+    Retries with increasing Cholesky jitter; raises GpmpcError when all fail.
+    """
+    last: Exception | None = None
+    for jitter in JITTERS:
+        ctx = (gpytorch.settings.cholesky_jitter(float_value=jitter, double_value=jitter)
+               if jitter is not None else contextlib.nullcontext())
+        try:
+            with ctx, gpytorch.settings.max_cholesky_size(MAX_CHOLESKY_SIZE):
+                out = model(*model.train_inputs)
+                return -mll(out, model.train_targets).sum()
+        except (NotPSDError, torch.linalg.LinAlgError) as exc:
+            last = exc
+            log.warning("GP fit: Cholesky failed (jitter %s), retrying with more jitter", jitter)
+    raise GpmpcError(f"GP fit failed: kernel matrix not positive definite even with jitter "
+                     f"{JITTERS[-1]:g} ({last}); check for duplicated or extreme training data")
+
+
+def fit_residual_gp(inputs: Tensor, y: Tensor, optimizer: str = "lbfgs", iters: int = 50, seed: int = 0,
+                    callback: Callback | None = None, lr: float | None = None,
+                    gp_inputs: str = "state") -> ResidualGP:
+    """Fit a :class:`ResidualGP` by maximizing the exact marginal log likelihood.
+
+    Args:
+        inputs: raw training inputs, shape (N, Din).
+        y: raw residual targets, shape (N, D).
+        optimizer: ``"lbfgs"`` (``torch.optim.LBFGS`` with strong-Wolfe line search,
+            the paper's choice) or ``"adam"``.
+        iters: number of optimizer steps (L-BFGS iterations or Adam steps).
+        seed: seeds torch's RNG for the fit (the exact fit itself is deterministic).
+        callback: called as ``callback(step, loss, hyperparameters)`` for steps
+            ``0..iters`` with the loss (negative MLL per datum, standardized units,
+            summed over outputs) and the raw-unit :meth:`ResidualGP.hyperparameters`
+            at which it was evaluated (step ``iters`` is the final model).
+        lr: learning rate (default 1.0 for L-BFGS, 0.1 for Adam).
+        gp_inputs: ``"state"`` or ``"state_input"`` (recorded in the model).
+
+    Returns:
+        The fitted model in eval mode with its prediction cache built.
+
+    Raises:
+        GpmpcError: bad arguments, non-PD kernel matrices, or a diverged fit.
+    """
+    if optimizer not in ("lbfgs", "adam"):
+        raise GpmpcError(f"optimizer must be 'lbfgs' or 'adam', got {optimizer!r}")
+    if int(iters) < 0:
+        raise GpmpcError(f"iters must be >= 0, got {iters}")
+    inputs = torch.as_tensor(inputs, dtype=torch.float64)
+    check_training_size(int(inputs.shape[0]) if inputs.ndim else 0)
+    gp = ResidualGP(inputs, y, gp_inputs=gp_inputs)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(seed))
+        _optimize(gp, optimizer, int(iters), callback, lr)
+    return gp.refresh()
+
+
+def check_training_size(num_points: int) -> None:
+    """Raise if ``num_points`` exceeds :data:`MAX_TRAINING_POINTS`.
+
+    Raises:
+        GpmpcError: naming the size, the limit and the fix.
+    """
+    if num_points > MAX_TRAINING_POINTS:
+        raise GpmpcError(f"GP training data: N={num_points} points is more than an exact GP fits in "
+                         f"reasonable time and memory (at most {MAX_TRAINING_POINTS}); subsample the "
+                         "transitions or fit one agent's rows (fit-gp --agent K)")
+
+
+def _optimize(gp: ResidualGP, optimizer: str, iters: int, callback: Callback | None,
+              lr: float | None) -> None:
+    model = gp.model
+    model.train()
+    gp.likelihood.train()
+    mll = gpytorch.mlls.ExactMarginalLogLikelihood(gp.likelihood, model)
+    params = [p for p in model.parameters() if p.requires_grad]
+    if optimizer == "lbfgs":
+        opt = torch.optim.LBFGS(params, lr=lr or 1.0, max_iter=1, line_search_fn="strong_wolfe")
+    else:
+        opt = torch.optim.Adam(params, lr=lr or 0.1)
+
+    def closure() -> Tensor:
+        opt.zero_grad()
+        loss = _neg_mll(model, mll)
+        loss.backward()
+        return loss
+
+    for step in range(iters + 1):
+        hp = gp.hyperparameters()
+        if step == iters:
+            with torch.no_grad():
+                loss = _neg_mll(model, mll)
+        else:
+            loss = opt.step(closure)
+        value = float(loss.detach())
+        if not math.isfinite(value):
+            raise GpmpcError(f"GP fit diverged (loss {value}) at step {step}; try --optimizer lbfgs, "
+                             "fewer --iters or check the data")
+        if callback is not None:
+            callback(step, value, hp)
+
+
+def fit_from_transitions(transitions, nominal=None, gp_inputs: str = "state", agent: int | None = None,
+                         **fit_kwargs: Any) -> ResidualGP:
+    """Fit a residual GP to logged transitions (paper eq. 2: ``y = x' - f(x, u)``).
+
+    Args:
+        transitions: a :class:`~torch_gpmpc.data.transitions.Transitions`.
+        nominal: the known model f; default ``NominalModel(dim=D)`` (A = I, B = 0.1 I).
+        gp_inputs: ``"state"`` (paper) or ``"state_input"``.
+        agent: fit only this agent's rows (``None`` = all rows).
+        **fit_kwargs: passed to :func:`fit_residual_gp` (optimizer, iters, seed, callback, lr).
+
+    Returns:
+        The fitted model.
+    """
+    from torch_gpmpc.dynamics.systems import NominalModel
+
+    nominal = nominal if nominal is not None else NominalModel(dim=transitions.state_dim)
+    if agent is not None:
+        transitions = transitions.for_agent(agent)
+    X, Y = transitions.residuals(nominal, gp_inputs=gp_inputs)
+    return fit_residual_gp(X, Y, gp_inputs=gp_inputs, **fit_kwargs)
+
+
+def fit_per_agent(transitions, nominal=None, gp_inputs: str = "state", **fit_kwargs: Any) -> dict[int, ResidualGP]:
+    """One GP per agent id in ``transitions`` (each agent learns its own residual).
+
+    Returns:
+        ``{agent_id: ResidualGP}``.
+    """
+    ids = transitions.agent_ids
+    if not ids:
+        raise GpmpcError(f"{transitions.source}: no 'agent' column, cannot fit one GP per agent")
+    return {k: fit_from_transitions(transitions, nominal, gp_inputs, agent=k, **fit_kwargs) for k in ids}
+
+
+def check_gp_inputs(cfg: Config) -> None:
+    """The controller linearizes GPs of the state alone (paper eq. 12).
+
+    Raises:
+        GpmpcError: ``gp_inputs`` is not ``state``.
+    """
+    if cfg.gp_inputs != "state":
+        raise GpmpcError("config key 'gp_inputs': the controller needs state-input GPs; use gp_inputs=state")
+
+
+def fit_agent_gp(cfg: Config, system, k: int) -> ResidualGP:
+    """Agent k's residual GP by the paper's data recipe, from agent k's data alone.
+
+    The data set is :func:`~torch_gpmpc.data.collect.collect_transitions` with seed
+    ``2 cfg.seed + 1`` (``cfg.gp_samples`` transitions per agent, states uniform in the
+    box of half-width ``cfg.circle_radius``, inputs uniform in the disc of radius
+    ``cfg.u_max``); the fit uses seed ``cfg.seed + k``. That recipe draws every agent's
+    samples from one generator in agent order, so collecting ``k + 1`` agents and keeping
+    row block k gives exactly agent k's rows of the whole team's data set: an agent in
+    its own process replays the draws of agents ``0..k-1`` and never sees their models.
+
+    Args:
+        cfg: run configuration.
+        system: the :class:`~torch_gpmpc.dynamics.systems.TrueSystem` that generates the data.
+        k: agent id.
+    """
+    check_gp_inputs(cfg)
+    return _fit_rows(cfg, system, _recipe_data(cfg, system, k + 1), k)
+
+
+def fit_agent_gps(cfg: Config, system, agents: int) -> list[ResidualGP]:
+    """Every agent's residual GP (:func:`fit_agent_gp` for ``k = 0..agents-1``, one data draw)."""
+    check_gp_inputs(cfg)
+    data = _recipe_data(cfg, system, agents)
+    return [_fit_rows(cfg, system, data, k) for k in range(agents)]
+
+
+def _recipe_data(cfg: Config, system, agents: int):
+    from torch_gpmpc.data.collect import collect_transitions
+
+    return collect_transitions(system, num_agents=agents, samples=cfg.gp_samples,
+                               seed=2 * cfg.seed + 1, u_max=cfg.u_max, box=cfg.circle_radius)
+
+
+def _fit_rows(cfg: Config, system, data, k: int) -> ResidualGP:
+    inputs, y = data.for_agent(k).residuals(system.nominal)
+    return fit_residual_gp(inputs, y, optimizer=cfg.gp_optimizer, iters=cfg.gp_iters, seed=cfg.seed + k)

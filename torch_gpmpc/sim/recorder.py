@@ -1,0 +1,138 @@
+"""Recording a closed-loop run: per-step records, TensorBoard scalars, the Rollout."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torch_gpmpc.config.schema import Config
+from torch_gpmpc.control.problem import FAILURE_KINDS
+from torch_gpmpc.coordination.state import StepResult
+from torch_gpmpc.sim.rollout import Rollout
+
+
+@dataclass
+class StepInfo:
+    """What a closed-loop step reports to ``on_step`` callbacks.
+
+    Attributes:
+        iterations: ADMM iterations of the step.
+        min_distance: smallest pair distance after the step (inf for one agent).
+        converged: whether ADMM met its tolerance.
+        primal: the last primal residual.
+        violations_total: (step, pair) distances below r_safe so far.
+        lost_agents: agents the distributed backend has lost (empty in-process).
+    """
+
+    iterations: int
+    min_distance: float
+    converged: bool
+    primal: float
+    violations_total: int
+    lost_agents: list[int] = field(default_factory=list)
+
+
+def pair_min_distance(x: Tensor) -> float:
+    """Smallest distance between two of the K positions ``x`` (K, D); inf for K < 2."""
+    if x.shape[0] < 2:
+        return math.inf
+    dist = torch.cdist(x, x)
+    dist.fill_diagonal_(math.inf)
+    return float(dist.min())
+
+
+def log_step(tb, t: int, info: StepInfo, res: StepResult) -> None:
+    """Step t's ``admm/``, ``safety/`` and ``perf/`` scalars to a TensorBoard logger."""
+    tb.scalar("admm/primal_residual", info.primal, t)
+    tb.scalar("admm/dual_residual", res.dual_residuals[-1] if res.dual_residuals else math.nan, t)
+    tb.scalar("admm/iterations", res.iterations, t)
+    tb.scalar("safety/min_distance", info.min_distance, t)
+    tb.scalar("safety/violations", info.violations_total, t)
+    tb.scalar("safety/chance_margin", res.max_margin, t)
+    tb.scalar("safety/slack_max", res.slack_max, t)
+    tb.scalar("perf/solve_ms", 1000.0 * res.solve_time_s / max(res.iterations, 1), t)
+
+
+class StepRecorder:
+    """Collects per-step arrays of a closed-loop run and builds its :class:`Rollout`.
+
+    Args:
+        cfg: run configuration.
+        num_agents: K.
+    """
+
+    def __init__(self, cfg: Config, num_agents: int) -> None:
+        self.cfg = cfg
+        self.num_agents = num_agents
+        self.rows: dict[str, list] = {k: [] for k in (
+            "inputs", "plans", "adjacency", "admm_iterations", "converged", "primal", "dual",
+            "slack_max", "infeasible_solves", "solve_time", "chance_margin", "messages",
+            "failed_solves", "failed_by_kind")}
+        self.violations_total = 0
+
+    def record(self, t: int, res: StepResult, adjacency: Tensor, u: Tensor, x_next: Tensor) -> StepInfo:
+        """Record step t: its ADMM result, graph (K, K), applied inputs (K, D), next states (K, D)."""
+        r = self.rows
+        r["inputs"].append(u.numpy())
+        r["plans"].append(res.plans.numpy())
+        r["adjacency"].append(adjacency.numpy())
+        r["admm_iterations"].append(res.iterations)
+        r["converged"].append(res.converged)
+        r["primal"].append(res.primal_residuals)
+        r["dual"].append(res.dual_residuals)
+        r["slack_max"].append(res.slack_max)
+        r["infeasible_solves"].append(res.infeasible_solves)
+        r["failed_solves"].append(res.failed_solves)
+        r["failed_by_kind"].append([res.failed_by_kind[kind] for kind in FAILURE_KINDS])
+        r["solve_time"].append(res.solve_time_s)
+        r["chance_margin"].append(res.max_margin)
+        r["messages"].append(res.messages.numpy())
+        min_dist = pair_min_distance(x_next)
+        if self.num_agents > 1:
+            dist = torch.cdist(x_next, x_next)
+            self.violations_total += int((dist[torch.triu_indices(self.num_agents, self.num_agents, 1).unbind()] < self.cfg.r_safe).sum())
+        return StepInfo(iterations=res.iterations, min_distance=min_dist, converged=res.converged,
+                        primal=res.primal_residuals[-1] if res.primal_residuals else math.nan,
+                        violations_total=self.violations_total, lost_agents=list(res.lost_agents))
+
+    def rollout(self, states: Tensor, targets: Tensor, wall: float, method: str) -> Rollout:
+        """The run's :class:`Rollout` from the states (S+1, K, D) and targets (K, D)."""
+        r, cfg, k = self.rows, self.cfg, self.num_agents
+        steps = len(r["inputs"])
+        width = cfg.admm_max_iter
+        primal = np.full((steps, width), np.nan)
+        dual = np.full((steps, width), np.nan)
+        for i, (p, d) in enumerate(zip(r["primal"], r["dual"])):
+            primal[i, : len(p)] = p
+            dual[i, : len(d)] = d
+        T, D = cfg.horizon, cfg.dim
+
+        def stack(name, shape, dtype=float):
+            return np.asarray(r[name], dtype=dtype) if steps else np.zeros(shape, dtype=dtype)
+
+        return Rollout(
+            states=states.numpy(),
+            inputs=stack("inputs", (0, k, D)),
+            plans=stack("plans", (0, k, T + 1, D)),
+            targets=targets.numpy(),
+            adjacency=stack("adjacency", (0, k, k), bool),
+            admm_iterations=stack("admm_iterations", (0,), int),
+            converged=stack("converged", (0,), bool),
+            primal_residuals=primal,
+            dual_residuals=dual,
+            slack_max=stack("slack_max", (0,)),
+            infeasible_solves=stack("infeasible_solves", (0,), int),
+            solve_time=stack("solve_time", (0,)),
+            chance_margin=stack("chance_margin", (0,)),
+            wall_time_s=wall,
+            method=method,
+            seed=cfg.seed,
+            config=cfg.to_dict(),
+            messages_per_iteration=stack("messages", (0, k), int),
+            failed_solves=stack("failed_solves", (0,), int),
+            failed_solves_by_kind=stack("failed_by_kind", (0, len(FAILURE_KINDS)), int),
+        )
