@@ -8,7 +8,7 @@ from torch_gpmpc.cli import main
 from torch_gpmpc.config.schema import METHODS
 from torch_gpmpc.report.tables import table_markdown
 from torch_gpmpc.sim.experiments import summarize
-from tests.test_metrics import make_rollout
+from tests.sim.test_metrics import make_rollout
 
 SHORT = ["--runs", "1", "--workers", "1", "--set", "max_steps=2", "--set", "admm_max_iter=2",
          "--set", "gp_iters=3", "--rho-values", "5,20", "--rho-steps", "1", "--rho-iterations", "2"]

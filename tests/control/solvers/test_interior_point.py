@@ -257,7 +257,7 @@ def test_input_errors():
 def test_fast_path_matches_reference_paths_every_method_and_mode(method, mode):
     """The fast solver against a direct cvxpy solve and cvxpylayers' default path,
     on the crossing instances of tests/test_mpc.py (3 agents, 3 slots, one padding slot)."""
-    from tests.test_mpc import crossing_instance, problem_data, reference_solve
+    from tests.control.solvers.test_conic import crossing_instance, problem_data, reference_solve
 
     active = torch.ones(3, 3, dtype=torch.bool)
     active[1, 2] = False

@@ -7,7 +7,7 @@ import pytest
 
 from torch_gpmpc.report import figures as plots
 from torch_gpmpc.errors import GpmpcError
-from tests.test_metrics import HAND_STATES, HAND_TARGETS, make_rollout
+from tests.sim.test_metrics import HAND_STATES, HAND_TARGETS, make_rollout
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
