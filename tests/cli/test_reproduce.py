@@ -7,11 +7,12 @@ import csv
 from torch_gpmpc.cli import main
 from torch_gpmpc.config.schema import METHODS
 from torch_gpmpc.report.tables import table_markdown
-from torch_gpmpc.sim.experiments import summarize
+from torch_gpmpc.sim.experiments import SOUND_LABEL, summarize
 from tests.sim.test_metrics import make_rollout
 
 SHORT = ["--runs", "1", "--workers", "1", "--set", "max_steps=2", "--set", "admm_max_iter=2",
-         "--set", "gp_iters=3", "--rho-values", "5,20", "--rho-steps", "1", "--rho-iterations", "2"]
+         "--set", "gp_iters=3", "--rho-values", "5,20", "--rho-start", "1", "--rho-steps", "1",
+         "--rho-iterations", "2"]
 
 FIGURES = ["fig1_gp_field.png", "fig2_trajectories_nominal.png", "fig3_trajectories_gp-chance.png",
            "fig4_admm_rho.png", "fig5_distances.png", "fig6_path_lengths.png"]
@@ -24,12 +25,12 @@ def test_short_reproduction_writes_every_file_and_resumes(tmp_path, capsys):
         data = (out / "figures" / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n", name
     rows = list(csv.DictReader((out / "table.csv").open()))
-    assert [r["method"] for r in rows] == list(METHODS)
+    assert [r["method"] for r in rows] == [*METHODS, SOUND_LABEL]  # the paper's six, then the sound one
     assert all(r["runs"] == "1" for r in rows)
     md = (out / "table.md").read_text()
-    assert md.count("\n") == 2 + len(METHODS)
+    assert md.count("\n") == 3 + len(METHODS)
     cached = sorted(p.name for p in (out / "cache").iterdir())
-    assert len(cached) == len(METHODS) * (1 + 2)  # runs + two rho values each
+    assert len(cached) == len(METHODS) * (1 + 2) + 1  # runs + two rho values each, and the sound run
     capsys.readouterr()
     assert main(["reproduce", "--out", str(out)] + SHORT) == 0
     assert f"{len(cached)} of {len(cached)} runs cached; computing 0" in capsys.readouterr().out
@@ -62,7 +63,7 @@ def test_interrupted_reproduction_resumes_from_complete_files_only(tmp_path, cap
     assert main(args) == 0
     cache = out / "cache"
     runs = sorted(p for p in cache.glob("*.npz") if not p.name.startswith("."))
-    assert len(runs) == 6  # 2 methods x (1 run + 2 rho values)
+    assert len(runs) == 7  # 2 methods x (1 run + 2 rho values) + the sound run
     lost = runs[1::2]
     fragment = cache / f".{lost[0].name}.x1y2.tmp.npz"
     fragment.write_bytes(lost[0].read_bytes()[:100])  # what a SIGKILL during the write leaves
@@ -70,6 +71,6 @@ def test_interrupted_reproduction_resumes_from_complete_files_only(tmp_path, cap
         path.unlink()
     capsys.readouterr()
     assert main(args) == 0
-    assert "3 of 6 runs cached; computing 3" in capsys.readouterr().out
+    assert f"{7 - len(lost)} of 7 runs cached; computing {len(lost)}" in capsys.readouterr().out
     for path in runs:
         Rollout.load(path)  # every run is complete again

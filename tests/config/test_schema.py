@@ -59,3 +59,14 @@ def test_bad_files(tmp_path):
         load_config(bad)
     with pytest.raises(GpmpcError, match="NAME=VALUE"):
         parse_overrides(["rho"])
+
+
+def test_retired_gp_noise_in_margin_maps_onto_margin_variance():
+    with pytest.warns(DeprecationWarning, match="margin_variance=predictive"):
+        assert load_config(None, {"gp_noise_in_margin": True}).margin_variance == "predictive"
+    with pytest.warns(DeprecationWarning, match="margin_variance=latent"):
+        cfg = load_config(None, {"gp_noise_in_margin": False})
+    assert cfg.margin_variance == "latent" and "gp_noise_in_margin" not in cfg.to_dict()
+    assert Config().pair_margin == "sum" and Config().margin_variance == "predictive"
+    with pytest.raises(GpmpcError, match="pair_margin"):
+        Config(pair_margin="max")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 import pytest
 import torch
 
@@ -122,3 +124,91 @@ def test_coincident_normals_in_a_batch_agree_per_pair():
 def test_normals_shape_mismatch_raises():
     with pytest.raises(GpmpcError):
         collision_normals(torch.zeros(2, 4, 2, dtype=torch.float64), torch.zeros(2, 1, 3, 2, dtype=torch.float64))
+
+
+# ---------------------------------------------------------------- pair margins (sound formulations)
+def test_pair_margins_closed_forms():
+    """own: q(eps_k) sqrt(s_k); sum: q(eps_k) sqrt(s_k) + q(eps_j) sqrt(s_j); joint:
+    q(eps_k + eps_j) sqrt(s_k + s_j), with q = Phi^-1(1 - .) from scipy (independent)."""
+    from scipy.stats import norm
+
+    from torch_gpmpc.control.risk import pair_margins
+
+    s_k = torch.tensor([[[0.01, 0.04]]], dtype=torch.float64)
+    s_j = torch.tensor([[[0.09, 0.0]]], dtype=torch.float64)
+    e_k = torch.tensor([[0.03]], dtype=torch.float64)
+    e_j = torch.tensor([[0.07]], dtype=torch.float64)
+    own = pair_margins("own", s_k, s_j, e_k, e_j)
+    total = pair_margins("sum", s_k, s_j, e_k, e_j)
+    joint = pair_margins("joint", s_k, s_j, e_k, e_j)
+    qk, qj, q = norm.ppf(1 - 0.03), norm.ppf(1 - 0.07), norm.ppf(1 - 0.10)
+    np.testing.assert_allclose(own.numpy().ravel(), [qk * 0.1, qk * 0.2], rtol=1e-12)
+    np.testing.assert_allclose(total.numpy().ravel(), [qk * 0.1 + qj * 0.3, qk * 0.2], rtol=1e-12)
+    np.testing.assert_allclose(joint.numpy().ravel(), [q * np.sqrt(0.10), q * 0.2], rtol=1e-12)
+    # joint is the tightest sound margin: never above sum
+    assert bool((joint <= total + 1e-15).all())
+
+
+def test_projected_variance_is_the_quadratic_form():
+    from torch_gpmpc.control.risk import projected_variances
+
+    n = torch.tensor([0.6, 0.8], dtype=torch.float64).reshape(1, 1, 1, 2)
+    sigma = torch.tensor([[0.04, 0.01], [0.01, 0.09]], dtype=torch.float64).reshape(1, 1, 2, 2)
+    expected = 0.36 * 0.04 + 2 * 0.48 * 0.01 + 0.64 * 0.09
+    assert projected_variances(n, sigma).item() == pytest.approx(expected, rel=1e-14)
+
+
+@pytest.mark.parametrize("mode", ["sum", "joint"])
+def test_monte_carlo_single_pair_violation_rate_is_at_most_eps(mode):
+    """Two agents with fixed plans exactly at the required separation along n; each deviates
+    by independent Gaussian noise of its own covariance. The empirical rate of the linearized
+    distance falling below r_safe is <= eps (binomial 3-sigma allowance); the paper's ``own``
+    margin exceeds eps with the same noise."""
+    from torch_gpmpc.control.risk import pair_margins, projected_variances
+
+    gen = torch.Generator().manual_seed(0)
+    n = torch.tensor([1.0, 0.0], dtype=torch.float64)
+    cov_k = torch.tensor([[0.02, 0.005], [0.005, 0.01]], dtype=torch.float64)
+    cov_j = torch.tensor([[0.03, -0.004], [-0.004, 0.02]], dtype=torch.float64)
+    eps, split, r_safe, N = 0.1, 0.5, 0.5, 200_000
+    s = [projected_variances(n.reshape(1, 1, 1, 2), c.reshape(1, 1, 2, 2)) for c in (cov_k, cov_j)]
+    e = torch.tensor([[eps * split]], dtype=torch.float64)
+
+    def rate(formulation: str) -> float:
+        margin = float(pair_margins(formulation, s[0], s[1], e, eps - e))
+        sep = r_safe + margin
+        w_k = torch.randn(N, 2, generator=gen, dtype=torch.float64) @ torch.linalg.cholesky(cov_k).T
+        w_j = torch.randn(N, 2, generator=gen, dtype=torch.float64) @ torch.linalg.cholesky(cov_j).T
+        d = sep + (w_k - w_j) @ n
+        return float((d < r_safe).double().mean())
+
+    allowance = 3 * np.sqrt(eps * (1 - eps) / N)
+    assert rate(mode) <= eps + allowance
+    assert rate("own") > eps + allowance
+
+
+def test_feedback_covariance_matches_the_scalar_lqr_closed_form():
+    """Single integrator x' = x + b u per axis, Q = 1, R = r: the DARE's scalar solution
+    p = (b^2 + sqrt(b^4 + 4 b^2 r)) / (2 b^2), gain k = -b p / (b^2 p + r), closed loop
+    a = 1 + b k; with noise v per step Sigma_tau = v sum_{i<tau} a^(2i) (bounded), while
+    open-loop propagation gives tau v (growing)."""
+    from torch_gpmpc.control.risk import lqr_gain
+
+    b, r, v, T = 0.1, 1e-3, 0.0121, 13
+    A, B = torch.eye(2, dtype=torch.float64), b * torch.eye(2, dtype=torch.float64)
+    K = lqr_gain(A, B, 1.0, r)
+    p = (b * b + math.sqrt(b ** 4 + 4 * b * b * r)) / (2 * b * b)
+    k = -b * p / (b * b * p + r)
+    torch.testing.assert_close(K, k * torch.eye(2, dtype=torch.float64), rtol=1e-9, atol=0)
+    a = 1 + b * k
+    var = torch.full((1, T + 1, 2), v, dtype=torch.float64)
+    dyn_A = torch.eye(2, dtype=torch.float64).expand(1, T, 2, 2)
+    fb = state_covariances("feedback", var, dyn_A, feedback=B @ K)
+    ol = state_covariances("propagated", var, dyn_A)
+    for tau in range(T + 1):
+        expected = v * sum(a ** (2 * i) for i in range(tau))
+        assert fb[0, tau, 0, 0].item() == pytest.approx(expected, rel=1e-9, abs=1e-15)
+        assert ol[0, tau, 0, 0].item() == pytest.approx(tau * v, rel=1e-12)
+    assert fb[0, -1, 0, 0] < 2 * v < ol[0, -1, 0, 0]
+    with pytest.raises(GpmpcError, match="feedback"):
+        state_covariances("feedback", var, dyn_A)

@@ -58,13 +58,16 @@ def _centralized(cfg: Config, x0, xref, dyn_A, dyn_c, edges, normals, bounds):
     return np.stack([x.value for x in X]), np.stack([u.value for u in U])
 
 
-@pytest.mark.parametrize("method", ["nonlinear", "nominal-chance"])
-def test_admm_matches_centralized_solution(method):
-    """Frozen linearization (cold start: every plan holds x0), run to a tight tolerance."""
+@pytest.mark.parametrize("method, pair_margin", [("nonlinear", "sum"), ("nominal-chance", "own"),
+                                                 ("nominal-chance", "sum"), ("nominal-chance", "joint")])
+def test_admm_matches_centralized_solution(method, pair_margin):
+    """Frozen linearization (cold start: every plan holds x0), run to a tight tolerance; the
+    pair margins against their closed forms (own: eq. 24; sum: m_k + m_j; joint:
+    Phi^-1(1 - eps) sqrt(s_k + s_j)) in an independent centralized cvxpy solve."""
     # primal-only stopping can halt at a consensus that is not yet optimal:
     # demand the dual residual too.
     cfg = Config(horizon=6, rho=5.0, admm_tol=1e-7, admm_dual_tol=1e-7, admm_max_iter=1500, relinearize=False,
-                 eps=0.1, risk_split=0.3, noise_std=0.0)
+                 eps=0.1, risk_split=0.3, noise_std=0.0, pair_margin=pair_margin)
     x0 = torch.tensor([[-0.6, 0.0], [0.6, 0.1], [0.0, 0.9]], dtype=torch.float64)
     xref = torch.stack([torch.linspace(0, 1, 7, dtype=torch.float64)[:, None] * (-x0[k] * 2) + x0[k] for k in range(3)])
     wind = VortexWind(0.1)
@@ -90,10 +93,13 @@ def test_admm_matches_centralized_solution(method):
             r = x0n[k] - x0n[j]
             normals[(k, j)] = np.repeat((r / np.linalg.norm(r))[None], T + 1, axis=0)
             eps_k = cfg.eps * (cfg.risk_split if k == lo else 1 - cfg.risk_split)
+            eps_j = cfg.eps - eps_k
             margin = 0.0
             if method.endswith("chance"):
                 from scipy.stats import norm as normal_dist
-                margin = normal_dist.ppf(1 - eps_k) * np.sqrt(var)  # n^T (v I) n = v
+                own = normal_dist.ppf(1 - eps_k) * np.sqrt(var)  # n^T (v I) n = v
+                margin = {"own": own, "sum": own + normal_dist.ppf(1 - eps_j) * np.sqrt(var),
+                          "joint": normal_dist.ppf(1 - cfg.eps) * np.sqrt(2 * var)}[pair_margin]
             bounds[(k, j)] = np.full(T + 1, cfg.r_safe + margin)
     X_c, U_c = _centralized(cfg, x0n, xref.numpy(), dyn_A, dyn_c, graph.edges.tolist(), normals, bounds)
     np.testing.assert_allclose(res.plans.numpy(), X_c, atol=1e-4)
@@ -143,3 +149,36 @@ def test_warm_start_shift_drops_first_point():
     shifted = state.shifted()
     assert torch.equal(shifted.plans[:, :3], state.plans[:, 1:])
     assert torch.equal(shifted.plans[:, 3], state.plans[:, 3])
+
+
+def test_obstacle_problem_keeps_the_neighbours_plans_fixed():
+    """The safety fallback's solve: copies pinned to the neighbours' plans (within the
+    slack price / FIXED_OBSTACLE_RHO), and every (softened) collision row holds against
+    those plans, with the slack used only where the fixed obstacle leaves no room."""
+    from torch_gpmpc.control.examples import crossing_instance
+    from torch_gpmpc.control.solvers import make_local_solver
+    from torch_gpmpc.coordination.agent_step import FIXED_OBSTACLE_RHO, obstacle_problem
+
+    inst = crossing_instance(3, 2, method="nominal", variance=0.01, seed=5)
+    data = inst.problem_data()
+    fixed = inst.xbar_nbr
+    sol = make_local_solver(13, 2, 2, NominalModel(2), 2.0, 1e-3, 1e4, "fast")(obstacle_problem(data, fixed))
+    assert bool(sol.ok.all())
+    pinned = 1.01 * 1e4 / FIXED_OBSTACLE_RHO  # a copy moves at most slack price / rho
+    assert float((sol.Y - fixed).abs().max()) < pinned
+    gap = (data.normals * (sol.X[:, None, 1:] - fixed[:, :, 1:])).sum(-1) - data.bounds
+    assert float((gap + sol.slack).min()) > -pinned
+    assert float(sol.slack[gap > 1e-3].abs().max()) < 1e-6
+
+
+def test_capped_admm_falls_back_to_safe_plans_in_closed_loop():
+    """Two ADMM iterations per step (the cap binds at almost every step): the fallback
+    re-plans at some steps and no pair comes closer than r_safe (noiseless crossing)."""
+    from torch_gpmpc.sim.closed_loop import simulate
+    from torch_gpmpc.sim.metrics import compute_metrics
+
+    cfg = Config(admm_max_iter=2, max_steps=40, gp_iters=10, noise_std=0.0)
+    m = compute_metrics(simulate(cfg))
+    assert m["converged_fraction"] < 0.2
+    assert m["fallback_steps"] > 0
+    assert m["violations"] == 0 and m["min_pair_distance"] >= cfg.r_safe

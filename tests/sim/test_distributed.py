@@ -73,7 +73,8 @@ def test_bad_arguments_raise_before_launching():
 def test_cli_distributed_equals_inprocess_and_counts_bytes(tmp_path):
     """Three agent processes + the world (this process): same states as the in-process
     backend for the same seed (GP-chance: every agent trains its own GP); bytes match
-    the formula 8 * 2 (T+1) D |N_k| per iteration plus the 16-byte residual report."""
+    the formula 8 (2 (T+1) D + T) |N_k| per iteration (copy plus the T projected variances
+    of the sum margin) plus the 16-byte residual report."""
     out = tmp_path / "dist"
     args = ["run", "--backend", "distributed", "--timeout", "60", "--no-figures", "--out", str(out)]
     for key, value in QUICK.items():
@@ -92,13 +93,13 @@ def test_cli_distributed_equals_inprocess_and_counts_bytes(tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert set(CONTRACT_KEYS) <= set(m)
     T, D, K = cfg.horizon, cfg.dim, 3
-    copy_bytes = 8 * 2 * (T + 1) * D * (K - 1)  # complete graph: |N_k| = K - 1
+    copy_bytes = 8 * (2 * (T + 1) * D + T) * (K - 1)  # complete graph: |N_k| = K - 1
     assert m["copy_bytes_per_agent_per_iteration"] == [copy_bytes] * K
     assert m["reduce_bytes_per_agent_per_iteration"] == [16.0] * K
     assert m["bytes_sent_per_agent_per_iteration"] == [copy_bytes + 16.0] * K
     assert m["bytes_sent_per_agent_per_iteration_mean"] == copy_bytes + 16.0
     assert m["plan_exchange_bytes_per_agent"] == [8 * (T + 1) * D * (K - 1)] * K  # once, at t = 0
-    assert np.array_equal(messages, np.full((3, K), 2 * (T + 1) * D * (K - 1)))
+    assert np.array_equal(messages, np.full((3, K), (2 * (T + 1) * D + T) * (K - 1)))
     assert m["backend"] == "distributed" and m["processes"] == 3 and m["lost_agents"] == []
 
 

@@ -157,3 +157,25 @@ def test_bad_shapes_raise():
     r.targets = np.zeros((3, 2))
     with pytest.raises(GpmpcError, match="targets"):
         compute_metrics(r)
+
+
+def test_per_agent_arrival_differs_from_all_at_once():
+    """Agent 1 is within 0.1 of its target at steps 0 and 2 but not 1; agent 0 first at 1.
+    All at once: step 2; per agent: [1, 0], the last arrival 1."""
+    states = np.array([[[1.0, 0.0], [5.0, 0.0]], [[0.05, 0.0], [5.0, 0.5]], [[0.0, 0.0], [5.0, 0.05]]])
+    targets = [[0.0, 0.0], [5.0, 0.0]]
+    r = make_rollout(states, targets)
+    m = compute_metrics(r)
+    assert m["time_to_target"] == 2
+    assert m["arrival_steps"] == [1, 0] and m["arrival_step_max"] == 1
+    never = compute_metrics(make_rollout(states, [[0.0, 0.0], [50.0, 0.0]]))
+    assert never["arrival_steps"] == [1, None] and never["arrival_step_max"] is None
+
+
+def test_fallback_and_unsafe_plan_steps_are_counted(hand_rollout):
+    m = compute_metrics(hand_rollout)
+    assert m["fallback_steps"] is None and m["unsafe_plan_steps"] is None  # not recorded: unknown
+    hand_rollout.fallback = np.array([False, True, True, False])
+    hand_rollout.unsafe_plan = np.array([False, False, True, False])
+    m = compute_metrics(hand_rollout)
+    assert m["fallback_steps"] == 2 and m["unsafe_plan_steps"] == 1

@@ -37,7 +37,7 @@ from torch_gpmpc.tuning import (
 
 
 # a small crossing: 3 agents on a circle of radius 2, started ~1 unit from the centre
-SMALL = dict(horizon=6, method="nominal-chance", circle_radius=2.0, ref_points=25)
+SMALL = dict(horizon=6, method="nominal-chance", circle_radius=2.0, ref_points=25, pair_margin="own")
 
 
 def _small_objective(seeds, settings: TuneSettings, variances=(0.01, 0.02, 0.04)) -> TuningObjective:
@@ -108,7 +108,8 @@ def test_split_moves_risk_to_the_uncertain_agent_and_equalizes_margins():
     by the split that equalizes the margins (closed form by bisection).
     """
     sigma = (0.1, 0.2)
-    cfg = Config(horizon=8, method="nominal-chance", num_agents=2, scenario="circle", noise_std=0.0, rho=5.0)
+    cfg = Config(horizon=8, method="nominal-chance", num_agents=2, scenario="circle", noise_std=0.0, rho=5.0,
+                 pair_margin="own")  # the paper's margins: the larger one binds
     admm = ADMM(cfg, cfg.method, NominalModel(2), None, [ConstantVarianceGP(s ** 2) for s in sigma])
     instance = head_on_instance(distance=1.2, offset=0.1, ref_points=13)
     objective = TuningObjective(admm, [instance], ObjectiveWeights(primal=0, dual=0, cost=1.0, distance=0.0),

@@ -24,6 +24,7 @@ _COMMANDS = {
     "run": "torch_gpmpc.cli.run",
     "reproduce": "torch_gpmpc.cli.reproduce",
     "bench": "torch_gpmpc.cli.bench",
+    "calibrate": "torch_gpmpc.cli.calibrate",
 }
 
 

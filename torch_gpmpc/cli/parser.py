@@ -80,8 +80,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, help="parallel processes (default: number of cores)")
     p.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset of the six methods")
     p.add_argument("--rho-values", default="1,5,20,50,100", help="rho values of the Fig. 4 study")
-    p.add_argument("--rho-steps", type=int, default=10, help="closed-loop steps per Fig. 4 run")
+    p.add_argument("--rho-start", type=int, default=18,
+                   help="first closed-loop step averaged in Fig. 4 (default 18: the agents meet around 20-30)")
+    p.add_argument("--rho-steps", type=int, default=10, help="closed-loop steps averaged per Fig. 4 run")
     p.add_argument("--rho-iterations", type=int, default=60, help="ADMM iterations per step in Fig. 4 runs")
+
+    p = sub.add_parser("calibrate", help="Monte Carlo calibration of the chance constraints")
+    _add_config_args(p)
+    p.add_argument("--runs", type=int, default=20, help="seeds per formulation and eps (default 20)")
+    p.add_argument("--eps", default="0.01,0.05,0.1,0.2", help="comma-separated risks per pair")
+    p.add_argument("--steps", type=int, default=45, help="closed-loop steps per run (the crossing; default 45)")
+    p.add_argument("--workers", type=int, help="parallel processes (default: number of cores)")
+    p.add_argument("--out", default="runs/calibrate")
 
     p = sub.add_parser("bench", help="performance workloads, ratios against baselines")
     p.add_argument("--out", default="runs/bench")

@@ -8,17 +8,15 @@ an interruption, only computes what is missing.
 
 from __future__ import annotations
 
-import concurrent.futures as cf
-import multiprocessing
 import os
 from pathlib import Path
 
 from tqdm import tqdm
 
-from torch_gpmpc.config.schema import METHODS
+from torch_gpmpc.config.schema import METHODS, Config
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.sim.experiments import (
-    Task, execute, mean_residual_profile, summarize, sweep_config,
+    PAPER_FORMULATION, SOUND_LABEL, Task, mean_residual_profile, run_tasks, summarize, sweep_config,
 )
 from torch_gpmpc.fileio import write_text
 from torch_gpmpc.report.tables import table_csv, table_markdown
@@ -42,9 +40,13 @@ def _tasks(cfg, args, cache: Path) -> tuple[list[Task], list[Task]]:
     rhos = _parse_list(args.rho_values, float, "rho-values")
     if args.runs < 1:
         raise GpmpcError(f"--runs must be >= 1, got {args.runs}")
-    base = cfg.to_dict()
-    runs = [Task("run", m, cfg.seed + s, cfg.rho, base, str(cache)) for m in methods for s in range(args.runs)]
-    sweep = sweep_config(cfg, args.rho_steps, args.rho_iterations)
+    if args.rho_start < 0:
+        raise GpmpcError(f"--rho-start must be >= 0, got {args.rho_start}")
+    sound = cfg.to_dict()
+    paper = {**sound, **PAPER_FORMULATION}
+    runs = [Task("run", m, cfg.seed + s, cfg.rho, paper, str(cache)) for m in methods for s in range(args.runs)]
+    runs += [Task("run", "gp-chance", cfg.seed + s, cfg.rho, sound, str(cache), SOUND_LABEL) for s in range(args.runs)]
+    sweep = sweep_config(Config(**paper), args.rho_start + args.rho_steps, args.rho_iterations)
     sweeps = [Task("sweep", m, cfg.seed, rho, sweep, str(cache)) for m in methods for rho in rhos]
     return runs, sweeps
 
@@ -53,19 +55,7 @@ def _execute_all(tasks: list[Task], workers: int) -> None:
     todo = [t for t in tasks if not t.path.exists()]
     print(f"{len(tasks) - len(todo)} of {len(tasks)} runs cached; computing {len(todo)} with {workers} worker(s)")
     with tqdm(total=len(todo), unit="run") as bar:
-        if workers <= 1:
-            for task in todo:
-                execute(task)
-                bar.update(1)
-            return
-        from torch_gpmpc.control.solvers import ipm_kernel as ipm
-
-        ipm.warm_up()  # compile the fast solver's kernel once here, not in every worker
-        ctx = multiprocessing.get_context("spawn")
-        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-            for fut in cf.as_completed([pool.submit(execute, t) for t in todo]):
-                fut.result()
-                bar.update(1)
+        run_tasks(todo, workers, on_done=lambda task: bar.update(1))
 
 
 def _fig1(cfg, path: Path) -> None:
@@ -93,7 +83,7 @@ def main(args) -> int:
 
     by_method: dict[str, list[Rollout]] = {}
     for task in runs:
-        by_method.setdefault(task.method, []).append(Rollout.load(task.path))
+        by_method.setdefault(task.row, []).append(Rollout.load(task.path))
     rows = {m: summarize(rs) for m, rs in by_method.items()}
     write_text(out / "table.md", table_markdown(rows))
     write_text(out / "table.csv", table_csv(rows))
@@ -105,7 +95,7 @@ def main(args) -> int:
             plots.plot_trajectories(by_method[method][0], fig / f"fig{number}_trajectories_{method}.png")
     profiles: dict[str, dict[float, object]] = {}
     for task in sweeps:
-        profiles.setdefault(task.method, {})[task.rho] = mean_residual_profile(Rollout.load(task.path))
+        profiles.setdefault(task.method, {})[task.rho] = mean_residual_profile(Rollout.load(task.path), args.rho_start)
     plots.plot_admm_rho_sweep(profiles, fig / "fig4_admm_rho.png")
     plots.plot_distance_bands(by_method, fig / "fig5_distances.png", cfg.r_safe)
     plots.plot_path_lengths(by_method, fig / "fig6_path_lengths.png")

@@ -58,6 +58,9 @@ def main(args) -> int:
     ckpt = out / "checkpoint.pt"
     if args.resume and not ckpt.is_file():
         raise GpmpcError(f"--resume: no checkpoint at {str(ckpt)!r}; run without --resume to start")
+    if cfg.pair_margin == "joint" and settings.tune_split:
+        raise GpmpcError("pair_margin=joint has no risk split (its margin depends on the pair's total eps "
+                         "only); set --set tune.tune_split=false, or use pair_margin=sum to tune a split")
     if not Method.parse(cfg.method).chance and settings.tune_split:
         log.warning("method %s has no chance margins: the risk split gets no gradient", cfg.method)
 

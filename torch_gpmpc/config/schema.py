@@ -9,6 +9,7 @@ nearest valid key; out-of-range values raise naming the allowed range
 from __future__ import annotations
 
 import dataclasses
+import warnings
 import typing
 from dataclasses import dataclass
 from typing import Any, Mapping
@@ -18,7 +19,9 @@ from torch_gpmpc.dynamics.methods import METHOD_NAMES
 from torch_gpmpc.errors import GpmpcError
 
 METHODS = METHOD_NAMES
-UNCERTAINTY_MODES = ("pointwise", "propagated")
+UNCERTAINTY_MODES = ("pointwise", "propagated", "feedback")
+MARGIN_VARIANCES = ("latent", "predictive")
+PAIR_MARGINS = ("own", "sum", "joint")
 SOLVERS = ("fast", "clarabel", "reference")
 REFERENCES = ("line", "target")
 SCENARIOS = ("paper", "circle", "random")
@@ -43,8 +46,16 @@ class Config:
         comm_radius: agents closer than this communicate; ``None`` = all pairs.
         goal_tol: an agent has arrived when within this distance of its target.
         max_steps: closed-loop step cap.
-        uncertainty: ``pointwise`` (paper: GP variance at the linearization point) or
-            ``propagated`` (covariance pushed through the linearized dynamics).
+        uncertainty: ``pointwise`` (paper: GP variance at the linearization point),
+            ``propagated`` (covariance pushed open loop through the linearized dynamics) or
+            ``feedback`` (pushed through them under the LQR feedback of the nominal model, as
+            tube MPC does: bounded instead of growing like sqrt(tau)).
+        margin_variance: ``predictive`` (latent GP variance plus the learned noise variance: what
+            moves an agent off its plan) or ``latent`` (the paper's GP variance alone).
+        pair_margin: how a pair's chance margin is built: ``sum`` (both agents' margins
+            ``m_k + m_j``, sound by the union bound), ``joint`` (``Phi^-1(1 - eps) sqrt(s_k + s_j)``,
+            the tightest sound choice for independent Gaussian agents, no risk split) or
+            ``own`` (the paper's eq. 24: each agent only its own margin; not sound).
         scenario: ``paper``, ``circle`` or ``random``.
         num_agents: K (the paper scenario has 3).
         seed: seed for data, noise and scenario generation.
@@ -60,7 +71,6 @@ class Config:
         gp_inputs: ``state`` (paper) or ``state_input``.
         gp_optimizer: ``lbfgs`` (paper) or ``adam``.
         gp_iters: optimizer iterations for GP fitting.
-        gp_noise_in_margin: add the learned observation noise to the margin's variance.
         slack_penalty: exact-penalty weight on collision slacks.
         relinearize: re-set linearization points from each ADMM iterate (Algorithm 1, step 9).
         wind_scale: amplitude of the vortex wind g (paper: 0.1).
@@ -81,6 +91,8 @@ class Config:
     goal_tol: float = 0.1
     max_steps: int = 150
     uncertainty: str = "pointwise"
+    margin_variance: str = "predictive"
+    pair_margin: str = "sum"
     scenario: str = "paper"
     num_agents: int = 3
     seed: int = 0
@@ -95,7 +107,6 @@ class Config:
     gp_inputs: str = "state"
     gp_optimizer: str = "lbfgs"
     gp_iters: int = 50
-    gp_noise_in_margin: bool = False
     slack_penalty: float = 1e4
     relinearize: bool = True
     wind_scale: float = 0.1
@@ -119,6 +130,8 @@ class Config:
 
 _CHOICES = {
     "uncertainty": UNCERTAINTY_MODES,
+    "margin_variance": MARGIN_VARIANCES,
+    "pair_margin": PAIR_MARGINS,
     "scenario": SCENARIOS,
     "solver": SOLVERS,
     "method": METHODS,
@@ -167,4 +180,19 @@ def from_mapping(data: Mapping[str, Any]) -> Config:
     Raises:
         GpmpcError: unknown key (with the nearest valid key), wrong type or range.
     """
-    return build(Config, data, RULES)
+    return build(Config, _retire_deprecated(data), RULES)
+
+
+def _retire_deprecated(data: Mapping[str, Any]) -> dict[str, Any]:
+    """Map retired keys onto their replacements (with a warning naming the new key)."""
+    data = dict(data)
+    if "gp_noise_in_margin" in data:
+        old = data.pop("gp_noise_in_margin")
+        if not isinstance(old, bool):
+            raise GpmpcError(f"config key 'gp_noise_in_margin': expected bool, got {old!r}; "
+                             "better, use margin_variance=predictive|latent")
+        new = "predictive" if old else "latent"
+        warnings.warn(f"config key 'gp_noise_in_margin' is deprecated; it means margin_variance={new}",
+                      DeprecationWarning, stacklevel=3)
+        data.setdefault("margin_variance", new)
+    return data

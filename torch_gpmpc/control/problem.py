@@ -48,6 +48,9 @@ class LocalProblemData:
         z_nbr: consensus value of the neighbour's trajectory per edge, shape (B, M, T+1, D).
         lam_own: multiplier of the agent's own copy per edge, shape (B, M, T+1, D).
         lam_nbr: multiplier of the neighbour copy per edge, shape (B, M, T+1, D).
+        rho_nbr: penalty of the neighbour copies alone, scalar or (B, M); ``None`` = ``rho``.
+            A large ``rho_nbr`` with ``rho = 0`` pins the copies to ``z_nbr``: the neighbours'
+            plans become fixed obstacles (the safety fallback).
     """
 
     x0: Tensor
@@ -62,6 +65,7 @@ class LocalProblemData:
     z_nbr: Tensor
     lam_own: Tensor
     lam_nbr: Tensor
+    rho_nbr: Tensor | None = None
 
     def validate(self, horizon: int, dim: int, num_neighbors: int) -> int:
         """Check all shapes against (T, D, M); return the batch size B.
@@ -79,9 +83,11 @@ class LocalProblemData:
         }
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name == "rho":
+            if f.name == "rho_nbr" and value is None:
+                continue
+            if f.name in ("rho", "rho_nbr"):
                 if value.dim() != 0 and tuple(value.shape) != (batch, M):
-                    raise GpmpcError(f"LocalProblemData.rho must be a scalar or have shape {(batch, M)}, "
+                    raise GpmpcError(f"LocalProblemData.{f.name} must be a scalar or have shape {(batch, M)}, "
                                      f"got {tuple(value.shape)}")
                 continue
             if batch < 0 or tuple(value.shape) != expected[f.name]:
@@ -178,13 +184,13 @@ class ConsensusTerms:
         active = data.active.to(torch.bool)
         act4 = active[:, :, None, None]
         rho = data.rho.expand(batch, M) if data.rho.dim() == 0 else data.rho
-        rho4 = rho[:, :, None, None]
+        rho_nbr = rho if data.rho_nbr is None else data.rho_nbr.expand(batch, M)
         zero = data.z_own.new_zeros(())
         normals, bounds = mask_inactive_rows(data.normals, data.bounds, active)
-        return cls(w_own=torch.where(act4, rho4 * data.z_own - data.lam_own, zero),
-                   w_nbr=torch.where(act4, rho4 * data.z_nbr - data.lam_nbr, zero),
+        return cls(w_own=torch.where(act4, rho[:, :, None, None] * data.z_own - data.lam_own, zero),
+                   w_nbr=torch.where(act4, rho_nbr[:, :, None, None] * data.z_nbr - data.lam_nbr, zero),
                    c_x=1.0 + 0.5 * torch.where(active, rho, torch.zeros_like(rho)).sum(dim=1),
-                   rho_y=torch.where(active, rho, torch.ones_like(rho)),
+                   rho_y=torch.where(active, rho_nbr, torch.ones_like(rho_nbr)),
                    normals=normals, bounds=bounds)
 
 

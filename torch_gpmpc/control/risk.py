@@ -57,7 +57,7 @@ def chance_quantile(eps_k: Tensor | float) -> Tensor:
     return torch.special.ndtri(1.0 - eps_k)
 
 
-def state_covariances(mode: str, var: Tensor, dyn_A: Tensor) -> Tensor:
+def state_covariances(mode: str, var: Tensor, dyn_A: Tensor, feedback: Tensor | None = None) -> Tensor:
     """Covariance of each planned state.
 
     ``pointwise`` (the paper): ``Sigma_tau = diag(var_tau)``, the GP variance at the
@@ -69,10 +69,16 @@ def state_covariances(mode: str, var: Tensor, dyn_A: Tensor) -> Tensor:
     ``e_tau ~ N(0, diag(var_tau))``, give
     ``Sigma_{tau+1} = dyn_A_tau Sigma_tau dyn_A_tau^T + diag(var_tau)``.
 
+    ``feedback``: as ``propagated``, but the plan is tracked by an ancillary feedback
+    ``u = u_plan + K (x - x_plan)`` (tube MPC, zero-order robust MPC), so deviations evolve
+    by ``dyn_A_tau + B K``: ``Sigma_{tau+1} = (dyn_A_tau + B K) Sigma_tau (...)^T + diag(var_tau)``.
+    With a stabilizing K this stays bounded; open loop it grows like tau with noise.
+
     Args:
-        mode: ``"pointwise"`` or ``"propagated"``.
+        mode: ``"pointwise"``, ``"propagated"`` or ``"feedback"``.
         var: per-dimension variances at the linearization points, shape (B, T+1, D).
-        dyn_A: linearized state matrices, shape (B, T, D, D) (used by ``propagated``).
+        dyn_A: linearized state matrices, shape (B, T, D, D) (used by ``propagated``, ``feedback``).
+        feedback: ``B K``, shape (D, D) (required by ``feedback``; see :func:`lqr_gain`).
 
     Returns:
         Covariances, shape (B, T+1, D, D).
@@ -92,6 +98,11 @@ def state_covariances(mode: str, var: Tensor, dyn_A: Tensor) -> Tensor:
             f"dyn_A must have shape {(batch, steps - 1, dim, dim)} to match var {tuple(var.shape)}, "
             f"got {tuple(dyn_A.shape)}"
         )
+    if mode == "feedback":
+        if feedback is None or tuple(feedback.shape) != (dim, dim):
+            raise GpmpcError(f"uncertainty=feedback needs the (D, D) matrix B K, got "
+                             f"{None if feedback is None else tuple(feedback.shape)}")
+        dyn_A = dyn_A + feedback.to(dyn_A.dtype)
     sigma = var.new_zeros(batch, dim, dim)
     out = [sigma]
     for tau in range(steps - 1):
@@ -150,6 +161,81 @@ def _tie_break_sign(shape, self_ids, nbr_ids, like: Tensor) -> Tensor:
     self_ids = torch.as_tensor(self_ids).reshape(-1, 1)
     nbr_ids = torch.as_tensor(nbr_ids)
     return torch.where(self_ids < nbr_ids, like.new_ones(shape), -like.new_ones(shape))
+
+
+def lqr_gain(A: Tensor, B: Tensor, state_weight: float = 1.0, input_weight: float = 1e-3) -> Tensor:
+    """Infinite-horizon discrete LQR gain K (``u = K x``) of the model ``x' = A x + B u``.
+
+    The ancillary feedback of ``uncertainty = feedback``; with ``Q = state_weight I`` and
+    ``R = input_weight I`` (the MPC's own weights: tracking 1, effort alpha).
+
+    Args:
+        A: (n, n) state matrix. B: (n, m) input matrix.
+
+    Returns:
+        K, shape (m, n), float64 (not differentiable: the nominal model is fixed).
+    """
+    import numpy as np
+    import scipy.linalg
+
+    a, b = A.detach().cpu().double().numpy(), B.detach().cpu().double().numpy()
+    q, r = state_weight * np.eye(a.shape[0]), input_weight * np.eye(b.shape[1])
+    p = scipy.linalg.solve_discrete_are(a, b, q, r)
+    return torch.as_tensor(-np.linalg.solve(r + b.T @ p @ b, b.T @ p @ a), dtype=torch.float64)
+
+
+def projected_variances(normals: Tensor, sigma: Tensor) -> Tensor:
+    """An agent's variance along each collision normal, ``s = n^T Sigma_k n`` (clamped at 0).
+
+    This is all a neighbour needs of the agent's uncertainty for a sound pair margin:
+    ``sum`` and ``joint`` exchange these numbers per edge, never a covariance matrix.
+
+    Args:
+        normals: unit normals, shape (B, M, S, D).
+        sigma: the agent's own state covariances, shape (B, S, D, D).
+
+    Returns:
+        Projected variances, shape (B, M, S).
+    """
+    return torch.einsum("bmtd,btde,bmte->bmt", normals, sigma, normals).clamp_min(0.0)
+
+
+def safe_sqrt(var: Tensor) -> Tensor:
+    """``sqrt(var)`` with value and gradient 0 below 1e-30 (finite gradients everywhere)."""
+    positive = var > _VAR_FLOOR
+    return torch.where(positive, torch.sqrt(torch.where(positive, var, torch.ones_like(var))), torch.zeros_like(var))
+
+
+def pair_margins(mode: str, var_own: Tensor, var_nbr: Tensor, eps_own: Tensor, eps_nbr: Tensor) -> Tensor:
+    """The tightening of an agent's collision row for each pair, by formulation.
+
+    With independent Gaussian deviations of the two agents, ``n^T (x_k - x_j)`` deviates
+    from its plan by a ``N(0, s_k + s_j)`` variable (``s = n^T Sigma n``), so:
+
+    * ``own`` (the paper's eq. 24): ``m_k = Phi^-1(1 - eps_k) sqrt(s_k)``. Not sound: at
+      consensus the pair is ``r_safe + max(m_k, m_j)`` apart while both agents deviate.
+    * ``sum``: ``m_k + m_j``. Sound by the union bound: P(violation) <= eps_k + eps_j.
+    * ``joint``: ``Phi^-1(1 - eps_k - eps_j) sqrt(s_k + s_j)``: exact for independent
+      Gaussians, the tightest sound choice; it depends on the pair's total risk only.
+
+    Args:
+        mode: ``own``, ``sum`` or ``joint``.
+        var_own: the agent's projected variances ``s_k``, shape (B, M, S).
+        var_nbr: its neighbours' projected variances ``s_j`` on the same edges, shape (B, M, S).
+        eps_own: the agent's risk per slot ``eps_k``, shape (B, M).
+        eps_nbr: the neighbour's risk per slot ``eps_j``, shape (B, M).
+
+    Returns:
+        Margins to add to ``r_safe``, shape (B, M, S).
+    """
+    q_own = chance_quantile(eps_own)[..., None]
+    if mode == "own":
+        return q_own * safe_sqrt(var_own)
+    if mode == "sum":
+        return q_own * safe_sqrt(var_own) + chance_quantile(eps_nbr)[..., None] * safe_sqrt(var_nbr)
+    if mode == "joint":
+        return chance_quantile(eps_own + eps_nbr)[..., None] * safe_sqrt(var_own + var_nbr)
+    raise GpmpcError(f"pair_margin: unknown formulation {mode!r}; choose from own, sum, joint")
 
 
 def chance_margins(normals: Tensor, sigma: Tensor, eps_self: Tensor | float) -> Tensor:

@@ -25,13 +25,17 @@ rho, the risk split and the problem data (used by ``gpmpc tune``).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import torch
 from torch import Tensor
 
 from torch_gpmpc.config.schema import Config
-from torch_gpmpc.coordination.agent_step import LocalStep, edge_copies, fall_back_to_previous, slot_risks
+from torch_gpmpc.coordination.agent_step import (
+    LocalStep, edge_copies, edge_variances, fall_back_to_previous, message_size, obstacle_problem, pair_safety,
+    slot_risks,
+)
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.state import ADMMState, StepResult, adapt_state, initial_state
 from torch_gpmpc.dynamics.methods import Method
@@ -128,6 +132,7 @@ class ADMM:
         risk_split: float | Tensor | None = None,
         max_iter: int | None = None,
         tol: float | None = None,
+        safety_fallback: bool = True,
     ) -> StepResult:
         """Run ADMM for one time step.
 
@@ -140,6 +145,10 @@ class ADMM:
             risk_split: scalar or (K, K) split (defaults to ``cfg.risk_split``).
             max_iter: iteration cap (defaults to ``cfg.admm_max_iter``).
             tol: primal tolerance (defaults to ``cfg.admm_tol``).
+            safety_fallback: when ADMM stops unconverged, re-plan the agents of every pair whose
+                plans are unsafe at tau = 1 against their neighbours' latest plans as fixed
+                obstacles (:func:`~.agent_step.plan_against_obstacles`); the unrolled ADMM of
+                ``gpmpc tune`` turns it off (it stops after every iteration on purpose).
         """
         cfg = self.cfg
         rho_t = torch.as_tensor(cfg.rho if rho is None else rho, dtype=x0.dtype)
@@ -151,8 +160,9 @@ class ADMM:
         result = StepResult(plans=state.plans, inputs=state.inputs, state=state, iterations=0, converged=False)
         frozen_plans = state.plans
         for it in range(1, max_iter + 1):
-            lin_state = state if cfg.relinearize else ADMMState(frozen_plans, state.inputs, state.edges, state.z, state.lam)
-            data, max_margin = self.local.assemble(x0, xref, lin_state, graph, rho_t, eps_self)
+            lin_state = state if cfg.relinearize else dataclasses.replace(state, plans=frozen_plans)
+            assembled = self.local.assemble(x0, xref, lin_state, graph, rho_t, eps_self)
+            data = assembled.data
             t0 = time.perf_counter()
             sol = self.local.solve(layer, data)
             result.solve_time_s += time.perf_counter() - t0
@@ -166,16 +176,40 @@ class ADMM:
             else:
                 z_new, lam = state.z, state.lam
                 primal = dual = x0.new_zeros(())
-            state = ADMMState(sol.X, sol.U, graph.edges, z_new, lam)
+            pvar = state.pvar
+            if assembled.own_variance is not None:
+                pvar = edge_variances(assembled.own_variance, graph, state.pvar)
+            state = ADMMState(sol.X, sol.U, graph.edges, z_new, lam, pvar)
             result.primal_residuals.append(float(primal.detach()))
             result.dual_residuals.append(float(dual.detach()))
             result.iterations = it
             result.solution = sol
-            result.max_margin = float(max_margin.detach())
+            result.max_margin = float(assembled.max_margin.detach())
             if should_stop(result.primal_residuals[-1], result.dual_residuals[-1], tol, cfg.admm_dual_tol):
                 result.converged = True
                 break
+        if graph.num_edges and result.iterations:
+            state = self._check_safety(state, data, graph, layer, result, safety_fallback)
         result.plans, result.inputs, result.state = state.plans, state.inputs, state
         result.slack_max = float(result.solution.slack.max()) if result.solution.slack.numel() else 0.0
-        result.messages = 2 * (cfg.horizon + 1) * cfg.dim * graph.degrees()
+        result.messages = message_size(cfg, self.local.method) * graph.degrees()
         return result
+
+    def _check_safety(self, state: ADMMState, data, graph: Graph, layer, result: StepResult,
+                      fallback: bool) -> ADMMState:
+        """Judge the applied plans at tau = 1 (own plans, not copies); after an unconverged stop,
+        re-plan the agents of unsafe pairs against their neighbours' latest plans."""
+        bounds = data.bounds[:, :, 0].detach()
+        unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.cfg.admm_tol)
+        if fallback and not result.converged and bool(unsafe.any()):
+            with torch.no_grad():
+                sol = self.local.solve(layer, obstacle_problem(data, state.plans[graph.slot_nbr]))
+            use = unsafe & sol.ok
+            if bool(use.any()):
+                state = dataclasses.replace(state, plans=torch.where(use[:, None, None], sol.X, state.plans),
+                                            inputs=torch.where(use[:, None, None], sol.U, state.inputs))
+                result.fallback = True
+                unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.cfg.admm_tol)
+        result.unsafe_plan = bool(unsafe.any())
+        result.pair_separation, result.pair_required = sep, req
+        return state

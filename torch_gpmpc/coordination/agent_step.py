@@ -9,7 +9,10 @@ so both compute the same thing.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
@@ -19,7 +22,9 @@ from torch_gpmpc.control.linearize import linearize_plan
 from torch_gpmpc.control.problem import (
     FAIL_EXCEPTION, FAIL_INACCURATE, FAIL_NONFINITE, FAILURE_KINDS, LocalProblemData, LocalSolution,
 )
-from torch_gpmpc.control.risk import chance_margins, collision_normals, pair_risks, state_covariances
+from torch_gpmpc.control.risk import (
+    collision_normals, lqr_gain, pair_margins, pair_risks, projected_variances, state_covariances,
+)
 from torch_gpmpc.control.solvers import make_local_solver
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.state import ADMMState, StepResult
@@ -67,6 +72,52 @@ def _wrapped_interrupt(exc: BaseException) -> BaseException | None:
     return None
 
 
+@dataclass
+class Assembled:
+    """The local problems of a batch of agents and what the iteration reports about them.
+
+    Attributes:
+        data: the problems (batch B).
+        max_margin: largest chance margin of an active row, 0-d.
+        own_variance: (B, M, T) each agent's variance along each slot's normal at tau = 1..T
+            (what it sends its neighbours for ``sum``/``joint`` margins); ``None`` without margins.
+    """
+
+    data: LocalProblemData
+    max_margin: Tensor
+    own_variance: Tensor | None = None
+
+
+def exchanges_variance(cfg: Config, method: str | Method | None = None) -> bool:
+    """Whether the agents send their T projected variances with every copy (the ``sum`` and
+    ``joint`` pair margins of chance-constrained methods; ``method`` defaults to ``cfg.method``)."""
+    return Method.parse(method or cfg.method).chance and cfg.pair_margin != "own"
+
+
+def message_size(cfg: Config, method: str | Method | None = None) -> int:
+    """Numbers one agent sends one neighbour per ADMM iteration: its copy ``y_{e,k}``
+    (``2 (T+1) D``) and, when exchanged, its T projected variances."""
+    return 2 * (cfg.horizon + 1) * cfg.dim + (cfg.horizon if exchanges_variance(cfg, method) else 0)
+
+
+def _reported_variances(state: ADMMState, slot_edge: Tensor, side: Tensor, own: Tensor) -> Tensor:
+    """The neighbours' last reported projected variances per slot (B, M, T); the agent's own
+    where none has been reported yet (a symmetric first guess)."""
+    if state.pvar is None or state.pvar.shape[0] == 0:
+        return own
+    reported = state.pvar[slot_edge, 1 - side]
+    return torch.where(torch.isnan(reported), own, reported)
+
+
+def edge_variances(own_variance: Tensor, graph: Graph, previous: Tensor | None) -> Tensor:
+    """Every edge end's reported projected variance (E, 2, T) after an iteration in which all
+    agents of ``graph`` computed ``own_variance`` (K, M, T)."""
+    T = own_variance.shape[-1]
+    out = own_variance.new_full((graph.num_edges, 2, T), float("nan")) if previous is None else previous.clone()
+    k_idx, m_idx = torch.nonzero(graph.active, as_tuple=True)
+    return out.index_put((graph.slot_edge[k_idx, m_idx], graph.slot_side[k_idx, m_idx]), own_variance[k_idx, m_idx])
+
+
 class LocalStep:
     """What each agent does at one ADMM iteration, for a batch of agents.
 
@@ -86,6 +137,11 @@ class LocalStep:
         self.nominal = nominal
         self.wind = wind
         self.gps = gps
+        #: B K of the ancillary LQR feedback (``uncertainty = feedback``), else None
+        self.feedback = None
+        if cfg.uncertainty == "feedback":
+            A, B = nominal.A(dtype=torch.float64), nominal.B(dtype=torch.float64)
+            self.feedback = B @ lqr_gain(A, B, 1.0, max(cfg.alpha, 1e-9))
         #: failure kinds already warned about (one warning per kind per run)
         self._warned: set[str] = set()
 
@@ -97,11 +153,20 @@ class LocalStep:
             u_max=cfg.u_max, alpha=cfg.alpha, slack_penalty=cfg.slack_penalty, solver=cfg.solver,
         )
 
+    @property
+    def exchanges_variance(self) -> bool:
+        """Whether neighbours exchange projected variances (T numbers per edge and iteration)."""
+        return exchanges_variance(self.cfg, self.method)
+
     def assemble(
         self, x0: Tensor, xref: Tensor, state: ADMMState, graph: Graph, rho: Tensor, eps_self: Tensor,
         rows: slice = slice(None),
-    ) -> tuple[LocalProblemData, Tensor]:
+    ) -> Assembled:
         """Linearize around the current plans and assemble the local problems of agents ``rows``.
+
+        The collision rows carry the pair margins of ``cfg.pair_margin``; the neighbour's
+        projected variance is the one it last reported (``state.pvar``), or the agent's own
+        before the first report.
 
         Args:
             x0, xref: measured states and reference windows of the selected agents,
@@ -112,44 +177,36 @@ class LocalStep:
             eps_self: (B, M) own risk per slot of the selected agents.
             rows: which agents (B of them): all by default; an agent process passes its own row.
                 ``self.gps`` is indexed by agent id (an agent process may hold ``None`` for others).
-
-        Returns:
-            ``(data with batch B, largest chance margin of an active row (scalar))``.
         """
         cfg = self.cfg
         xbar = state.plans[rows]
         gps = None if self.gps is None else self.gps[rows]
         lin = linearize_plan(self.method, xbar, self.nominal, self.wind, gps,
-                             include_noise=cfg.gp_noise_in_margin)
-        slot_nbr, side, active = graph.slot_nbr[rows], graph.slot_side[rows], graph.active[rows]
+                             include_noise=cfg.margin_variance == "predictive")
+        slot_edge, side, active = graph.slot_edge[rows], graph.slot_side[rows], graph.active[rows]
+        slot_nbr = graph.slot_nbr[rows]
         agent_ids = torch.arange(graph.num_agents)[rows]
-        normals = collision_normals(xbar, state.plans[slot_nbr], agent_ids, slot_nbr)
+        normals = collision_normals(xbar, state.plans[slot_nbr], agent_ids, slot_nbr)[:, :, 1:]
+        own_var = None
         if self.method.chance:
-            sigma = state_covariances(cfg.uncertainty, lin.var, lin.dyn_A)
-            margins = chance_margins(normals, sigma, eps_self)
+            sigma = state_covariances(cfg.uncertainty, lin.var, lin.dyn_A, self.feedback)[:, 1:]
+            own_var = projected_variances(normals, sigma)
+            nbr_var = _reported_variances(state, slot_edge, side, own_var)
+            margins = pair_margins(cfg.pair_margin, own_var, nbr_var, eps_self, cfg.eps - eps_self)
         else:
             margins = normals.new_zeros(normals.shape[:3])
-        bounds = cfg.r_safe + margins
         r = torch.arange(agent_ids.shape[0])[:, None]
         c = torch.arange(graph.num_slots)[None, :]
-        z_slot = state.z[graph.slot_edge[rows]]  # (B, M, 2, T+1, D)
-        lam_mine = state.lam[graph.slot_edge[rows]][r, c, side]  # (B, M, 2, T+1, D): this agent's duals
+        z_slot = state.z[slot_edge]  # (B, M, 2, T+1, D)
+        lam_mine = state.lam[slot_edge][r, c, side]  # (B, M, 2, T+1, D): this agent's duals
         data = LocalProblemData(
-            x0=x0,
-            xref=xref,
-            dyn_A=lin.dyn_A,
-            dyn_c=lin.dyn_c,
-            normals=normals[:, :, 1:],
-            bounds=bounds[:, :, 1:],
-            active=active,
-            rho=rho,
-            z_own=z_slot[r, c, side],
-            z_nbr=z_slot[r, c, 1 - side],
-            lam_own=lam_mine[r, c, side],
-            lam_nbr=lam_mine[r, c, 1 - side],
+            x0=x0, xref=xref, dyn_A=lin.dyn_A, dyn_c=lin.dyn_c, normals=normals,
+            bounds=cfg.r_safe + margins, active=active, rho=rho,
+            z_own=z_slot[r, c, side], z_nbr=z_slot[r, c, 1 - side],
+            lam_own=lam_mine[r, c, side], lam_nbr=lam_mine[r, c, 1 - side],
         )
-        max_margin = margins[:, :, 1:][active].max() if bool(active.any()) else margins.new_zeros(())
-        return data, max_margin
+        max_margin = margins[active].max() if bool(active.any()) else margins.new_zeros(())
+        return Assembled(data, max_margin, own_var)
 
     def solve(self, layer: nn.Module, data: LocalProblemData) -> LocalSolution:
         """One batched local solve; an exception escaping the layer fails every agent (kind
@@ -232,3 +289,50 @@ def edge_copies(sol: LocalSolution, graph: Graph) -> Tensor:
     copies = copies.index_put((e_idx, a_idx, a_idx), sol.X[k_idx])
     copies = copies.index_put((e_idx, a_idx, 1 - a_idx), sol.Y[k_idx, m_idx])
     return copies
+
+
+#: Penalty that pins the neighbour copies to the neighbours' plans in the safety fallback:
+#: moving a copy by d costs FIXED_OBSTACLE_RHO d^2 / 2, far above the collision slack's price.
+FIXED_OBSTACLE_RHO = 1e6
+
+
+def obstacle_problem(data: LocalProblemData, nbr_plans: Tensor) -> LocalProblemData:
+    """The local problems with the neighbours' plans as fixed obstacles (no consensus pull on
+    the own plan): the safety fallback's last solve.
+
+    Args:
+        data: the last iteration's problems (their linearization, normals and full margins).
+        nbr_plans: the neighbours' latest own plans per slot, shape (B, M, T+1, D).
+    """
+    zero = torch.zeros_like(data.z_own)
+    return dataclasses.replace(data, rho=torch.zeros_like(torch.as_tensor(data.rho)).detach(),
+                               rho_nbr=torch.full_like(data.active, FIXED_OBSTACLE_RHO, dtype=torch.float64),
+                               z_own=zero, lam_own=zero, z_nbr=nbr_plans.detach(), lam_nbr=zero)
+
+
+def pair_safety(plans: Tensor, graph: Graph, bounds: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Are the agents' own plans safe at tau = 1 (the step they apply)?
+
+    A pair (k, j) is unsafe when ``||X_k^1 - X_j^1||`` is below the larger of its two rows'
+    bounds (``r_safe`` plus the pair's margin) by more than ``tol`` (the consensus tolerance:
+    copies agree with the plans only that well at convergence).
+
+    Args:
+        plans: (K, T+1, D) the agents' own plans.
+        graph: the communication graph.
+        bounds: (K, M) each agent's tau = 1 collision bound per slot.
+        tol: allowance below the bound.
+
+    Returns:
+        ``(unsafe (K,) bool, separation (K, K), required (K, K))``; off-edge entries are NaN.
+    """
+    K = plans.shape[0]
+    sep = torch.full((K, K), float("nan"), dtype=plans.dtype)
+    req = torch.full((K, K), float("nan"), dtype=plans.dtype)
+    k_idx, m_idx = torch.nonzero(graph.active, as_tuple=True)
+    j_idx = graph.slot_nbr[k_idx, m_idx]
+    sep[k_idx, j_idx] = torch.linalg.vector_norm(plans[k_idx, 1] - plans[j_idx, 1], dim=-1)
+    req[k_idx, j_idx] = bounds[k_idx, m_idx]
+    req = torch.fmax(req, req.T)
+    unsafe_pair = torch.nan_to_num(sep, nan=math.inf) < torch.nan_to_num(req, nan=-math.inf) - tol
+    return unsafe_pair.any(dim=1), sep, req

@@ -26,6 +26,9 @@ class ADMMState:
         z: (E, 2, T+1, D) consensus trajectories ``[X_lo; X_hi]`` per edge.
         lam: (E, 2, 2, T+1, D) duals; ``lam[e, a]`` is held by the edge's end ``a``
             (0 = lo, 1 = hi) and has the shape of ``z_e``.
+        pvar: (E, 2, T) each end's variance along the edge's collision normal at tau = 1..T,
+            as that end last reported it (what the ``sum`` and ``joint`` pair margins exchange);
+            NaN or ``None`` where not known yet.
     """
 
     plans: Tensor
@@ -33,6 +36,7 @@ class ADMMState:
     edges: Tensor
     z: Tensor
     lam: Tensor
+    pvar: Tensor | None = None
 
     def shifted(self) -> "ADMMState":
         """Shift everything one step forward in time (drop the first point, hold the last)."""
@@ -42,6 +46,7 @@ class ADMMState:
             edges=self.edges,
             z=shift_in_time(self.z, dim=2),
             lam=shift_in_time(self.lam, dim=3),
+            pvar=None if self.pvar is None else shift_in_time(self.pvar, dim=2),
         )
 
 
@@ -67,6 +72,12 @@ class StepResult:
         messages: (K,) numbers each agent sends per iteration.
         solution: the final :class:`LocalSolution` (kept for gradients and diagnostics).
         lost_agents: agents a distributed run has lost (they follow their last plans).
+        fallback: ADMM stopped unconverged with some pair's plans unsafe, and the agents of
+            such pairs re-planned against their neighbours' latest plans as fixed obstacles.
+        unsafe_plan: after any fallback, some pair's applied plans are closer at tau = 1 than
+            their collision rows require (``r_safe`` plus the pair's margin, less ``admm_tol``).
+        pair_separation: (K, K) the applied plans' distance at tau = 1 per pair (NaN off edges).
+        pair_required: (K, K) the larger of the pair's two tau = 1 row bounds (NaN off edges).
     """
 
     plans: Tensor
@@ -85,6 +96,10 @@ class StepResult:
     messages: Tensor | None = None
     solution: LocalSolution | None = None
     lost_agents: list[int] = field(default_factory=list)
+    fallback: bool = False
+    unsafe_plan: bool = False
+    pair_separation: Tensor | None = None
+    pair_required: Tensor | None = None
 
 
 def shift_in_time(x: Tensor, dim: int) -> Tensor:
@@ -119,8 +134,13 @@ def adapt_state(state: ADMMState, graph: Graph) -> ADMMState:
     old = {tuple(e.tolist()): i for i, e in enumerate(state.edges)}
     z = state.plans[graph.edges].clone() if graph.num_edges else state.z[:0]
     lam = state.lam.new_zeros(graph.num_edges, *state.lam.shape[1:])
+    pvar = None
+    if state.pvar is not None:
+        pvar = state.pvar.new_full((graph.num_edges, *state.pvar.shape[1:]), float("nan"))
     for i, e in enumerate(graph.edges.tolist()):
         if tuple(e) in old:
             z[i] = state.z[old[tuple(e)]]
             lam[i] = state.lam[old[tuple(e)]]
-    return ADMMState(state.plans, state.inputs, graph.edges, z, lam)
+            if pvar is not None:
+                pvar[i] = state.pvar[old[tuple(e)]]
+    return ADMMState(state.plans, state.inputs, graph.edges, z, lam, pvar)

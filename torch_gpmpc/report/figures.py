@@ -373,3 +373,36 @@ def plot_admm_rho_sweep(results: Mapping[str, Mapping[float, Any]], path: str | 
         ax.legend(fontsize=7)
     axes[0, 0].set_ylabel("mean primal residual")
     return _save(fig, path)
+
+
+def plot_calibration(rows: Sequence[Mapping[str, Any]], path: str | Path) -> Path:
+    """Reliability diagram: empirical violation rate of active rows against the promised eps.
+
+    Args:
+        rows: ``calibration.json`` rows (``formulation, eps, rate, rate_low, rate_high, active``).
+        path: PNG file to write.
+
+    Returns:
+        ``path``.
+    """
+    if not rows:
+        raise GpmpcError("plot_calibration: no rows to plot")
+    fig, axes = _new_figure(1, panel=(4.4, 4.0))
+    ax = axes[0, 0]
+    eps_max = max(float(r["eps"]) for r in rows)
+    ax.plot([0, 1.1 * eps_max], [0, 1.1 * eps_max], "k--", lw=1, label="rate = eps")
+    for n, name in enumerate(dict.fromkeys(r["formulation"] for r in rows)):
+        mine = sorted((r for r in rows if r["formulation"] == name and r["rate"] is not None), key=lambda r: r["eps"])
+        if not mine:
+            continue
+        eps = np.array([r["eps"] for r in mine])
+        rate = np.array([r["rate"] for r in mine])
+        err = np.clip([[r["rate"] - r["rate_low"] for r in mine], [r["rate_high"] - r["rate"] for r in mine]], 0, None)
+        ax.errorbar(eps * (1 + 0.03 * (n - 0.5)), rate, yerr=err, fmt="o-", color=_color(n), capsize=3,
+                    label=f"{name} ({sum(r['active'] for r in mine)} active rows)")
+    ax.set_xlabel("promised risk per pair eps")
+    ax.set_ylabel("empirical violation rate of active rows")
+    ax.set_title("chance-constraint calibration (95 % Wilson intervals)", fontsize=9)
+    ax.grid(True, lw=0.3)
+    ax.legend(fontsize=7)
+    return _save(fig, path)

@@ -9,11 +9,13 @@ TABLE_COLUMNS = [
     ("method", "method"),
     ("runs", "runs"),
     ("reached_fraction", "reached"),
-    ("time_to_target", "time to target"),
+    ("time_to_target", "all within tol at once"),
+    ("arrival_step_max", "every agent arrived (last)"),
     ("min_distance_mean", "min dist (mean)"),
     ("min_distance_worst", "min dist (worst)"),
     ("violations_total", "violations"),
     ("runs_with_violations", "runs w/ violations"),
+    ("unsafe_plan_steps_total", "unsafe plans"),
     ("path_length_mean", "path length"),
     ("admm_iterations_mean", "ADMM it (mean)"),
     ("admm_iterations_max", "ADMM it (max)"),
@@ -22,8 +24,8 @@ TABLE_COLUMNS = [
 
 
 def _cell(row: dict, key: str) -> str:
-    if key == "time_to_target":
-        mean, std = row["time_to_target_mean"], row["time_to_target_std"]
+    if key in ("time_to_target", "arrival_step_max"):
+        mean, std = row[f"{key}_mean"], row[f"{key}_std"]
         return "never" if mean is None else f"{mean:.1f} ± {std:.1f}"
     value = row[key]
     if value is None:

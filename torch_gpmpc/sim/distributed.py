@@ -48,6 +48,7 @@ from torch_gpmpc.coordination.distributed.protocol import (
 )
 from torch_gpmpc.coordination.distributed.transport import Network, destroy_group, env_rank, free_port, init_group
 from torch_gpmpc.coordination.admm import should_stop
+from torch_gpmpc.coordination.agent_step import message_size
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.state import StepResult, shift_in_time
 from torch_gpmpc.dynamics.systems import make_system
@@ -181,7 +182,7 @@ class RemotePlanner:
         self._send_sensing(t, x, graph)
         res = self._decide_iterations(t)
         self._collect(t, res)
-        res.messages = 2 * (self.cfg.horizon + 1) * self.cfg.dim * graph.degrees()
+        res.messages = message_size(self.cfg) * graph.degrees()
         res.lost_agents = sorted(self.lost)
         return res
 
@@ -247,6 +248,8 @@ class RemotePlanner:
                 res.failed_by_kind[kind] = res.failed_by_kind.get(kind, 0) + int(c[f"failed_{kind}"])
             res.solve_time_s = max(res.solve_time_s, c["solve_time"])
             margins.append(c["max_margin"])
+            res.fallback = res.fallback or c["fallback"] > 0.5
+            res.unsafe_plan = res.unsafe_plan or c["unsafe_plan"] > 0.5
             slacks.append(c["slack_max"])
             reported.add(k)
         for k in range(K):

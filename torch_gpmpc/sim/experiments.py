@@ -7,11 +7,13 @@ stopped and a changed config never reuses a stale result.
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import hashlib
+import multiprocessing
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -33,6 +35,7 @@ class Task:
         rho: ADMM penalty.
         config: flat config dict (method, seed and rho are overridden by the fields above).
         cache_dir: where the rollout file goes.
+        label: the table row this run belongs to (default: the method).
     """
 
     kind: str
@@ -41,6 +44,12 @@ class Task:
     rho: float
     config: dict
     cache_dir: str
+    label: str = ""
+
+    @property
+    def row(self) -> str:
+        """The table row of this run."""
+        return self.label or self.method
 
     @property
     def cfg(self) -> Config:
@@ -67,6 +76,12 @@ def sweep_config(base: Config, steps: int, iterations: int) -> dict:
             "admm_dual_tol": None}
 
 
+#: The paper's formulation (eq. 24 margins of the latent GP variance): reproduce's six methods.
+PAPER_FORMULATION = {"pair_margin": "own", "margin_variance": "latent"}
+#: Label of the package's sound formulation (the defaults) in reproduce's table.
+SOUND_LABEL = "gp-chance (sound)"
+
+
 def execute(task: Task) -> str:
     """Run ``task`` unless its rollout is cached; return the rollout path (worker entry point)."""
     from torch_gpmpc.sim.closed_loop import simulate
@@ -77,23 +92,58 @@ def execute(task: Task) -> str:
     return str(task.path)
 
 
+def run_tasks(tasks: Sequence[Task], workers: int, on_done: Callable[[Task], None] | None = None) -> None:
+    """Execute every task whose rollout is not cached, in ``workers`` processes.
+
+    Args:
+        tasks: the runs.
+        workers: parallel processes (1: in this process).
+        on_done: called after each computed task (e.g. a progress bar).
+    """
+    todo = [task for task in tasks if not task.path.exists()]
+    if workers <= 1:
+        for task in todo:
+            execute(task)
+            if on_done is not None:
+                on_done(task)
+        return
+    from torch_gpmpc.control.solvers import ipm_kernel
+
+    ipm_kernel.warm_up()  # compile the fast solver's kernel once here, not in every worker
+    ctx = multiprocessing.get_context("spawn")
+    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        futures = {pool.submit(execute, task): task for task in todo}
+        for fut in cf.as_completed(futures):
+            fut.result()
+            if on_done is not None:
+                on_done(futures[fut])
+
+
 def summarize(rollouts: Sequence[Rollout]) -> dict[str, Any]:
     """Aggregate the metrics of several runs of one method (one table row).
 
     Returns:
         ``runs``, ``reached_fraction``, ``time_to_target_mean``/``_std`` (over runs that
-        arrived; None if none did), ``min_distance_mean``/``_worst``, ``violations_total``,
+        arrived; None if none did), ``arrived_fraction`` and ``arrival_step_max_mean``/``_std``
+        (per-agent arrival: the last agent's first step within goal_tol of its own target),
+        ``fallback_steps_total``, ``unsafe_plan_steps_total``, ``min_distance_mean``/``_worst``, ``violations_total``,
         ``runs_with_violations``, ``path_length_mean`` (over agents and runs),
         ``straight_line_length``, ``admm_iterations_mean``/``_max``, ``wall_time_s_mean``.
     """
     metrics = [compute_metrics(r) for r in rollouts]
     arrived = [m["time_to_target"] for m in metrics if m["time_to_target"] is not None]
+    every = [m["arrival_step_max"] for m in metrics if m["arrival_step_max"] is not None]
     dists = [m["min_pair_distance"] for m in metrics if m["min_pair_distance"] is not None]
     return {
         "runs": len(metrics),
         "reached_fraction": float(np.mean([m["reached"] for m in metrics])),
         "time_to_target_mean": float(np.mean(arrived)) if arrived else None,
         "time_to_target_std": float(np.std(arrived)) if arrived else None,
+        "arrived_fraction": len(every) / len(metrics),
+        "arrival_step_max_mean": float(np.mean(every)) if every else None,
+        "arrival_step_max_std": float(np.std(every)) if every else None,
+        "fallback_steps_total": int(sum(m["fallback_steps"] or 0 for m in metrics)),
+        "unsafe_plan_steps_total": int(sum(m["unsafe_plan_steps"] or 0 for m in metrics)),
         "min_distance_mean": float(np.mean(dists)) if dists else None,
         "min_distance_worst": float(np.min(dists)) if dists else None,
         "violations_total": int(sum(m["violations"] for m in metrics)),
@@ -106,9 +156,10 @@ def summarize(rollouts: Sequence[Rollout]) -> dict[str, Any]:
     }
 
 
-def mean_residual_profile(rollout: Rollout) -> np.ndarray:
-    """Primal residual per ADMM iteration averaged over the run's steps, shape (I,)."""
-    res = rollout.primal_residuals
+def mean_residual_profile(rollout: Rollout, first_step: int = 0) -> np.ndarray:
+    """Primal residual per ADMM iteration averaged over the run's steps from ``first_step`` on,
+    shape (I,)."""
+    res = rollout.primal_residuals[first_step:]
     with np.errstate(invalid="ignore"):
         return np.nanmean(res, axis=0) if res.size else np.zeros(0)
 

@@ -76,6 +76,29 @@ def time_to_target(states: Any, targets: Any, goal_tol: float) -> int | None:
     return int(hits[0]) if hits.size else None
 
 
+def arrival_steps(states: Any, targets: Any, goal_tol: float) -> list[int | None]:
+    """Per agent, the first step at which it is within ``goal_tol`` of its own target.
+
+    Unlike :func:`time_to_target` (all agents at once, the paper's measure), this does not
+    depend on every agent's noise being small at the same step.
+
+    Args:
+        states: positions, shape (S+1, K, D).
+        targets: targets, shape (K, D).
+        goal_tol: arrival tolerance.
+
+    Returns:
+        K entries, each a step in 0..S or ``None`` if that agent never arrives.
+    """
+    x = np.asarray(states, dtype=np.float64)
+    dist = np.linalg.norm(x - np.asarray(targets, dtype=np.float64)[None], axis=-1)  # (S+1, K)
+    out: list[int | None] = []
+    for k in range(dist.shape[1]):
+        hits = np.flatnonzero(dist[:, k] <= goal_tol)
+        out.append(int(hits[0]) if hits.size else None)
+    return out
+
+
 def path_lengths(states: Any) -> np.ndarray:
     """Length of each agent's travelled polyline, sum_s ||x[s+1] - x[s]||.
 
@@ -105,6 +128,13 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
     ``min_pair_distance`` is ``None`` for a single agent; steps-based means are
     ``None`` for a run with zero steps.
 
+    Safety and arrival beyond the paper: ``arrival_steps`` (per agent, :func:`arrival_steps`),
+    ``arrival_step_max`` (the last agent's arrival; ``None`` if some agent never arrives),
+    ``fallback_steps`` (steps at which the safety fallback re-planned an agent) and
+    ``unsafe_plan_steps`` (steps at which some pair's applied plans were closer at tau = 1 than
+    their collision rows require: the honest safety report of the planner; collision slack
+    says nothing, because copies of neighbours' plans are free variables).
+
     Args:
         rollout: the run, with ``states`` (S+1, K, D) and ``targets`` (K, D).
 
@@ -123,6 +153,7 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
 
     dists = pair_distances(states)  # (S+1, P)
     ttt = time_to_target(states, targets, goal_tol)
+    arrivals = arrival_steps(states, targets, goal_tol)
     final = np.linalg.norm(states[-1] - targets, axis=-1)  # (K,)
     iters = np.asarray(rollout.admm_iterations, dtype=np.float64)
     return {
@@ -148,8 +179,17 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
         "final_distance_to_target": [float(v) for v in final],
         "at_target_final": bool(np.all(final <= goal_tol)),
         "max_slack": _max(np.asarray(rollout.slack_max, dtype=np.float64)),
+        "arrival_steps": arrivals,
+        "arrival_step_max": None if any(a is None for a in arrivals) else max(arrivals, default=0),
+        "fallback_steps": _count(getattr(rollout, "fallback", None)),
+        "unsafe_plan_steps": _count(getattr(rollout, "unsafe_plan", None)),
         **_failures(rollout),
     }
+
+
+def _count(flags: Any) -> int | None:
+    """Number of true flags; ``None`` when the rollout does not record them."""
+    return None if flags is None else int(np.count_nonzero(flags))
 
 
 def _failures(rollout: Rollout) -> dict[str, Any]:

@@ -71,7 +71,8 @@ class StepRecorder:
         self.rows: dict[str, list] = {k: [] for k in (
             "inputs", "plans", "adjacency", "admm_iterations", "converged", "primal", "dual",
             "slack_max", "infeasible_solves", "solve_time", "chance_margin", "messages",
-            "failed_solves", "failed_by_kind")}
+            "failed_solves", "failed_by_kind", "fallback", "unsafe_plan", "pair_separation", "pair_required")}
+        self.pairs = torch.triu_indices(num_agents, num_agents, 1).unbind()
         self.violations_total = 0
 
     def record(self, t: int, res: StepResult, adjacency: Tensor, u: Tensor, x_next: Tensor) -> StepInfo:
@@ -91,13 +92,23 @@ class StepRecorder:
         r["solve_time"].append(res.solve_time_s)
         r["chance_margin"].append(res.max_margin)
         r["messages"].append(res.messages.numpy())
+        r["fallback"].append(res.fallback)
+        r["unsafe_plan"].append(res.unsafe_plan)
+        r["pair_separation"].append(self._per_pair(res.pair_separation))
+        r["pair_required"].append(self._per_pair(res.pair_required))
         min_dist = pair_min_distance(x_next)
         if self.num_agents > 1:
             dist = torch.cdist(x_next, x_next)
-            self.violations_total += int((dist[torch.triu_indices(self.num_agents, self.num_agents, 1).unbind()] < self.cfg.r_safe).sum())
+            self.violations_total += int((dist[self.pairs] < self.cfg.r_safe).sum())
         return StepInfo(iterations=res.iterations, min_distance=min_dist, converged=res.converged,
                         primal=res.primal_residuals[-1] if res.primal_residuals else math.nan,
                         violations_total=self.violations_total, lost_agents=list(res.lost_agents))
+
+    def _per_pair(self, matrix: Tensor | None) -> np.ndarray:
+        """A (K, K) per-pair matrix as its P upper-triangle entries (NaN when not reported)."""
+        if matrix is None:
+            return np.full(self.pairs[0].numel(), np.nan)
+        return matrix.detach()[self.pairs].numpy()
 
     def rollout(self, states: Tensor, targets: Tensor, wall: float, method: str) -> Rollout:
         """The run's :class:`Rollout` from the states (S+1, K, D) and targets (K, D)."""
@@ -135,4 +146,8 @@ class StepRecorder:
             messages_per_iteration=stack("messages", (0, k), int),
             failed_solves=stack("failed_solves", (0,), int),
             failed_solves_by_kind=stack("failed_by_kind", (0, len(FAILURE_KINDS)), int),
+            fallback=stack("fallback", (0,), bool),
+            unsafe_plan=stack("unsafe_plan", (0,), bool),
+            pair_separation=stack("pair_separation", (0, len(self.pairs[0]))),
+            pair_required=stack("pair_required", (0, len(self.pairs[0]))),
         )

@@ -44,7 +44,15 @@ class Rollout:
             answer; the agent's previous plan was used instead) per step, int, shape (S,);
             ``None`` in files written before it existed.
         failed_solves_by_kind: the same split by kind, int, shape (S, 3), columns in the
-            order of :data:`torch_gpmpc.control.solvers.conic.FAILURE_KINDS` (exception, non-finite, inaccurate).
+            order of :data:`torch_gpmpc.control.problem.FAILURE_KINDS` (exception, non-finite, inaccurate).
+        fallback: the safety fallback re-planned some agent at this step, bool, shape (S,).
+        unsafe_plan: some pair's applied plans were closer at tau = 1 than their rows require,
+            bool, shape (S,).
+        pair_separation: the applied plans' distance at tau = 1 per pair, shape (S, P) (pairs in
+            the order of :func:`~torch_gpmpc.sim.metrics.pair_index`; NaN for pairs not in contact).
+        pair_required: the separation the pair's collision rows required at tau = 1 (``r_safe``
+            plus the pair margin), shape (S, P), NaN for pairs not in contact.
+        (The last four are ``None`` in files written before they existed.)
     """
 
     states: np.ndarray
@@ -67,6 +75,10 @@ class Rollout:
     messages_per_iteration: np.ndarray | None = None
     failed_solves: np.ndarray | None = None
     failed_solves_by_kind: np.ndarray | None = None
+    fallback: np.ndarray | None = None
+    unsafe_plan: np.ndarray | None = None
+    pair_separation: np.ndarray | None = None
+    pair_required: np.ndarray | None = None
 
     @property
     def num_steps(self) -> int:
@@ -88,7 +100,8 @@ class Rollout:
                 "infeasible_solves", "solve_time", "chance_margin",
             )
         }
-        for name in ("messages_per_iteration", "failed_solves", "failed_solves_by_kind"):
+        for name in ("messages_per_iteration", "failed_solves", "failed_solves_by_kind", "fallback",
+                     "unsafe_plan", "pair_separation", "pair_required"):
             if getattr(self, name) is not None:
                 arrays[name] = np.asarray(getattr(self, name))
         meta = {"method": self.method, "seed": self.seed, "wall_time_s": self.wall_time_s,

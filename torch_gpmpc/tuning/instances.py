@@ -129,7 +129,7 @@ def with_warm_starts(admm: ADMM, instances: Sequence[TuneInstance], rho: float =
             x_prev = inst.x0 - step
             graph = communication_graph(x_prev, cfg.comm_radius)
             res = solver.solve_step(x_prev, inst.scenario.reference_window(t_prev, cfg.horizon), graph,
-                                    rho=float(rho))
+                                    rho=float(rho), safety_fallback=False)
             if not res.converged:
                 log.warning("warm start of %s did not converge in %d iterations (primal %.2e, dual %.2e)",
                             inst.name, max_iter, res.primal_residuals[-1], res.dual_residuals[-1])

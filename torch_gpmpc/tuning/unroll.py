@@ -3,6 +3,8 @@ and the tensor residuals and distance penalty the objective is built from."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import warnings
 from dataclasses import dataclass
 import torch
@@ -67,17 +69,19 @@ def unroll_admm(
     if warmup_iters > 0:
         with torch.no_grad():
             res = admm.solve_step(x0.detach(), xref, graph, warm=state, rho=rho.detach(),
-                                  risk_split=_detach(split), max_iter=warmup_iters, tol=0.0)
+                                  risk_split=_detach(split), max_iter=warmup_iters, tol=0.0,
+                                  safety_fallback=False)
         state = detached_state(res.state)
         if not admm.cfg.relinearize:
-            state = ADMMState(lin_plans.detach(), lin_inputs.detach(), state.edges, state.z, state.lam)
+            state = dataclasses.replace(state, plans=lin_plans.detach(), inputs=lin_inputs.detach())
     primal, dual = [], []
     res = None
     for _ in range(iters):
         z_prev = state.z
         with warnings.catch_warnings():  # solve_step logs float() of residuals that carry gradients
             warnings.filterwarnings("ignore", message="Converting a tensor with requires_grad=True")
-            res = admm.solve_step(x0, xref, graph, warm=state, rho=rho, risk_split=split, max_iter=1, tol=0.0)
+            res = admm.solve_step(x0, xref, graph, warm=state, rho=rho, risk_split=split, max_iter=1, tol=0.0,
+                                 safety_fallback=False)
         new = res.state
         if graph.num_edges:
             copies = edge_copies(res.solution, graph)  # (E, 2, 2, T+1, D)
@@ -87,7 +91,7 @@ def unroll_admm(
         else:
             primal.append(x0.new_zeros(()))
             dual.append(x0.new_zeros(()))
-        state = new if admm.cfg.relinearize else ADMMState(lin_plans, lin_inputs, new.edges, new.z, new.lam)
+        state = new if admm.cfg.relinearize else dataclasses.replace(new, plans=lin_plans, inputs=lin_inputs)
     res.state = new
     return UnrolledStep(result=res, primal=torch.stack(primal), dual=torch.stack(dual))
 
@@ -97,7 +101,8 @@ def _detach(x: Tensor | float) -> Tensor | float:
 
 
 def detached_state(s: ADMMState) -> ADMMState:
-    return ADMMState(s.plans.detach(), s.inputs.detach(), s.edges, s.z.detach(), s.lam.detach())
+    return ADMMState(s.plans.detach(), s.inputs.detach(), s.edges, s.z.detach(), s.lam.detach(),
+                     None if s.pvar is None else s.pvar.detach())
 
 
 def distance_penalty(plans: Tensor, r_safe: float, width: float) -> Tensor:

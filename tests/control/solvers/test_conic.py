@@ -166,7 +166,7 @@ def test_infeasible_copies_use_slack_and_batched_equals_one_by_one(layers):
     assert sol.slack_active.tolist() == [True, False, True]
     assert_feasible(data, sol, tol=1e-5)
     for b in range(3):
-        single = layers[1](LocalProblemData(**{k: (v if k == "rho" and v.dim() == 0 else v[b:b + 1])
+        single = layers[1](LocalProblemData(**{k: (v if v is None or (k == "rho" and v.dim() == 0) else v[b:b + 1])
                                                for k, v in vars(data).items()}))
         for field in ("X", "U", "Y", "slack"):
             torch.testing.assert_close(getattr(single, field)[0], getattr(sol, field)[b], atol=1e-6, rtol=0)

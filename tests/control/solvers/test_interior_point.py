@@ -221,7 +221,8 @@ def test_batched_equals_one_by_one():
     batched = layer(data)
     for b in range(5):
         one = layer(LocalProblemData(**{f.name: (getattr(data, f.name)[b:b + 1]
-                                                 if getattr(data, f.name).dim() else getattr(data, f.name))
+                                                 if getattr(data, f.name) is not None and getattr(data, f.name).dim()
+                                                 else getattr(data, f.name))
                                         for f in dataclasses.fields(data)}))
         for name in ("X", "U", "Y", "slack", "cost"):
             torch.testing.assert_close(getattr(batched, name)[b:b + 1], getattr(one, name), atol=1e-8, rtol=0)

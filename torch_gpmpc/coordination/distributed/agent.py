@@ -26,7 +26,9 @@ from torch import Tensor
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.control.problem import FAILURE_KINDS, LocalSolution
 from torch_gpmpc.coordination.admm import consensus_update
-from torch_gpmpc.coordination.agent_step import edge_copies, fall_back_to_previous, slot_risks
+from torch_gpmpc.coordination.agent_step import (
+    edge_copies, fall_back_to_previous, message_size, obstacle_problem, pair_safety, slot_risks,
+)
 from torch_gpmpc.coordination.controller import make_controller
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
 from torch_gpmpc.coordination.graph import graph_from_edges
@@ -173,13 +175,21 @@ class AgentController:
         self.slot_a = self.graph.slot_side[k, m]
 
     # --- one ADMM iteration
+    @property
+    def message_size(self) -> int:
+        """Numbers of one copy message: ``y_{kj,k}`` (2 (T+1) D) and, for the ``sum``/``joint``
+        margins, the T projected variances along the edge's normal."""
+        return message_size(self.cfg, self.local.method)
+
     def solve(self) -> dict[int, Tensor]:
-        """Local solve (27) and fallback; returns own copies ``y_{kj,k}`` (2, T+1, D) per neighbour."""
+        """Local solve (27) and fallback; returns the message per neighbour: the own copy
+        ``y_{kj,k}`` (2, T+1, D), flattened, then the projected variances when exchanged."""
         cfg, k, state = self.cfg, self.k, self.state
-        lin_state = state if cfg.relinearize else ADMMState(self.frozen, state.inputs, state.edges,
-                                                             state.z, state.lam)
-        data, max_margin = self.local.assemble(self.x0[None], self.xref, lin_state, self.graph, self.rho,
-                                               self.eps_self, rows=slice(k, k + 1))
+        lin_state = state if cfg.relinearize else dataclasses.replace(state, plans=self.frozen)
+        assembled = self.local.assemble(self.x0[None], self.xref, lin_state, self.graph, self.rho,
+                                        self.eps_self, rows=slice(k, k + 1))
+        self.assembled = assembled
+        data, max_margin = assembled.data, assembled.max_margin
         t0 = time.perf_counter()
         sol = self.local.solve(self.layer, data)
         self.result.solve_time_s += time.perf_counter() - t0
@@ -190,13 +200,19 @@ class AgentController:
         self.result.max_margin = float(max_margin)
         self.solution = full
         self.copies = edge_copies(full, self.graph) if self.graph.num_edges else None
-        return {j: self.copies[self.slot_e[m], self.slot_a[m]].clone() for m, j in enumerate(self.nbrs)}
+        out = {}
+        for m, j in enumerate(self.nbrs):
+            parts = [self.copies[self.slot_e[m], self.slot_a[m]].flatten()]
+            if self.local.exchanges_variance:
+                parts.append(assembled.own_variance[0, m])
+            out[j] = torch.cat(parts)
+        return out
 
     def update(self, received: dict[int, Tensor | None]) -> tuple[float, float]:
         """Consensus (28) and own duals (29) from the neighbours' copies.
 
         Args:
-            received: neighbour id -> its copy ``y_{kj,j}`` (2, T+1, D), or ``None`` if lost.
+            received: neighbour id -> its message (:meth:`solve`'s format), or ``None`` if lost.
 
         Returns:
             ``(largest ||y_{e,k} - z_e|| over own edges, largest rho ||z_e - z_e_prev||)``.
@@ -205,17 +221,23 @@ class AgentController:
         plans = sol.X.clone()  # row k: own plan; neighbour rows are overwritten below (same layout)
         inputs = state.inputs.clone()
         inputs[k] = sol.U[k]
+        pvar = state.pvar
         if self.graph.num_edges:
             copies = self.copies
+            pvar = self._own_variances()
+            n_copy = copies[0, 0].numel()
             for m, j in enumerate(self.nbrs):
                 e, a = self.slot_e[m], self.slot_a[m]
                 msg = received.get(j)
                 if msg is None:  # lost neighbour: an obstacle following its last shared plan
-                    msg = torch.empty_like(copies[e, a])
-                    msg[a], msg[1 - a] = sol.X[k], state.plans[j]
+                    copy = torch.empty_like(copies[e, a])
+                    copy[a], copy[1 - a] = sol.X[k], state.plans[j]
                 else:
-                    plans[j] = msg[1 - a]
-                copies[e, 1 - a] = msg
+                    copy = msg[:n_copy].view_as(copies[e, a])
+                    plans[j] = copy[1 - a]
+                    if pvar is not None and msg.numel() > n_copy:
+                        pvar[e, 1 - a] = msg[n_copy:]
+                copies[e, 1 - a] = copy
             z_new, lam, gap_norms, dual_norms = consensus_update(copies, state.z, state.lam, self.rho)
             lam[self.slot_e, 1 - self.slot_a] = 0.0  # the neighbour's dual is the neighbour's
             primal = gap_norms[self.slot_e, self.slot_a].max()
@@ -223,10 +245,46 @@ class AgentController:
         else:
             z_new, lam = state.z, state.lam
             primal = dual = self.x0.new_zeros(())
-        self.state = ADMMState(plans, inputs, self.graph.edges, z_new, lam)
+        self.state = ADMMState(plans, inputs, self.graph.edges, z_new, lam, pvar)
         self.result.iterations += 1
         self.counters["iterations_total"] += 1
         return float(primal), float(dual)
+
+    def _own_variances(self) -> Tensor | None:
+        """``state.pvar`` with this agent's own ends set from its latest assembly."""
+        own = self.assembled.own_variance
+        if own is None:
+            return self.state.pvar
+        pvar = self.state.pvar
+        if pvar is None:
+            pvar = own.new_full((self.graph.num_edges, 2, own.shape[-1]), float("nan"))
+        pvar = pvar.clone()
+        for m in range(len(self.nbrs)):
+            pvar[self.slot_e[m], self.slot_a[m]] = own[0, m]
+        return pvar
+
+    def check_safety(self, converged: bool) -> None:
+        """Judge the own plan at tau = 1 against the neighbours' latest plans; after an
+        unconverged stop, re-plan against them as fixed obstacles if unsafe (as the in-process
+        :class:`~torch_gpmpc.coordination.admm.ADMM` does; here each agent sees only its own
+        pairs and its neighbours' plans before their own fallback)."""
+        if not self.graph.num_edges or not self.result.iterations:
+            return
+        k, state, tol = self.k, self.state, self.cfg.admm_tol
+        bounds = self.assembled.data.bounds[:, :, 0].detach()
+        full_bounds = bounds.new_full((self.num_agents, bounds.shape[1]), float("-inf"))
+        full_bounds[k] = bounds[0]
+        unsafe, _, _ = pair_safety(state.plans, self.graph, full_bounds, tol)
+        if not converged and bool(unsafe[k]):
+            data = obstacle_problem(self.assembled.data, state.plans[self.graph.slot_nbr[k:k + 1]])
+            sol = self.local.solve(self.layer, data)
+            if bool(sol.ok[0]):
+                plans, inputs = state.plans.clone(), state.inputs.clone()
+                plans[k], inputs[k] = sol.X[0], sol.U[0]
+                self.state = dataclasses.replace(state, plans=plans, inputs=inputs)
+                self.counters["fallback"] = 1.0
+                unsafe, _, _ = pair_safety(self.state.plans, self.graph, full_bounds, tol)
+        self.counters["unsafe_plan"] = float(bool(unsafe[k]))
 
     def end_step(self) -> Telemetry:
         """The step's telemetry (input, plan, counters); shifts the state for the next warm start."""
@@ -239,5 +297,6 @@ class AgentController:
         c["solve_time"], c["max_margin"] = res.solve_time_s, res.max_margin
         record = Telemetry(self.state.inputs[k, 0].clone(), self.state.plans[k].clone(),
                            self.state.inputs[k].clone(), dict(c))
+        c["fallback"] = c["unsafe_plan"] = 0.0  # per-step flags
         self.state = self.state.shifted()
         return record

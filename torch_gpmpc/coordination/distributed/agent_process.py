@@ -152,11 +152,11 @@ class AgentHost:
             if stop > 0.5:
                 for k in self.agents:
                     self.controllers[k].result.converged = stop > 1.5
+                    self.controllers[k].check_safety(stop > 1.5)
                 return comm_time
 
     def _exchange_copies(self, own: dict[int, dict[int, Tensor]]) -> dict[int, dict[int, Tensor | None]]:
         """Send every agent's copies to its neighbours and collect theirs (``None``: lost)."""
-        T, D = self.cfg.horizon, self.cfg.dim
         sends, recvs, meta = [], [], []
         received: dict[int, dict[int, Tensor | None]] = {k: {} for k in self.agents}
         for k in self.agents:
@@ -170,7 +170,7 @@ class AgentHost:
                     received[j][k] = copy
                 else:
                     sends.append((copy, rank_of(j, self.per), tag(Kind.COPY, k, j)))
-                    recvs.append(((2, T + 1, D), rank_of(j, self.per), tag(Kind.COPY, j, k)))
+                    recvs.append(((ctrl.message_size,), rank_of(j, self.per), tag(Kind.COPY, j, k)))
                     meta.append((k, j))
         for (k, j), msg in zip(meta, self.net.exchange(sends, recvs, self.timeout_s)):
             received[k][j] = msg

@@ -10,7 +10,9 @@ world -> agent k: sensing     ``3 + D + (K-1)``: command,      every step
                               step, number of neighbours, own
                               state ``x_k``, neighbour ids
 agent k -> neighbour j: copy  ``2 (T+1) D``: ``y_{kj,k}``      every ADMM iteration
-                              (eq. 19)
+                              (eq. 19), plus T projected
+                              variances for the ``sum`` and
+                              ``joint`` pair margins
 agent k -> world: residuals   2: max ``||y_{e,k} - z_e||`` and every ADMM iteration
                               max ``rho ||z_e - z_e_prev||``
 world -> agent k: decision    3: the global maxima and the     every ADMM iteration
@@ -67,7 +69,7 @@ CMD_STOP, CMD_STEP = 0.0, 1.0
 #: Counters in the telemetry message, after u (D), plan X ((T+1) D) and inputs U (T D).
 TELEMETRY_KEYS = ("slack_max", "infeasible", "failed", *[f"failed_{k}" for k in FAILURE_KINDS],
                   "solve_time", "max_margin", "iterations_total", "copy_bytes", "reduce_bytes",
-                  "plan_bytes", "telemetry_bytes", "comm_time", "setup_s", "gp_fit_s")
+                  "plan_bytes", "telemetry_bytes", "comm_time", "setup_s", "gp_fit_s", "fallback", "unsafe_plan")
 
 
 def tag(kind: Kind, src: int = 0, dst: int = 0) -> int:
