@@ -12,7 +12,7 @@ from typing import Any, Callable
 
 import gpytorch
 import torch
-from linear_operator.utils.errors import NotPSDError
+from linear_operator.utils.errors import NanError, NotPSDError
 from torch import Tensor
 
 from torch_gpmpc.config.schema import Config
@@ -119,19 +119,43 @@ def _optimize(gp: ResidualGP, optimizer: str, iters: int, callback: Callback | N
         loss.backward()
         return loss
 
+    last_good = _copy_state(model)
     for step in range(iters + 1):
         hp = gp.hyperparameters()
         if step == iters:
             with torch.no_grad():
                 loss = _neg_mll(model, mll)
         else:
-            loss = opt.step(closure)
+            try:
+                loss = opt.step(closure)
+            except (NanError, NotPSDError, torch.linalg.LinAlgError, GpmpcError) as exc:
+                loss = torch.tensor(float("nan"))
+                log.debug("GP fit step %d failed: %s", step, exc)
+            if not (math.isfinite(float(loss.detach())) and _finite_state(model)):
+                # an optimizer step into NaN (seen with noise-free data, where the noise runs to its
+                # bound): keep the last finite hyperparameters and end the fit there
+                log.warning("GP fit: step %d produced NaN; keeping the hyperparameters of step %d", step, step - 1)
+                model.load_state_dict(last_good)
+                with torch.no_grad():
+                    loss = _neg_mll(model, mll)
+                if callback is not None:
+                    callback(iters, float(loss.detach()), gp.hyperparameters())
+                return
+            last_good = _copy_state(model)
         value = float(loss.detach())
         if not math.isfinite(value):
             raise GpmpcError(f"GP fit diverged (loss {value}) at step {step}; try --optimizer lbfgs, "
                              "fewer --iters or check the data")
         if callback is not None:
             callback(step, value, hp)
+
+
+def _copy_state(model: torch.nn.Module) -> dict:
+    return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+
+def _finite_state(model: torch.nn.Module) -> bool:
+    return all(bool(torch.isfinite(p).all()) for p in model.parameters())
 
 
 def fit_from_transitions(transitions, nominal=None, gp_inputs: str = "state", agent: int | None = None,
