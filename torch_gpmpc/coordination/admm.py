@@ -147,7 +147,7 @@ class ADMM:
             tol: primal tolerance (defaults to ``cfg.admm_tol``).
             safety_fallback: when ADMM stops unconverged, re-plan the agents of every pair whose
                 plans are unsafe at tau = 1 against their neighbours' latest plans as fixed
-                obstacles (:func:`~.agent_step.plan_against_obstacles`); the unrolled ADMM of
+                obstacles (:func:`~.agent_step.obstacle_problem`); the unrolled ADMM of
                 ``gpmpc tune`` turns it off (it stops after every iteration on purpose).
         """
         cfg = self.cfg
