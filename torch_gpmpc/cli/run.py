@@ -88,9 +88,10 @@ def _summary(m: dict, out: Path) -> str:
     def num(value, fmt: str) -> str:  # null when K = 1 (no pairs) or no step was taken
         return "-" if value is None else format(value, fmt)
 
-    ttt = m["time_to_target"]
+    ttt, last = m["time_to_target"], m.get("arrival_step_max")
+    arrival = "every agent arrived by t = " + str(last) if last is not None else "not every agent arrived"
     return (
-        f"{m['method']} seed {m['seed']}: {'reached at t = ' + str(ttt) if m['reached'] else 'not reached'} "
+        f"{m['method']} seed {m['seed']}: {arrival}, {'all at once at t = ' + str(ttt) if m['reached'] else 'never all at once'} "
         f"in {m['steps']} steps; min distance {num(m['min_pair_distance'], '.3f')} "
         f"({m['violations']} violations of r_safe); ADMM iterations mean {num(m['admm_iterations_mean'], '.1f')} "
         f"max {num(m['admm_iterations_max'], 'd')}; wall {m['wall_time_s']:.1f} s -> {out}"
