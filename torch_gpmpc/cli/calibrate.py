@@ -8,35 +8,27 @@ cached under ``DIR/cache`` (an interrupted call resumes).
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
-from tqdm import tqdm
-
+from torch_gpmpc.cli.cached_runs import parse_list, run_uncached
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.fileio import write_json
 
 
 def main(args) -> int:
-    from torch_gpmpc.cli.run import config_from_args
+    from torch_gpmpc.cli.run import config_from_args, output_dir
     from torch_gpmpc.report.figures import plot_calibration
     from torch_gpmpc.sim.calibration import active_outcomes, calibration_rows, calibration_tasks
-    from torch_gpmpc.sim.experiments import run_tasks
     from torch_gpmpc.sim.rollout import Rollout
 
     cfg = config_from_args(args)
     eps_values = _eps_list(args.eps)
     if args.runs < 1:
         raise GpmpcError(f"--runs must be >= 1, got {args.runs}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise GpmpcError(f"--out {str(out)!r} is an existing file; give a directory path")
+    out = output_dir(args.out)
     (out / "cache").mkdir(parents=True, exist_ok=True)
     tasks = calibration_tasks(cfg, eps_values, args.runs, str(out / "cache"), steps=args.steps)
     workers = args.workers or os.cpu_count() or 1
-    todo = [task for *_, task in tasks if not task.path.exists()]
-    print(f"{len(tasks) - len(todo)} of {len(tasks)} runs cached; computing {len(todo)} with {workers} worker(s)")
-    with tqdm(total=len(todo), unit="run") as bar:
-        run_tasks(todo, workers, on_done=lambda task: bar.update(1))
+    run_uncached([task for *_, task in tasks], workers)
     outcomes: dict = {}
     for name, eps, task in tasks:
         outcomes.setdefault((name, eps), []).append(active_outcomes(Rollout.load(task.path)))
@@ -49,10 +41,7 @@ def main(args) -> int:
 
 
 def _eps_list(text: str) -> list[float]:
-    try:
-        values = [float(v) for v in text.split(",") if v.strip()]
-    except ValueError as exc:
-        raise GpmpcError(f"--eps: {text!r} is not a comma-separated list of numbers ({exc})") from None
+    values = parse_list(text, float, "eps")
     if not values or not all(0 < v < 1 for v in values):
         raise GpmpcError(f"--eps: every value must be in (0, 1), got {text!r}")
     return values

@@ -11,33 +11,26 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from tqdm import tqdm
 
 from torch_gpmpc.config.schema import METHODS, Config
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.sim.experiments import (
-    PAPER_FORMULATION, SOUND_LABEL, Task, mean_residual_profile, run_tasks, summarize, sweep_config,
+    PAPER_FORMULATION, SOUND_LABEL, Task, mean_residual_profile, summarize, sweep_config,
 )
 from torch_gpmpc.fileio import write_text
 from torch_gpmpc.report.tables import table_csv, table_markdown
 from torch_gpmpc.sim.rollout import Rollout
 
+from torch_gpmpc.cli.cached_runs import parse_list, run_uncached
 from torch_gpmpc.cli.run import config_from_args
 
 
-def _parse_list(text: str, cast, name: str) -> list:
-    try:
-        return [cast(v) for v in text.split(",") if v.strip()]
-    except ValueError as exc:
-        raise GpmpcError(f"--{name}: {text!r} is not a comma-separated list ({exc})") from exc
-
-
 def _tasks(cfg, args, cache: Path) -> tuple[list[Task], list[Task]]:
-    methods = _parse_list(args.methods, str, "methods")
+    methods = parse_list(args.methods, str, "methods")
     for m in methods:
         if m not in METHODS:
             raise GpmpcError(f"--methods: unknown method {m!r}; choose from {', '.join(METHODS)}")
-    rhos = _parse_list(args.rho_values, float, "rho-values")
+    rhos = parse_list(args.rho_values, float, "rho-values")
     if args.runs < 1:
         raise GpmpcError(f"--runs must be >= 1, got {args.runs}")
     if args.rho_start < 0:
@@ -49,13 +42,6 @@ def _tasks(cfg, args, cache: Path) -> tuple[list[Task], list[Task]]:
     sweep = sweep_config(Config(**paper), args.rho_start + args.rho_steps, args.rho_iterations)
     sweeps = [Task("sweep", m, cfg.seed, rho, sweep, str(cache)) for m in methods for rho in rhos]
     return runs, sweeps
-
-
-def _execute_all(tasks: list[Task], workers: int) -> None:
-    todo = [t for t in tasks if not t.path.exists()]
-    print(f"{len(tasks) - len(todo)} of {len(tasks)} runs cached; computing {len(todo)} with {workers} worker(s)")
-    with tqdm(total=len(todo), unit="run") as bar:
-        run_tasks(todo, workers, on_done=lambda task: bar.update(1))
 
 
 def _fig1(cfg, path: Path) -> None:
@@ -79,7 +65,7 @@ def main(args) -> int:
     out = Path(args.out)
     runs, sweeps = _tasks(cfg, args, out / "cache")
     workers = args.workers or os.cpu_count() or 1
-    _execute_all(runs + sweeps, workers)
+    run_uncached(runs + sweeps, workers)
 
     by_method: dict[str, list[Rollout]] = {}
     for task in runs:

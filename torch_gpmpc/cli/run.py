@@ -25,6 +25,18 @@ def config_from_args(args):
     return load_config(args.config, overrides)
 
 
+def output_dir(text: str) -> Path:
+    """The ``--out`` directory of a command (it may not exist yet).
+
+    Raises:
+        GpmpcError: the path is an existing file.
+    """
+    out = Path(text)
+    if out.exists() and not out.is_dir():
+        raise GpmpcError(f"--out {str(out)!r} is an existing file; give a directory path")
+    return out
+
+
 def main(args) -> int:
     from torch_gpmpc.coordination.distributed.transport import is_agent_rank
     from torch_gpmpc.gp import ResidualGP, check_gp_inputs
@@ -45,9 +57,7 @@ def main(args) -> int:
         if args.gp_model else None
     if gps is None and needs_gp(cfg.method):
         check_gp_inputs(cfg)
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise GpmpcError(f"--out {str(out)!r} is an existing file; give a directory path")
+    out = output_dir(args.out)
     tb = TBLogger(out / "tb")
     bar = tqdm(total=cfg.max_steps, desc=f"{cfg.method} seed {cfg.seed}", unit="step", leave=False)
 

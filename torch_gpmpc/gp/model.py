@@ -84,7 +84,7 @@ class ResidualGP(torch.nn.Module):
         y: raw training targets (residuals), shape (N, D).
         gp_inputs: what the inputs are: ``"state"`` (Din = D, the paper) or
             ``"state_input"`` (Din = D + Du). Stored in the model file.
-        normalization: optional ``(x_mean (Din,), x_std (Din,), y_mean (D,), y_std (D,))``;
+        normalization: the :class:`~torch_gpmpc.gp.normalization.Standardization` to use;
             computed from the data when ``None``.
 
     Attributes:
@@ -101,13 +101,11 @@ class ResidualGP(torch.nn.Module):
         self.gp_inputs = gp_inputs
         self.train_inputs_raw = inputs
         self.train_y_raw = y
-        self.standardization = normalization or Standardization.from_data(inputs, y)
-        x_mean, x_std, y_mean, y_std = (self.standardization.x_mean, self.standardization.x_std,
-                                        self.standardization.y_mean, self.standardization.y_std)
-        self.x_mean, self.x_std, self.y_mean, self.y_std = x_mean, x_std, y_mean, y_std
+        s = self.standardization = normalization or Standardization.from_data(inputs, y)
+        self.x_mean, self.x_std, self.y_mean, self.y_std = s.x_mean, s.x_std, s.y_mean, s.y_std
         D, (N, Din) = y.shape[1], inputs.shape
-        z = ((inputs - x_mean) / x_std).expand(D, N, Din)
-        ys = ((y - y_mean) / y_std).T.contiguous()
+        z = s.inputs(inputs).expand(D, N, Din)
+        ys = s.outputs(y).T.contiguous()
         self.likelihood = gpytorch.likelihoods.GaussianLikelihood(batch_shape=torch.Size([D]))
         self.model = _BatchExactGP(z, ys, self.likelihood)
         self.model.covar_module.base_kernel.lengthscale = _INIT["lengthscale"]

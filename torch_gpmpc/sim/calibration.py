@@ -16,14 +16,14 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from torch_gpmpc.config.schema import Config
-from torch_gpmpc.sim.experiments import Task
+from torch_gpmpc.sim.experiments import PAPER_FORMULATION, Task
 from torch_gpmpc.sim.metrics import pair_distances
 from torch_gpmpc.sim.rollout import Rollout
 
 #: The formulations compared: the package's default and the paper's eq. 24 with latent variance.
 FORMULATIONS: dict[str, dict[str, str]] = {
     "sound": {"pair_margin": "sum", "margin_variance": "predictive"},
-    "paper": {"pair_margin": "own", "margin_variance": "latent"},
+    "paper": PAPER_FORMULATION,
 }
 #: A row is active when the planned tau = 1 separation is within this of its required value.
 ACTIVE_TOL = 1e-3

@@ -28,7 +28,9 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import shutil
+import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -377,8 +379,6 @@ def simulate_distributed(
 
 def _join_launched_world(num_agents: int, setup_timeout_s: float) -> tuple[int, int, DistributedReport]:
     """Rank 0 of a torchrun / manual launch: ``(world size, agents per process, report)``."""
-    import os
-
     if env_rank() != 0:
         raise GpmpcError("simulate_distributed runs the world and must be rank 0")
     world_size = int(os.environ["WORLD_SIZE"])
@@ -392,9 +392,6 @@ def _join_launched_world(num_agents: int, setup_timeout_s: float) -> tuple[int, 
 def _launch_local(cfg: Config, world_size: int, setup_timeout_s: float, log_dir: Path,
                   report: DistributedReport, on_launch) -> dict:
     """Spawn the agent processes on this host and join them as rank 0."""
-    import os
-    import sys
-
     log_dir.mkdir(parents=True, exist_ok=True)
     report.log_dir = str(log_dir)
     if cfg.solver == "fast":  # compile the kernel once here, not in every agent process

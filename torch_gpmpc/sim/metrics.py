@@ -59,6 +59,12 @@ def pair_distances(states: Any) -> np.ndarray:
     return np.linalg.norm(x[:, i, :] - x[:, j, :], axis=-1)
 
 
+def target_distances(states: Any, targets: Any) -> np.ndarray:
+    """Each agent's distance to its own target at every step: (S+1, K, D), (K, D) -> (S+1, K)."""
+    x = np.asarray(states, dtype=np.float64)
+    return np.linalg.norm(x - np.asarray(targets, dtype=np.float64)[None], axis=-1)
+
+
 def time_to_target(states: Any, targets: Any, goal_tol: float) -> int | None:
     """First step s at which every agent is within ``goal_tol`` of its target.
 
@@ -70,8 +76,7 @@ def time_to_target(states: Any, targets: Any, goal_tol: float) -> int | None:
     Returns:
         s in 0..S, or ``None`` if that never happens.
     """
-    x = np.asarray(states, dtype=np.float64)
-    dist = np.linalg.norm(x - np.asarray(targets, dtype=np.float64)[None], axis=-1)  # (S+1, K)
+    dist = target_distances(states, targets)
     hits = np.flatnonzero(np.all(dist <= goal_tol, axis=1))
     return int(hits[0]) if hits.size else None
 
@@ -90,8 +95,7 @@ def arrival_steps(states: Any, targets: Any, goal_tol: float) -> list[int | None
     Returns:
         K entries, each a step in 0..S or ``None`` if that agent never arrives.
     """
-    x = np.asarray(states, dtype=np.float64)
-    dist = np.linalg.norm(x - np.asarray(targets, dtype=np.float64)[None], axis=-1)  # (S+1, K)
+    dist = target_distances(states, targets)
     out: list[int | None] = []
     for k in range(dist.shape[1]):
         hits = np.flatnonzero(dist[:, k] <= goal_tol)
