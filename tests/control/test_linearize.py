@@ -40,7 +40,7 @@ def test_plan_follows_linearized_dynamics_at_linearization_points(method, plan):
     assert lin.dyn_A.shape == (3, 5, 2, 2) and lin.dyn_c.shape == (3, 5, 2) and lin.var.shape == (3, 6, 2)
     affine = (lin.dyn_A @ plan[:, :-1, :, None]).squeeze(-1) + lin.dyn_c
     residual = {"nominal": torch.zeros_like(plan), "nonlinear": wind(plan), "gp": gps[0].wind(plan)}
-    expected = nominal.a * plan[:, :-1] + residual[method.removesuffix("-chance")][:, :-1]
+    expected = plan[:, :-1] @ nominal.A().T + residual[method.removesuffix("-chance")][:, :-1]
     torch.testing.assert_close(affine, expected)
     if method.endswith("-chance"):
         torch.testing.assert_close(lin.var, torch.stack([g.linearize(p)[2] for g, p in zip(gps, plan)]))

@@ -10,6 +10,7 @@ import math
 
 from torch_gpmpc.data import MAX_COLLECT_ROWS, check_suffix, collect_transitions
 from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.config.model_spec import check_model_name, resolve_model
 from torch_gpmpc.dynamics.systems import make_system
 
 
@@ -18,6 +19,7 @@ def _validate(args) -> None:
     check_suffix(args.out)
     if args.dim not in (2, 3):
         raise GpmpcError(f"--dim must be 2 or 3 (the vortex wind is defined for those), got {args.dim}")
+    check_model_name(args.model)
     if args.agents < 1:
         raise GpmpcError(f"--agents must be >= 1, got {args.agents}")
     if args.samples < 2:
@@ -27,7 +29,7 @@ def _validate(args) -> None:
                          f"{MAX_COLLECT_ROWS}; lower --agents or --samples (the paper uses 100 per agent)")
     if not (math.isfinite(args.noise_std) and args.noise_std >= 0):
         raise GpmpcError(f"--noise-std must be a finite number >= 0, got {args.noise_std}")
-    for flag, value in (("--u-max", args.u_max), ("--box", args.box)):
+    for flag, value in (("--u-max", args.u_max), ("--box", args.box), ("--dt", args.dt)):
         if not (math.isfinite(value) and value > 0):
             raise GpmpcError(f"{flag} must be a positive number, got {value}")
 
@@ -35,11 +37,12 @@ def _validate(args) -> None:
 def main(args) -> int:
     """Collect ``--agents x --samples`` transitions and write them to ``--out``."""
     _validate(args)
-    system = make_system(dim=args.dim, noise_std=args.noise_std)
-    data = collect_transitions(system, num_agents=args.agents, samples=args.samples, seed=args.seed,
-                               u_max=args.u_max, box=args.box)
+    spec = resolve_model(args.model, args.dim, args.dt, args.u_max)
+    system = make_system(spec, noise_std=args.noise_std, wind_scale=args.wind_scale)
+    data = collect_transitions(system, num_agents=args.agents, samples=args.samples, seed=args.seed, box=args.box)
     data.save(args.out)
+    bound = f"box={list(spec.input_box)}" if spec.input_box is not None else f"u_max={spec.input_norm:g}"
     print(f"wrote {args.out}: {data.num_samples} transitions ({args.agents} agents x {args.samples}), "
-          f"D={args.dim}, noise_std={args.noise_std:g}, u_max={args.u_max:g}, box={args.box:g}, "
-          f"seed={args.seed}")
+          f"model {spec.name} (D={spec.state_dim}, Du={spec.input_dim}), noise_std={args.noise_std:g}, "
+          f"{bound}, box={args.box:g}, seed={args.seed}")
     return 0

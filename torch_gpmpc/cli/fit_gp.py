@@ -15,7 +15,8 @@ from tqdm import tqdm
 
 from torch_gpmpc.data.transitions import Transitions
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.gp import check_training_size, fit_residual_gp, holdout_metrics
+from torch_gpmpc.config.model_spec import check_model_name, resolve_model
+from torch_gpmpc.gp import check_training_size, fit_residual_gp, gp_input_label, holdout_metrics
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 from torch_gpmpc.report.tensorboard import TBLogger
 
@@ -43,17 +44,34 @@ def _validate_args(args) -> None:
     if args.figure is not None:
         if Path(args.figure).suffix.lower() != ".png":
             raise GpmpcError(f"--figure {args.figure!r}: the figure file must end in .png")
-        if args.gp_inputs != "state":
-            raise GpmpcError("--figure needs --inputs state (the figure is over the 2D state plane)")
+        if args.gp_inputs not in (None, "state") or args.model is not None:
+            raise GpmpcError("--figure needs the paper's model with --inputs state (the figure is over the 2D "
+                             "state plane); drop --figure")
+    if args.model is not None:
+        check_model_name(args.model)
+        if args.gp_inputs is not None:
+            raise GpmpcError("--gp-inputs: with --model the GP inputs are the model's gp_inputs; drop --gp-inputs")
+
+
+def _nominal(args, data: Transitions) -> NominalModel:
+    """The model whose residual the GPs learn: ``--model``, else the paper's in the data's dimension."""
+    if args.model is None:
+        if data.input_dim != data.state_dim:
+            raise GpmpcError(f"{data.source}: input dimension Du={data.input_dim} differs from the state "
+                             f"dimension D={data.state_dim}; the paper's model (A = I, B = 0.1 I) needs Du = D: "
+                             "give the robot's model with --model FILE")
+        return NominalModel(data.state_dim)
+    dim = args.dim if args.dim is not None else (data.state_dim // 2 if args.model == "double-integrator"
+                                                 else data.state_dim)
+    nominal = NominalModel(resolve_model(args.model, dim, args.dt, 2.0))
+    data.check_dim(nominal.dim, nominal.input_dim)
+    return nominal
 
 
 def _load(args) -> Transitions:
     data = Transitions.load(args.transitions)
     if args.agent is not None:
         data = data.for_agent(args.agent)
-    if data.input_dim != data.state_dim:
-        raise GpmpcError(f"{data.source}: input dimension Du={data.input_dim} differs from the state "
-                         f"dimension D={data.state_dim}; the nominal model (A = I, B = 0.1 I) needs Du = D")
     if args.figure is not None and data.state_dim != 2:
         raise GpmpcError(f"--figure needs 2D data, but {data.source} has D={data.state_dim}; drop --figure")
     return data
@@ -83,8 +101,10 @@ def main(args) -> int:
     _validate_args(args)
     data = _load(args)
     train, test = data.split(args.holdout, seed=args.seed) if args.holdout > 0 else (data, None)
-    nominal = NominalModel(dim=data.state_dim)
-    X, Y = train.residuals(nominal, gp_inputs=args.gp_inputs)
+    nominal = _nominal(args, data)
+    gp_inputs = args.gp_inputs if args.model is None else None
+    label = (gp_inputs or "state") if args.model is None else gp_input_label(nominal)
+    X, Y = train.residuals(nominal, gp_inputs=gp_inputs)
     check_training_size(X.shape[0])  # before the progress bar and the TensorBoard directory
     last = {"loss": float("nan")}
     with TBLogger(args.logdir) as tb, tqdm(total=args.iters + 1, desc="fit-gp", unit="step",
@@ -96,10 +116,10 @@ def main(args) -> int:
             bar.update(1)
 
         gp = fit_residual_gp(X, Y, optimizer=args.optimizer, iters=args.iters, seed=args.seed,
-                             callback=callback, gp_inputs=args.gp_inputs)
+                             callback=callback, gp_inputs=label)
         metrics = None
         if test is not None:
-            metrics = holdout_metrics(gp, *test.residuals(nominal, gp_inputs=args.gp_inputs))
+            metrics = holdout_metrics(gp, *test.residuals(nominal, gp_inputs=gp_inputs))
             for d, (r, c) in enumerate(zip(metrics["rmse"], metrics["coverage95"], strict=True)):
                 tb.scalar(f"gp/holdout_rmse/d{d}", r, args.iters)
                 tb.scalar(f"gp/holdout_coverage95/d{d}", c, args.iters)

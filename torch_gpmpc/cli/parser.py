@@ -35,10 +35,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--agents", type=int, default=3, help="number of agents K (default 3)")
     p.add_argument("--samples", type=int, default=100, help="samples per agent N (default 100)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--dim", type=int, default=2, help="state dimension D (2 or 3)")
+    p.add_argument("--dim", type=int, default=2, help="position dimension of the built-in models (2 or 3)")
+    p.add_argument("--model", default="single-integrator",
+                   help="agent model: single-integrator (default), double-integrator or a model file (.toml/.json)")
+    p.add_argument("--dt", type=float, default=0.1, help="sampling time of the double integrator (default 0.1)")
     p.add_argument("--noise-std", type=float, default=0.1, help="process noise std s (default 0.1)")
-    p.add_argument("--u-max", type=float, default=2.0, help="input norm bound (default 2)")
-    p.add_argument("--box", type=float, default=4.0, help="states uniform in [-box, box]^D (default 4)")
+    p.add_argument("--wind-scale", type=float, default=0.1, help="vortex wind amplitude (default 0.1; 0: none)")
+    p.add_argument("--u-max", type=float, default=2.0,
+                   help="input norm bound of the built-in models (default 2; a model file has its own)")
+    p.add_argument("--box", type=float, default=4.0, help="positions uniform in [-box, box]^P (default 4)")
 
     p = sub.add_parser("fit-gp", help="fit one residual GP per state dimension")
     p.add_argument("--transitions", required=True, help="transitions file (.npz or .csv)")
@@ -46,8 +51,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--logdir", help="TensorBoard directory")
     p.add_argument("--holdout", type=float, default=0.0, help="fraction held out for RMSE/coverage")
     p.add_argument("--agent", type=int, help="fit only rows of this agent id")
-    p.add_argument("--gp-inputs", "--inputs", dest="gp_inputs", choices=("state", "state_input"), default="state",
-                   help="GP inputs: the state (paper) or state and input (default state)")
+    p.add_argument("--model", help="agent model (double-integrator or a model file): its residual rows are the GP "
+                                   "outputs and its gp_inputs the GP inputs (default: the paper's model)")
+    p.add_argument("--dim", type=int, default=None, help="position dimension of --model double-integrator")
+    p.add_argument("--dt", type=float, default=0.1, help="sampling time of --model double-integrator")
+    p.add_argument("--gp-inputs", "--inputs", dest="gp_inputs", choices=("state", "state_input"), default=None,
+                   help="without --model: the state (paper, default) or state and input")
     p.add_argument("--optimizer", choices=("lbfgs", "adam"), default="lbfgs")
     p.add_argument("--iters", type=int, default=50)
     p.add_argument("--seed", type=int, default=0)

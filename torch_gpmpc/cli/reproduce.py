@@ -48,9 +48,9 @@ def _fig1(cfg, path: Path) -> None:
     """Fig. 1: the wind field beside the GP mean of agent 0 (seed ``cfg.seed``)."""
     from torch_gpmpc.report.gp_figures import plot_gp_field
     from torch_gpmpc.gp import fit_agent_gps
-    from torch_gpmpc.dynamics.systems import make_system
+    from torch_gpmpc.dynamics.systems import system_from_config
 
-    system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
+    system = system_from_config(cfg)
     gp = fit_agent_gps(cfg, system, 1)[0]
     plot_gp_field(gp, system.wind, gp.train_inputs_raw, path, box=cfg.circle_radius,
                   title=f"wind g vs GP mean (agent 0, seed {cfg.seed}, N = {cfg.gp_samples})")

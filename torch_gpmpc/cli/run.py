@@ -39,7 +39,7 @@ def output_dir(text: str) -> Path:
 
 def main(args) -> int:
     from torch_gpmpc.coordination.distributed.transport import is_agent_rank
-    from torch_gpmpc.gp import ResidualGP, check_gp_inputs
+    from torch_gpmpc.gp import check_gp_inputs, load_model_gp
     from torch_gpmpc.report.tensorboard import TBLogger
     from torch_gpmpc.sim.closed_loop import needs_gp, simulate
     from torch_gpmpc.sim.metrics import compute_metrics
@@ -53,8 +53,7 @@ def main(args) -> int:
     # validate everything (config, scenario, model, output path) before any work or output
     cfg = config_from_args(args)
     scenario = make_scenario(cfg, args.scenario)
-    gps = [ResidualGP.load(args.gp_model, expected_dim=cfg.dim, expected_input_dim=cfg.dim)] \
-        if args.gp_model else None
+    gps = [load_model_gp(args.gp_model, cfg.model_spec())] if args.gp_model else None
     if gps is None and needs_gp(cfg.method):
         check_gp_inputs(cfg)
     out = output_dir(args.out)

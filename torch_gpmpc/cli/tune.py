@@ -48,7 +48,7 @@ def main(args) -> int:
     from torch_gpmpc.coordination.controller import make_controller
     from torch_gpmpc.gp import fit_agent_gps
     from torch_gpmpc.sim.scenarios import make_scenario
-    from torch_gpmpc.dynamics.systems import make_system
+    from torch_gpmpc.dynamics.systems import system_from_config
     from torch_gpmpc.report.tensorboard import TBLogger
 
     if args.iters < 0:
@@ -67,7 +67,7 @@ def main(args) -> int:
     started = time.perf_counter()
     scenario = make_scenario(cfg)
     num_agents = scenario.num_agents
-    system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
+    system = system_from_config(cfg)
     gps = fit_agent_gps(cfg, system, num_agents) if Method.parse(cfg.method).needs_gp else None
     admm = make_controller(cfg, system, gps)
 

@@ -16,6 +16,7 @@ from typing import Any, Mapping
 
 from torch_gpmpc.config.fields import Rules, build, validate
 from torch_gpmpc.dynamics.methods import METHOD_NAMES
+from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, resolve_model
 from torch_gpmpc.errors import GpmpcError
 
 METHODS = METHOD_NAMES
@@ -46,7 +47,10 @@ class Config:
         comm_radius: agents closer than this communicate; ``None`` = all pairs.
         goal_tol: an agent has arrived when within this distance of its target.
         max_steps: closed-loop step cap.
-        uncertainty: ``pointwise`` (paper: GP variance at the linearization point),
+        uncertainty: ``auto`` (default: ``pointwise`` for models whose residual rows are their
+            positions, as the paper's; ``propagated`` otherwise, e.g. the double integrator, whose
+            velocity residual reaches the position only through the dynamics),
+            ``pointwise`` (paper: GP variance at the linearization point),
             ``propagated`` (covariance pushed open loop through the linearized dynamics) or
             ``feedback`` (pushed through them under the LQR feedback of the nominal model, as
             tube MPC does: bounded instead of growing like sqrt(tau)).
@@ -62,7 +66,12 @@ class Config:
         solver: ``fast`` (structure-exploiting interior point compiled with numba, :mod:`~torch_gpmpc.control.solvers.interior_point`),
             ``clarabel`` (cvxpylayers + diffcp with Clarabel) or ``reference`` (cvxpylayers' default).
         method: one of :data:`METHODS`.
-        dim: state dimension D (2 or 3); inputs have the same dimension.
+        dim: position dimension (2 or 3) of the built-in models; the single integrator's state
+            and input have this dimension, the double integrator's state has twice it.
+        model: the agent model: ``single-integrator`` (the paper), ``double-integrator`` (state
+            ``[p, v]``, input acceleration) or a model file path (TOML/JSON, see
+            :mod:`~torch_gpmpc.config.model_spec`).
+        dt: sampling time of the double integrator (s).
         reference: ``line`` (straight line over ``ref_points`` steps, then hold) or ``target``.
         ref_points: number of points of the straight-line reference.
         circle_radius: radius of the start circle of ``paper``/``circle`` scenarios.
@@ -90,7 +99,7 @@ class Config:
     comm_radius: float | None = None
     goal_tol: float = 0.1
     max_steps: int = 150
-    uncertainty: str = "pointwise"
+    uncertainty: str = "auto"
     margin_variance: str = "predictive"
     pair_margin: str = "sum"
     scenario: str = "paper"
@@ -99,6 +108,8 @@ class Config:
     solver: str = "fast"
     method: str = "gp-chance"
     dim: int = 2
+    model: str = "single-integrator"
+    dt: float = 0.1
     reference: str = "line"
     ref_points: int = 50
     circle_radius: float = 4.0
@@ -113,11 +124,39 @@ class Config:
 
     def __post_init__(self) -> None:
         validate(self, RULES)
+        check_model_name(self.model)
         if self.scenario == "paper" and self.num_agents != 3:
             raise GpmpcError(
                 f"config key 'num_agents': the paper scenario has 3 agents, got {self.num_agents}; "
                 "use scenario=circle or scenario=random for other team sizes"
             )
+
+    def model_spec(self) -> ModelSpec:
+        """The agent model of this run (built-in or read from the model file)."""
+        return resolve_model(self.model, self.dim, self.dt, self.u_max)
+
+    @property
+    def uncertainty_mode(self) -> str:
+        """The covariance model in use: ``uncertainty`` with ``auto`` resolved (see above)."""
+        if self.uncertainty != "auto":
+            return self.uncertainty
+        spec = self.model_spec()
+        return "pointwise" if set(spec.position) <= set(spec.residual) else "propagated"
+
+    @property
+    def state_dim(self) -> int:
+        """n, the model's state dimension (``dim`` for the single integrator)."""
+        return self.model_spec().state_dim
+
+    @property
+    def input_dim(self) -> int:
+        """m, the model's input dimension."""
+        return self.model_spec().input_dim
+
+    @property
+    def position_dim(self) -> int:
+        """P, the dimension of positions (scenarios, collision rows, arrival)."""
+        return self.model_spec().position_dim
 
     def replace(self, **changes: Any) -> "Config":
         """Return a copy with ``changes`` applied (same checks as loading)."""
@@ -129,7 +168,7 @@ class Config:
 
 
 _CHOICES = {
-    "uncertainty": UNCERTAINTY_MODES,
+    "uncertainty": ("auto", *UNCERTAINTY_MODES),
     "margin_variance": MARGIN_VARIANCES,
     "pair_margin": PAIR_MARGINS,
     "scenario": SCENARIOS,
@@ -168,6 +207,7 @@ _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "gp_iters": (lambda v: v >= 1, "an integer >= 1"),
     "slack_penalty": (lambda v: v > 0, "a number > 0"),
     "wind_scale": (lambda v: v >= 0, "a number >= 0"),
+    "dt": (lambda v: 0 < v <= 10, "a number in (0, 10]"),
 }
 
 

@@ -30,7 +30,8 @@ FAIL_NONE, FAIL_EXCEPTION, FAIL_NONFINITE, FAIL_INACCURATE = 0, 1, 2, 3
 
 @dataclass
 class LocalProblemData:
-    """Inputs of B local problems with horizon T, dimension D and M neighbour slots.
+    """Inputs of B local problems with horizon T, state dimension D, input dimension Du and M
+    neighbour slots.
 
     Slot j of agent b is the edge to one neighbour; unused slots (agents with fewer
     than M neighbours) have ``active[b, j] = False`` and their other entries are ignored.
@@ -51,6 +52,8 @@ class LocalProblemData:
         rho_nbr: penalty of the neighbour copies alone, scalar or (B, M); ``None`` = ``rho``.
             A large ``rho_nbr`` with ``rho = 0`` pins the copies to ``z_nbr``: the neighbours'
             plans become fixed obstacles (the safety fallback).
+        dyn_B: linearized input matrices ``B + J_u`` (GPs that read the input), shape
+            (B, T, D, Du); ``None`` = the nominal B at every step.
     """
 
     x0: Tensor
@@ -66,9 +69,10 @@ class LocalProblemData:
     lam_own: Tensor
     lam_nbr: Tensor
     rho_nbr: Tensor | None = None
+    dyn_B: Tensor | None = None
 
-    def validate(self, horizon: int, dim: int, num_neighbors: int) -> int:
-        """Check all shapes against (T, D, M); return the batch size B.
+    def validate(self, horizon: int, dim: int, num_neighbors: int, input_dim: int | None = None) -> int:
+        """Check all shapes against (T, D, M[, Du]); return the batch size B.
 
         Raises:
             GpmpcError: naming the first field with a wrong shape.
@@ -80,11 +84,14 @@ class LocalProblemData:
             "dyn_c": (batch, T, D), "normals": (batch, M, T, D), "bounds": (batch, M, T),
             "active": (batch, M), "z_own": (batch, M, T + 1, D), "z_nbr": (batch, M, T + 1, D),
             "lam_own": (batch, M, T + 1, D), "lam_nbr": (batch, M, T + 1, D),
+            "dyn_B": (batch, T, D, input_dim if input_dim is not None else -1),
         }
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name == "rho_nbr" and value is None:
+            if f.name in ("rho_nbr", "dyn_B") and value is None:
                 continue
+            if f.name == "dyn_B" and input_dim is None:
+                expected["dyn_B"] = (batch, T, D, value.shape[-1])
             if f.name in ("rho", "rho_nbr"):
                 if value.dim() != 0 and tuple(value.shape) != (batch, M):
                     raise GpmpcError(f"LocalProblemData.{f.name} must be a scalar or have shape {(batch, M)}, "
@@ -194,23 +201,48 @@ class ConsensusTerms:
                    normals=normals, bounds=bounds)
 
 
+def input_bound_violation(U: Tensor, spec, u_max: float | None = None) -> Tensor:
+    """How far inputs (B, T, Du) exceed the model's bound (norm ``u_max``, default the model's,
+    or box), per problem (B,)."""
+    if spec.input_box is not None:
+        box = torch.tensor(spec.input_box, dtype=U.dtype, device=U.device)
+        return (U.abs() - box).clamp(min=0).flatten(1).amax(1)
+    bound = spec.input_norm if u_max is None else u_max
+    return (torch.linalg.vector_norm(U, dim=-1) - bound).clamp(min=0).amax(1)
+
+
+def state_bound_violation(X: Tensor, spec) -> Tensor:
+    """How far planned states (B, T+1, D) at tau = 1..T exceed the model's state bound, (B,)."""
+    if spec.state_bound_norm is None:
+        return X.new_zeros(X.shape[0])
+    sub = X[:, 1:, list(spec.state_bound_indices)]
+    return (torch.linalg.vector_norm(sub, dim=-1) - spec.state_bound_norm).clamp(min=0).amax(1)
+
+
 def acceptance_failures(data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor,
-                        nominal: NominalModel, u_max: float) -> Tensor:
+                        nominal: NominalModel, u_max: float | None = None) -> Tensor:
     """Failure code per problem (0 accepted, else ``FAIL_NONFINITE`` or ``FAIL_INACCURATE``), (B,).
 
     A finite answer is accepted when the initial condition, the dynamics, the input
-    bound, ``slack >= 0`` and the (softened) collision rows of active slots hold within
-    :data:`FEASIBILITY_TOL` relative to the plan's scale.
+    bound (the model's; ``u_max`` overrides a norm bound), the state bound, ``slack >= 0``
+    and the (softened) collision rows of active slots hold within :data:`FEASIBILITY_TOL`
+    relative to the plan's scale.
     """
     finite = torch.isfinite(X).flatten(1).all(1) & torch.isfinite(U).flatten(1).all(1) \
         & torch.isfinite(slack).flatten(1).all(1) & torch.isfinite(Y).flatten(1).all(1)
     Xs, Us = torch.nan_to_num(X), torch.nan_to_num(U)
     scale = 1.0 + Xs.abs().flatten(1).amax(1)
-    pred = (data.dyn_A.detach() @ Xs[:, :-1, :, None]).squeeze(-1) + Us @ nominal.B(dtype=X.dtype).T \
-        + data.dyn_c.detach()
+    if data.dyn_B is None:
+        drive = Us @ nominal.B(dtype=X.dtype).T
+    else:
+        drive = (data.dyn_B.detach() @ Us[..., None]).squeeze(-1)
+    pred = (data.dyn_A.detach() @ Xs[:, :-1, :, None]).squeeze(-1) + drive + data.dyn_c.detach()
     dyn_res = (Xs[:, 1:] - pred).abs().flatten(1).amax(1)
     init_res = (Xs[:, 0] - data.x0.detach()).abs().amax(1)
-    u_res = (torch.linalg.vector_norm(Us, dim=-1) - u_max).clamp(min=0).amax(1)
+    u_res = input_bound_violation(Us, nominal.spec, u_max)
+    x_res = state_bound_violation(Xs, nominal.spec)
+    u_scale = max(nominal.spec.input_box) if nominal.spec.input_box is not None else \
+        (nominal.spec.input_norm if u_max is None else u_max)
     s_res = (-torch.nan_to_num(slack)).clamp(min=0).flatten(1).amax(1) if slack.numel() else torch.zeros_like(u_res)
     if Y.shape[1] > 0 and slack.numel():
         # collision rows n^T (X_tau - Y_j,tau) + s_j,tau >= bound_j,tau, tau = 1..T, active slots only
@@ -222,7 +254,8 @@ def acceptance_failures(data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor,
         c_res = torch.zeros_like(u_res)
     tol = FEASIBILITY_TOL
     feasible = (dyn_res <= tol * scale) & (init_res <= tol * scale) \
-        & (u_res <= tol * (1 + u_max)) & (s_res <= tol * scale) & (c_res <= tol * scale)
+        & (u_res <= tol * (1 + u_scale)) & (s_res <= tol * scale) & (c_res <= tol * scale) \
+        & (x_res <= tol * scale)
     code = torch.full(finite.shape, FAIL_NONE, dtype=torch.int64)
     code = torch.where(feasible, code, torch.full_like(code, FAIL_INACCURATE))
     return torch.where(finite, code, torch.full_like(code, FAIL_NONFINITE))

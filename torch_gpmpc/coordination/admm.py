@@ -111,7 +111,7 @@ class ADMM:
         gps: list | None = None,
     ) -> None:
         self.cfg = cfg
-        self.local = LocalStep(cfg, method or cfg.method, nominal or NominalModel(dim=cfg.dim), wind, gps)
+        self.local = LocalStep(cfg, method or cfg.method, nominal or NominalModel(cfg.model_spec()), wind, gps)
 
     @property
     def gps(self) -> list | None:
@@ -155,7 +155,7 @@ class ADMM:
         eps_self = slot_risks(graph, cfg.eps, cfg.risk_split if risk_split is None else risk_split)
         max_iter = cfg.admm_max_iter if max_iter is None else max_iter
         tol = cfg.admm_tol if tol is None else tol
-        state = initial_state(x0, cfg.horizon, graph) if warm is None else adapt_state(warm, graph)
+        state = initial_state(x0, cfg.horizon, graph, self.local.nominal.input_dim) if warm is None else adapt_state(warm, graph)
         layer = self.local.solver(graph.num_slots)
         result = StepResult(plans=state.plans, inputs=state.inputs, state=state, iterations=0, converged=False)
         frozen_plans = state.plans
@@ -200,7 +200,8 @@ class ADMM:
         """Judge the applied plans at tau = 1 (own plans, not copies); after an unconverged stop,
         re-plan the agents of unsafe pairs against their neighbours' latest plans."""
         bounds = data.bounds[:, :, 0].detach()
-        unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.cfg.admm_tol)
+        unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.cfg.admm_tol,
+                                       self.local.nominal.position)
         if fallback and not result.converged and bool(unsafe.any()):
             with torch.no_grad():
                 sol = self.local.solve(layer, obstacle_problem(data, state.plans[graph.slot_nbr]))
@@ -209,7 +210,8 @@ class ADMM:
                 state = dataclasses.replace(state, plans=torch.where(use[:, None, None], sol.X, state.plans),
                                             inputs=torch.where(use[:, None, None], sol.U, state.inputs))
                 result.fallback = True
-                unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.cfg.admm_tol)
+                unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.cfg.admm_tol,
+                                       self.local.nominal.position)
         result.unsafe_plan = bool(unsafe.any())
         result.pair_separation, result.pair_required = sep, req
         return state

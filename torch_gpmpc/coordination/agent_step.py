@@ -96,8 +96,8 @@ def exchanges_variance(cfg: Config, method: str | Method | None = None) -> bool:
 
 def message_size(cfg: Config, method: str | Method | None = None) -> int:
     """Numbers one agent sends one neighbour per ADMM iteration: its copy ``y_{e,k}``
-    (``2 (T+1) D``) and, when exchanged, its T projected variances."""
-    return 2 * (cfg.horizon + 1) * cfg.dim + (cfg.horizon if exchanges_variance(cfg, method) else 0)
+    (``2 (T+1) D``, D the model's state dimension) and, when exchanged, its T projected variances."""
+    return 2 * (cfg.horizon + 1) * cfg.state_dim + (cfg.horizon if exchanges_variance(cfg, method) else 0)
 
 
 def _reported_variances(state: ADMMState, slot_edge: Tensor, side: Tensor, own: Tensor) -> Tensor:
@@ -139,7 +139,7 @@ class LocalStep:
         self.gps = gps
         #: B K of the ancillary LQR feedback (``uncertainty = feedback``), else None
         self.feedback = None
-        if cfg.uncertainty == "feedback":
+        if cfg.uncertainty_mode == "feedback":
             A, B = nominal.A(dtype=torch.float64), nominal.B(dtype=torch.float64)
             self.feedback = B @ lqr_gain(A, B, 1.0, max(cfg.alpha, 1e-9))
         #: failure kinds already warned about (one warning per kind per run)
@@ -149,8 +149,8 @@ class LocalStep:
         """The shared batched local solver for ``num_slots`` neighbour slots (cached per size)."""
         cfg = self.cfg
         return make_local_solver(
-            horizon=cfg.horizon, dim=cfg.dim, num_neighbors=num_slots, nominal=self.nominal,
-            u_max=cfg.u_max, alpha=cfg.alpha, slack_penalty=cfg.slack_penalty, solver=cfg.solver,
+            horizon=cfg.horizon, dim=self.nominal.dim, num_neighbors=num_slots, nominal=self.nominal,
+            u_max=None, alpha=cfg.alpha, slack_penalty=cfg.slack_penalty, solver=cfg.solver,
         )
 
     @property
@@ -182,14 +182,17 @@ class LocalStep:
         xbar = state.plans[rows]
         gps = None if self.gps is None else self.gps[rows]
         lin = linearize_plan(self.method, xbar, self.nominal, self.wind, gps,
-                             include_noise=cfg.margin_variance == "predictive")
+                             include_noise=cfg.margin_variance == "predictive", ubar=state.inputs[rows])
         slot_edge, side, active = graph.slot_edge[rows], graph.slot_side[rows], graph.active[rows]
         slot_nbr = graph.slot_nbr[rows]
         agent_ids = torch.arange(graph.num_agents)[rows]
-        normals = collision_normals(xbar, state.plans[slot_nbr], agent_ids, slot_nbr)[:, :, 1:]
+        pos = self.nominal.position
+        normals_p = collision_normals(xbar[..., pos], state.plans[slot_nbr][..., pos], agent_ids, slot_nbr)[:, :, 1:]
+        normals = normals_p.new_zeros(*normals_p.shape[:3], xbar.shape[-1])
+        normals[..., pos] = normals_p  # collision rows act on the position states only
         own_var = None
         if self.method.chance:
-            sigma = state_covariances(cfg.uncertainty, lin.var, lin.dyn_A, self.feedback)[:, 1:]
+            sigma = state_covariances(cfg.uncertainty_mode, lin.var, lin.dyn_A, self.feedback)[:, 1:]
             own_var = projected_variances(normals, sigma)
             nbr_var = _reported_variances(state, slot_edge, side, own_var)
             margins = pair_margins(cfg.pair_margin, own_var, nbr_var, eps_self, cfg.eps - eps_self)
@@ -200,7 +203,7 @@ class LocalStep:
         z_slot = state.z[slot_edge]  # (B, M, 2, T+1, D)
         lam_mine = state.lam[slot_edge][r, c, side]  # (B, M, 2, T+1, D): this agent's duals
         data = LocalProblemData(
-            x0=x0, xref=xref, dyn_A=lin.dyn_A, dyn_c=lin.dyn_c, normals=normals,
+            x0=x0, xref=xref, dyn_A=lin.dyn_A, dyn_c=lin.dyn_c, dyn_B=lin.dyn_B, normals=normals,
             bounds=cfg.r_safe + margins, active=active, rho=rho,
             z_own=z_slot[r, c, side], z_nbr=z_slot[r, c, 1 - side],
             lam_own=lam_mine[r, c, side], lam_nbr=lam_mine[r, c, 1 - side],
@@ -310,7 +313,8 @@ def obstacle_problem(data: LocalProblemData, nbr_plans: Tensor) -> LocalProblemD
                                z_own=zero, lam_own=zero, z_nbr=nbr_plans.detach(), lam_nbr=zero)
 
 
-def pair_safety(plans: Tensor, graph: Graph, bounds: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor]:
+def pair_safety(plans: Tensor, graph: Graph, bounds: Tensor, tol: float,
+                position: list[int] | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Are the agents' own plans safe at tau = 1 (the step they apply)?
 
     A pair (k, j) is unsafe when ``||X_k^1 - X_j^1||`` is below the larger of its two rows'
@@ -322,10 +326,13 @@ def pair_safety(plans: Tensor, graph: Graph, bounds: Tensor, tol: float) -> tupl
         graph: the communication graph.
         bounds: (K, M) each agent's tau = 1 collision bound per slot.
         tol: allowance below the bound.
+        position: the state indices of the position (``None``: every state).
 
     Returns:
         ``(unsafe (K,) bool, separation (K, K), required (K, K))``; off-edge entries are NaN.
     """
+    if position is not None:
+        plans = plans[..., position]
     K = plans.shape[0]
     sep = torch.full((K, K), float("nan"), dtype=plans.dtype)
     req = torch.full((K, K), float("nan"), dtype=plans.dtype)

@@ -111,16 +111,17 @@ def shift_in_time(x: Tensor, dim: int) -> Tensor:
     return torch.cat([x.narrow(dim, 1, x.shape[dim] - 1), last], dim=dim)
 
 
-def initial_state(x0: Tensor, horizon: int, graph: Graph) -> ADMMState:
+def initial_state(x0: Tensor, horizon: int, graph: Graph, input_dim: int | None = None) -> ADMMState:
     """Cold start: every agent plans to stay where it is; z from those plans, lam = 0.
 
     Args:
         x0: (K, D) current states.
         horizon: T.
         graph: the communication graph.
+        input_dim: Du (default D).
     """
     plans = x0.unsqueeze(1).expand(-1, horizon + 1, -1).clone()
-    inputs = x0.new_zeros(x0.shape[0], horizon, x0.shape[1])
+    inputs = x0.new_zeros(x0.shape[0], horizon, x0.shape[1] if input_dim is None else input_dim)
     z = plans[graph.edges].clone() if graph.num_edges else x0.new_zeros(0, 2, horizon + 1, x0.shape[1])
     lam = x0.new_zeros(graph.num_edges, 2, 2, horizon + 1, x0.shape[1])
     return ADMMState(plans, inputs, graph.edges, z, lam)

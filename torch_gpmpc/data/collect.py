@@ -32,20 +32,21 @@ def sample_disc(n: int, dim: int, radius: float, generator: torch.Generator) -> 
 
 
 def collect_transitions(system: TrueSystem, num_agents: int = 3, samples: int = 100, seed: int = 0,
-                        u_max: float = 2.0, box: float = 4.0) -> Transitions:
-    """The paper's data recipe, ``samples`` transitions per agent.
+                        u_max: float | None = None, box: float = 4.0) -> Transitions:
+    """The paper's data recipe, ``samples`` transitions per agent, for any linear model.
 
-    States are uniform in ``[-box, box]^D``, inputs uniform in the disc (ball)
-    ``||v|| < u_max`` and ``x_next = system.step(x, v)`` with one seeded
-    ``torch.Generator`` for states, inputs and noise.
+    Positions are uniform in ``[-box, box]^P``; the model's other states (velocities) uniform in
+    ``[-1, 1]`` times its state bound (1 without one); inputs uniform in the model's input bound
+    (the ball ``||v|| < u_max`` or the box); ``x_next = system.step(x, v)``, with one seeded
+    ``torch.Generator`` for states, inputs and noise. For the paper's model this is its recipe.
 
     Args:
         system: the true system (nominal + wind + noise).
         num_agents: K; rows are tagged with agent ids 0..K-1.
         samples: N per agent.
         seed: seed of the generator.
-        u_max: input norm bound.
-        box: half-width of the state box.
+        u_max: input norm bound (default: the model's; ignored with a box bound).
+        box: half-width of the position box.
 
     Returns:
         Transitions with K*N rows (agent 0's rows first).
@@ -53,6 +54,8 @@ def collect_transitions(system: TrueSystem, num_agents: int = 3, samples: int = 
     Raises:
         GpmpcError: for non-positive counts or sizes.
     """
+    spec = system.nominal.spec
+    u_max = spec.input_norm if u_max is None else u_max
     if int(num_agents) < 1:
         raise GpmpcError(f"agents must be >= 1, got {num_agents}; e.g. --agents 3")
     if int(samples) < MIN_SAMPLES:
@@ -60,15 +63,21 @@ def collect_transitions(system: TrueSystem, num_agents: int = 3, samples: int = 
     if int(num_agents) * int(samples) > MAX_COLLECT_ROWS:
         raise GpmpcError(f"agents x samples = {int(num_agents) * int(samples)} transitions is more than "
                          f"{MAX_COLLECT_ROWS}; lower --agents or --samples (the paper uses 100 per agent)")
-    for name, value in (("u-max", u_max), ("box", box)):
+    for name, value in (("u-max", u_max if spec.input_box is None else 1.0), ("box", box)):
         if not (math.isfinite(value) and value > 0):
             raise GpmpcError(f"{name} must be a positive number, got {value}")
-    dim = system.nominal.dim
+    dim, du = system.nominal.dim, system.nominal.input_dim
+    half = torch.full((dim,), 1.0 if spec.state_bound_norm is None else spec.state_bound_norm, dtype=torch.float64)
+    half[list(spec.position)] = box
     gen = torch.Generator().manual_seed(int(seed))
     xs, us, xns, ids = [], [], [], []
     for k in range(int(num_agents)):
-        x = (2.0 * torch.rand(int(samples), dim, generator=gen, dtype=torch.float64) - 1.0) * box
-        u = sample_disc(int(samples), dim, u_max, gen)
+        x = (2.0 * torch.rand(int(samples), dim, generator=gen, dtype=torch.float64) - 1.0) * half
+        if spec.input_box is None:
+            u = sample_disc(int(samples), du, u_max, gen)
+        else:
+            u = (2.0 * torch.rand(int(samples), du, generator=gen, dtype=torch.float64) - 1.0) \
+                * torch.tensor(spec.input_box, dtype=torch.float64)
         xs.append(x)
         us.append(u)
         xns.append(system.step(x, u, generator=gen))

@@ -186,21 +186,25 @@ class Transitions:
             raise source_error(self.source, f"input dimension Du={self.input_dim} (columns of u) does not "
                         f"match the model's Du={input_dim}")
 
-    def residuals(self, nominal: NominalModel, gp_inputs: str = "state") -> tuple[Tensor, Tensor]:
-        """GP training data: inputs and residual targets ``y = x_next - f(x, u)`` (eq. 2).
+    def residuals(self, nominal: NominalModel, gp_inputs: str | None = None) -> tuple[Tensor, Tensor]:
+        """GP training data: inputs and residual targets ``y = [x_next - f(x, u)]_residual`` (eq. 2).
 
         Args:
-            nominal: the known model f (its ``dim`` must match D and Du).
-            gp_inputs: ``"state"`` (paper: GP inputs are x) or ``"state_input"`` (x and u).
+            nominal: the known model f (its state and input dimensions must match the data);
+                its ``residual`` rows are the targets.
+            gp_inputs: ``None`` (the model's ``gp_inputs`` columns), ``"state"`` (all of x, the
+                paper) or ``"state_input"`` (x and u).
 
         Returns:
-            ``(inputs, y)``: inputs of shape (N, D) (or (N, D + Du)), y of shape (N, D).
+            ``(inputs, y)``: inputs of shape (N, Din), y of shape (N, R).
 
         Raises:
             GpmpcError: on a dimension mismatch or an unknown ``gp_inputs``.
         """
-        self.check_dim(nominal.dim, nominal.dim)
-        y = self.x_next - nominal(self.x, self.u)
+        self.check_dim(nominal.dim, nominal.input_dim)
+        y = (self.x_next - nominal(self.x, self.u))[:, nominal.residual]
+        if gp_inputs is None:
+            return nominal.gp_input(self.x, self.u), y
         if gp_inputs == "state":
             return self.x, y
         if gp_inputs == "state_input":

@@ -174,7 +174,7 @@ def fit_from_transitions(transitions, nominal=None, gp_inputs: str = "state", ag
     """
     from torch_gpmpc.dynamics.systems import NominalModel
 
-    nominal = nominal if nominal is not None else NominalModel(dim=transitions.state_dim)
+    nominal = nominal if nominal is not None else NominalModel(transitions.state_dim)
     if agent is not None:
         transitions = transitions.for_agent(agent)
     X, Y = transitions.residuals(nominal, gp_inputs=gp_inputs)
@@ -194,13 +194,20 @@ def fit_per_agent(transitions, nominal=None, gp_inputs: str = "state", **fit_kwa
 
 
 def check_gp_inputs(cfg: Config) -> None:
-    """The controller linearizes GPs of the state alone (paper eq. 12).
+    """The controller's GPs read the model's ``gp_inputs`` columns (the state, for the paper's
+    model); the config key ``gp_inputs`` only matters to ``fit-gp`` without ``--model``.
 
     Raises:
         GpmpcError: ``gp_inputs`` is not ``state``.
     """
     if cfg.gp_inputs != "state":
-        raise GpmpcError("config key 'gp_inputs': the controller needs state-input GPs; use gp_inputs=state")
+        raise GpmpcError("config key 'gp_inputs': the controller's GPs read the model's gp_inputs columns; "
+                         "use gp_inputs=state and give other columns in a model file (--set model=FILE)")
+
+
+def load_model_gp(path: str, spec) -> ResidualGP:
+    """A ``fit-gp`` model file checked against the run's model (its GP inputs and residual rows)."""
+    return ResidualGP.load(path, expected_dim=len(spec.residual), expected_input_dim=len(spec.gp_inputs))
 
 
 def fit_agent_gp(cfg: Config, system, k: int) -> ResidualGP:
@@ -234,9 +241,16 @@ def _recipe_data(cfg: Config, system, agents: int):
     from torch_gpmpc.data.collect import collect_transitions
 
     return collect_transitions(system, num_agents=agents, samples=cfg.gp_samples,
-                               seed=2 * cfg.seed + 1, u_max=cfg.u_max, box=cfg.circle_radius)
+                               seed=2 * cfg.seed + 1, box=cfg.circle_radius)
 
 
 def _fit_rows(cfg: Config, system, data, k: int) -> ResidualGP:
     inputs, y = data.for_agent(k).residuals(system.nominal)
-    return fit_residual_gp(inputs, y, optimizer=cfg.gp_optimizer, iters=cfg.gp_iters, seed=cfg.seed + k)
+    return fit_residual_gp(inputs, y, optimizer=cfg.gp_optimizer, iters=cfg.gp_iters, seed=cfg.seed + k,
+                           gp_inputs=gp_input_label(system.nominal))
+
+
+def gp_input_label(nominal) -> str:
+    """The model file's name for a GP's inputs: ``state`` for the paper's model, else the columns."""
+    cols = list(nominal.spec.gp_inputs)
+    return "state" if cols == [f"x{i}" for i in range(nominal.dim)] else ",".join(cols)

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -96,8 +97,9 @@ class ResidualGP(torch.nn.Module):
                  normalization: Standardization | None = None):
         super().__init__()
         inputs, y = _check_training_data(inputs, y)
-        if gp_inputs not in GP_INPUTS:
-            raise GpmpcError(f"gp_inputs must be one of {GP_INPUTS}, got {gp_inputs!r}")
+        if gp_inputs not in GP_INPUTS and not _is_column_list(gp_inputs):
+            raise GpmpcError(f"gp_inputs must be one of {GP_INPUTS} or model columns such as 'x3,x4,u0', "
+                             f"got {gp_inputs!r}")
         self.gp_inputs = gp_inputs
         self.train_inputs_raw = inputs
         self.train_y_raw = y
@@ -379,8 +381,9 @@ class ResidualGP(torch.nn.Module):
                 raise GpmpcError(f"{src}: entry {key!r} has shape {tuple(tensors[key].shape)} or values "
                                  f"inconsistent with the training data (expected ({size},), std > 0)")
         kind = payload.get("input_kind")  # the file's name for gp_inputs
-        if kind not in GP_INPUTS:
-            raise GpmpcError(f"{src}: entry 'input_kind' must be one of {GP_INPUTS}, got {kind!r}")
+        if kind not in GP_INPUTS and not _is_column_list(kind):
+            raise GpmpcError(f"{src}: entry 'input_kind' must be one of {GP_INPUTS} or model columns "
+                             f"such as 'x3,u0', got {kind!r}")
         gp = cls(X, Y, gp_inputs=kind, normalization=Standardization(
             tensors["x_mean"], tensors["x_std"], tensors["y_mean"], tensors["y_std"]))
         gp._load_state(payload.get("state_dict"), src)
@@ -404,6 +407,11 @@ class ResidualGP(torch.nn.Module):
             if value.is_floating_point() and not bool(torch.isfinite(value).all()) and "bound" not in key:
                 raise GpmpcError(f"{src}: hyperparameter {key!r} has NaN/inf values (corrupt file)")
         self.model.load_state_dict({k: v.to(reference[k].dtype) for k, v in state.items()})
+
+
+def _is_column_list(label: Any) -> bool:
+    """Whether ``label`` names GP input columns of a model, e.g. ``"x3,x4,u0"``."""
+    return isinstance(label, str) and bool(re.fullmatch(r"[xu]\d+(,[xu]\d+)*", label))
 
 
 def _check_training_data(inputs: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:

@@ -84,7 +84,7 @@ def plot_trajectories(
     Returns:
         ``path``.
     """
-    states = np.asarray(rollout.states, dtype=np.float64)
+    states = np.asarray(rollout.positions, dtype=np.float64)
     num_steps = states.shape[0] - 1
     steps = default_snapshot_steps(num_steps) if steps is None else [int(s) for s in steps]
     bad = [s for s in steps if not 0 <= s <= num_steps]
@@ -109,7 +109,7 @@ def _draw_snapshot(ax: Any, rollout: Rollout, states: np.ndarray, t: int, r_safe
                    ref: np.ndarray | None) -> None:
     """One panel of :func:`plot_trajectories` at step t."""
     targets = np.asarray(rollout.targets, dtype=np.float64)
-    plans = np.asarray(rollout.plans, dtype=np.float64)
+    plans = np.asarray(rollout.plan_positions, dtype=np.float64)
     for k in range(states.shape[1]):
         c = _color(k)
         start, goal = states[0, k], targets[k]
@@ -155,7 +155,7 @@ def plot_distances(rollout: Rollout, path: str | Path) -> Path:
     Returns:
         ``path``.
     """
-    states = np.asarray(rollout.states, dtype=np.float64)
+    states = np.asarray(rollout.positions, dtype=np.float64)
     r_safe = compute_metrics(rollout)["r_safe"]
     dists = pair_distances(states)  # (S+1, P)
     fig, axes = _new_figure(1, panel=(6.0, 3.6))
@@ -291,7 +291,7 @@ def plot_distance_bands(runs: Mapping[str, Sequence[Rollout]], path: str | Path,
     pairs = pair_index(num_agents)
     fig, axes = _new_figure(len(runs), panel=(3.6, 3.2))
     for ax, (method, rollouts) in zip(axes[0], runs.items()):
-        dists = [pair_distances(r.states) for r in rollouts]  # each (S_r+1, P)
+        dists = [pair_distances(r.positions) for r in rollouts]  # each (S_r+1, P)
         length = max(d.shape[0] for d in dists)
         stack = np.stack([_hold_pad(d, length) for d in dists])  # (N, L, P)
         mean, std = stack.mean(axis=0), stack.std(axis=0)
@@ -330,11 +330,11 @@ def plot_path_lengths(runs: Mapping[str, Sequence[Rollout]], path: str | Path) -
     agents = np.arange(num_agents)
     straight = []
     for m, method in enumerate(methods):
-        lengths = np.stack([path_lengths(r.states) for r in runs[method]])  # (N, K)
+        lengths = np.stack([path_lengths(r.positions) for r in runs[method]])  # (N, K)
         offset = (m - (len(methods) - 1) / 2) * width
         ax.bar(agents + offset, lengths.mean(axis=0), width, yerr=lengths.std(axis=0),
                color=_color(m), label=method, capsize=2)
-        straight += [np.linalg.norm(np.asarray(r.targets) - np.asarray(r.states)[0], axis=-1) for r in runs[method]]
+        straight += [np.linalg.norm(np.asarray(r.targets) - np.asarray(r.positions)[0], axis=-1) for r in runs[method]]
     line = np.mean(straight, axis=0)  # (K,)
     for k in agents:
         ax.hlines(line[k], k - 0.45, k + 0.45, colors="k", linestyles="--", lw=1.2, zorder=3,

@@ -57,7 +57,7 @@ def active_outcomes(rollout: Rollout, tol: float = ACTIVE_TOL) -> tuple[int, int
         raise ValueError("the rollout has no pair_separation/pair_required (written by an older version)")
     sep, req = np.asarray(rollout.pair_separation), np.asarray(rollout.pair_required)
     r_safe = float(rollout.config.get("r_safe", Config().r_safe))
-    realized = pair_distances(rollout.states)[1:]  # (S, P): distance after step t
+    realized = pair_distances(rollout.positions)[1:]  # (S, P): distance after step t
     active = np.isfinite(sep) & np.isfinite(req) & (np.abs(sep - req) <= tol)
     return int(active.sum()), int((active & (realized < r_safe)).sum())
 

@@ -28,7 +28,8 @@ from torch_gpmpc.coordination.controller import make_controller
 from torch_gpmpc.coordination.graph import Graph, communication_graph
 from torch_gpmpc.coordination.state import ADMMState, StepResult
 from torch_gpmpc.dynamics.methods import Method
-from torch_gpmpc.dynamics.systems import TrueSystem, clip_norm, make_system
+from torch_gpmpc.config.model_spec import ModelSpec
+from torch_gpmpc.dynamics.systems import TrueSystem, project_input, system_from_config
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.sim.recorder import StepInfo, StepRecorder, log_step
 from torch_gpmpc.sim.rollout import Rollout
@@ -69,13 +70,15 @@ def needs_gp(method: str | Method) -> bool:
 
 
 def noise_sequence(cfg: Config, num_agents: int) -> Tensor:
-    """Standard-normal process noise for the whole run, shape (max_steps, K, D), float64."""
+    """Standard-normal process noise for the whole run, shape (max_steps, K, R) (R: the model's
+    residual rows, where the noise acts), float64."""
     gen = torch.Generator().manual_seed(2 * cfg.seed)
-    return torch.randn(cfg.max_steps, num_agents, cfg.dim, generator=gen, dtype=torch.float64)
+    return torch.randn(cfg.max_steps, num_agents, len(cfg.model_spec().residual), generator=gen,
+                       dtype=torch.float64)
 
 
-def check_gps(gps: list, num_agents: int, dim: int) -> list:
-    """One GP per agent (a single GP is shared), each of the run's dimension.
+def check_gps(gps: list, num_agents: int, spec: ModelSpec) -> list:
+    """One GP per agent (a single GP is shared), each with the model's GP inputs and residual rows.
 
     Raises:
         GpmpcError: wrong count or dimension.
@@ -84,11 +87,13 @@ def check_gps(gps: list, num_agents: int, dim: int) -> list:
         gps = gps * num_agents
     if len(gps) != num_agents:
         raise GpmpcError(f"got {len(gps)} GP models for {num_agents} agents; give one, or one per agent")
+    din, dout = len(spec.gp_inputs), len(spec.residual)
     for gp in gps:
-        if gp.input_dim != dim or gp.output_dim != dim:
+        if gp.input_dim != din or gp.output_dim != dout:
             raise GpmpcError(
-                f"GP model has input/output dimension {gp.input_dim}/{gp.output_dim} but the run has "
-                f"dim={dim}; fit it on {dim}-D state transitions (gp_inputs=state)"
+                f"GP model has input/output dimension {gp.input_dim}/{gp.output_dim} but the model "
+                f"{spec.name!r} has {din} GP inputs and {dout} residual rows; fit it with "
+                "gpmpc fit-gp --model on transitions of that model"
             )
     return gps
 
@@ -120,9 +125,10 @@ def simulate(
     cfg = cfg.replace(method=method or cfg.method)
     scenario = scenario or make_scenario(cfg)
     num_agents = scenario.num_agents
-    system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
+    system = system_from_config(cfg)
     if needs_gp(cfg.method):
-        gps = check_gps(gps, num_agents, cfg.dim) if gps is not None else fit_agent_gps(cfg, system, num_agents)
+        gps = check_gps(gps, num_agents, cfg.model_spec()) if gps is not None \
+            else fit_agent_gps(cfg, system, num_agents)
     planner = ADMMPlanner(make_controller(cfg, system, gps))
     return run_closed_loop(cfg, scenario, system, planner, on_step, tb)
 
@@ -138,17 +144,19 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem, planner
     noise = noise_sequence(cfg, num_agents)
     recorder = StepRecorder(cfg, num_agents)
     start_time = time.perf_counter()
-    x = scenario.starts.clone()
+    nominal = system.nominal
+    x = nominal.states_at(scenario.starts)
     states = [x]
     with torch.no_grad():
         for t in range(cfg.max_steps):
-            if bool(((x - scenario.targets).norm(dim=1) < cfg.goal_tol).all()):
+            if bool(((nominal.positions(x) - scenario.targets).norm(dim=1) < cfg.goal_tol).all()):
                 break
-            graph = communication_graph(x, cfg.comm_radius)
-            res = planner.plan(t, x, scenario.reference_window(t, cfg.horizon), graph)
+            graph = communication_graph(nominal.positions(x), cfg.comm_radius)
+            xref = nominal.reference_states(scenario.reference_window(t, cfg.horizon))
+            res = planner.plan(t, x, xref, graph)
             if res is None:
                 break
-            u = clip_norm(res.inputs[:, 0], cfg.u_max)
+            u = project_input(res.inputs[:, 0], nominal.spec)
             x = system.step(x, u, noise=noise[t])
             states.append(x)
             info = recorder.record(t, res, graph.adjacency(), u, x)
@@ -157,4 +165,4 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem, planner
             if on_step is not None:
                 on_step(t, info)
     wall = time.perf_counter() - start_time
-    return recorder.rollout(torch.stack(states), scenario.targets, wall, cfg.method)
+    return recorder.rollout(torch.stack(states), scenario.targets, wall, cfg.method, nominal.position)

@@ -53,7 +53,7 @@ from torch_gpmpc.coordination.admm import should_stop
 from torch_gpmpc.coordination.agent_step import message_size
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.state import StepResult, shift_in_time
-from torch_gpmpc.dynamics.systems import make_system
+from torch_gpmpc.dynamics.systems import system_from_config
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.sim.closed_loop import StepCallback, run_closed_loop
 from torch_gpmpc.sim.metrics import pair_distances
@@ -106,7 +106,7 @@ class DistributedReport:
             solve_it.append(c.get("solve_time", 0.0) / its)
             comm_it.append(c.get("comm_time", 0.0) / its)
         alive = [k for k in range(K) if k not in self.lost_agents]
-        dists = pair_distances(rollout.states[:, alive]) if len(alive) > 1 else np.zeros((0, 0))
+        dists = pair_distances(rollout.positions[:, alive]) if len(alive) > 1 else np.zeros((0, 0))
         return {
             "backend": "distributed",
             "processes": self.processes,
@@ -154,9 +154,9 @@ class RemotePlanner:
                  report: DistributedReport) -> None:
         self.cfg, self.net, self.num_agents, self.per = cfg, net, num_agents, per
         self.timeout_s, self.report = timeout_s, report
-        T, D = cfg.horizon, cfg.dim
+        T, D = cfg.horizon, cfg.state_dim
         self.last_plan = torch.zeros(num_agents, T + 1, D, dtype=DTYPE)
-        self.open_loop = [torch.zeros(0, D, dtype=DTYPE) for _ in range(num_agents)]
+        self.open_loop = [torch.zeros(0, cfg.input_dim, dtype=DTYPE) for _ in range(num_agents)]
 
     @property
     def lost(self) -> dict[int, int]:
@@ -189,7 +189,7 @@ class RemotePlanner:
         return res
 
     def _send_sensing(self, t: int, x: Tensor, graph: Graph) -> None:
-        K, D = self.num_agents, self.cfg.dim
+        K, D = self.num_agents, self.cfg.state_dim
         adj = graph.adjacency()
         sends = []
         for k in self._live():
@@ -203,8 +203,8 @@ class RemotePlanner:
 
     def _decide_iterations(self, t: int) -> StepResult:
         """Reduce the agents' residuals each iteration and broadcast the stop decision."""
-        cfg, K, T, D = self.cfg, self.num_agents, self.cfg.horizon, self.cfg.dim
-        res = StepResult(plans=self.last_plan, inputs=torch.zeros(K, T, D, dtype=DTYPE), state=None,
+        cfg, K, T = self.cfg, self.num_agents, self.cfg.horizon
+        res = StepResult(plans=self.last_plan, inputs=torch.zeros(K, T, cfg.input_dim, dtype=DTYPE), state=None,
                          iterations=0, converged=False)
         for it in range(1, cfg.admm_max_iter + 1):
             self._mark_lost(t)
@@ -232,7 +232,7 @@ class RemotePlanner:
         tel = self.net.exchange([], [((telemetry_size(cfg),), rank_of(k, self.per), tag(Kind.TELEM, k))
                                      for k in live], 2 * self.timeout_s + 5.0)
         self._mark_lost(t)
-        inputs = torch.zeros(K, cfg.horizon, cfg.dim, dtype=DTYPE)
+        inputs = torch.zeros(K, cfg.horizon, cfg.input_dim, dtype=DTYPE)
         plans = self.last_plan.clone()
         margins, slacks = [], []
         reported = set()
@@ -266,7 +266,7 @@ class RemotePlanner:
 
     def stop(self) -> None:
         """Tell every live agent the run is over."""
-        K, D = self.num_agents, self.cfg.dim
+        K, D = self.num_agents, self.cfg.state_dim
         self.net.exchange([(torch.full((sensing_size(K, D),), CMD_STOP, dtype=DTYPE), rank_of(k, self.per),
                             tag(Kind.SENSE, 0, k)) for k in self._live()], [], self.timeout_s)
 
@@ -357,7 +357,7 @@ def simulate_distributed(
         net = Network(0)
         send_missions(net, cfg, scenario, gp_model, world_size, per, timeout_s, setup_timeout_s, report)
         planner = RemotePlanner(cfg, net, K, per, timeout_s, report)
-        system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
+        system = system_from_config(cfg)
         rollout = run_closed_loop(cfg, scenario, system, planner, on_step, tb)
         planner.stop()
         ok = True

@@ -211,8 +211,8 @@ def _failures(rollout: Rollout) -> dict[str, Any]:
 
 
 def _checked_states(rollout: Rollout) -> tuple[np.ndarray, np.ndarray]:
-    """``states`` (S+1, K, D) and ``targets`` (K, D) as float64, shapes checked."""
-    states = np.asarray(rollout.states, dtype=np.float64)
+    """Positions (S+1, K, P) of the states and ``targets`` (K, P) as float64, shapes checked."""
+    states = np.asarray(rollout.positions, dtype=np.float64)
     targets = np.asarray(rollout.targets, dtype=np.float64)
     if states.ndim != 3 or states.shape[0] < 1:
         raise GpmpcError(f"rollout 'states' must have shape (S+1, K, D), got {states.shape}")

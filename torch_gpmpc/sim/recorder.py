@@ -73,10 +73,11 @@ class StepRecorder:
             "slack_max", "infeasible_solves", "solve_time", "chance_margin", "messages",
             "failed_solves", "failed_by_kind", "fallback", "unsafe_plan", "pair_separation", "pair_required")}
         self.pairs = torch.triu_indices(num_agents, num_agents, 1).unbind()
+        self.position = list(cfg.model_spec().position)
         self.violations_total = 0
 
     def record(self, t: int, res: StepResult, adjacency: Tensor, u: Tensor, x_next: Tensor) -> StepInfo:
-        """Record step t: its ADMM result, graph (K, K), applied inputs (K, D), next states (K, D)."""
+        """Record step t: its ADMM result, graph (K, K), applied inputs (K, Du), next states (K, D)."""
         r = self.rows
         r["inputs"].append(u.numpy())
         r["plans"].append(res.plans.numpy())
@@ -96,9 +97,10 @@ class StepRecorder:
         r["unsafe_plan"].append(res.unsafe_plan)
         r["pair_separation"].append(self._per_pair(res.pair_separation))
         r["pair_required"].append(self._per_pair(res.pair_required))
-        min_dist = pair_min_distance(x_next)
+        pos = x_next[:, self.position]
+        min_dist = pair_min_distance(pos)
         if self.num_agents > 1:
-            dist = torch.cdist(x_next, x_next)
+            dist = torch.cdist(pos, pos)
             self.violations_total += int((dist[self.pairs] < self.cfg.r_safe).sum())
         return StepInfo(iterations=res.iterations, min_distance=min_dist, converged=res.converged,
                         primal=res.primal_residuals[-1] if res.primal_residuals else math.nan,
@@ -110,8 +112,10 @@ class StepRecorder:
             return np.full(self.pairs[0].numel(), np.nan)
         return matrix.detach()[self.pairs].numpy()
 
-    def rollout(self, states: Tensor, targets: Tensor, wall: float, method: str) -> Rollout:
-        """The run's :class:`Rollout` from the states (S+1, K, D) and targets (K, D)."""
+    def rollout(self, states: Tensor, targets: Tensor, wall: float, method: str,
+                position: list[int] | None = None) -> Rollout:
+        """The run's :class:`Rollout` from the states (S+1, K, D), targets (K, P) and the
+        position indices of the state (``None``: every state is a position)."""
         r, cfg, k = self.rows, self.cfg, self.num_agents
         steps = len(r["inputs"])
         width = cfg.admm_max_iter
@@ -120,14 +124,14 @@ class StepRecorder:
         for i, (p, d) in enumerate(zip(r["primal"], r["dual"])):
             primal[i, : len(p)] = p
             dual[i, : len(d)] = d
-        T, D = cfg.horizon, cfg.dim
+        T, D, Du = cfg.horizon, cfg.state_dim, cfg.input_dim
 
         def stack(name, shape, dtype=float):
             return np.asarray(r[name], dtype=dtype) if steps else np.zeros(shape, dtype=dtype)
 
         return Rollout(
             states=states.numpy(),
-            inputs=stack("inputs", (0, k, D)),
+            inputs=stack("inputs", (0, k, Du)),
             plans=stack("plans", (0, k, T + 1, D)),
             targets=targets.numpy(),
             adjacency=stack("adjacency", (0, k, k), bool),
@@ -150,4 +154,5 @@ class StepRecorder:
             unsafe_plan=stack("unsafe_plan", (0,), bool),
             pair_separation=stack("pair_separation", (0, len(self.pairs[0]))),
             pair_required=stack("pair_required", (0, len(self.pairs[0]))),
+            position=None if position is None or position == list(range(D)) else list(position),
         )

@@ -1,6 +1,7 @@
 """The record of one closed-loop run, and its ``rollout.npz`` file.
 
-Shapes use S = steps taken, K = agents, D = state dimension, T = horizon,
+Shapes use S = steps taken, K = agents, D = state dimension, Du = input dimension,
+P = position dimension (P = D for the paper's single integrator), T = horizon,
 I = ``admm_max_iter``.
 """
 
@@ -23,9 +24,9 @@ class Rollout:
 
     Attributes:
         states: true states, shape (S+1, K, D); ``states[0]`` are the starts.
-        inputs: applied inputs, shape (S, K, D).
+        inputs: applied inputs, shape (S, K, Du).
         plans: planned state trajectories at each step, shape (S, K, T+1, D).
-        targets: final targets, shape (K, D).
+        targets: final target positions, shape (K, P).
         adjacency: communication graph used at each step, bool, shape (S, K, K).
         admm_iterations: ADMM iterations at each step, int, shape (S,).
         converged: whether ADMM met its tolerance at each step, bool, shape (S,).
@@ -53,6 +54,7 @@ class Rollout:
         pair_required: the separation the pair's collision rows required at tau = 1 (``r_safe``
             plus the pair margin), shape (S, P), NaN for pairs not in contact.
         (The last four are ``None`` in files written before they existed.)
+        position: the state indices of the position (P of them); ``None``: every state.
     """
 
     states: np.ndarray
@@ -79,6 +81,7 @@ class Rollout:
     unsafe_plan: np.ndarray | None = None
     pair_separation: np.ndarray | None = None
     pair_required: np.ndarray | None = None
+    position: list[int] | None = None
 
     @property
     def num_steps(self) -> int:
@@ -89,6 +92,18 @@ class Rollout:
     def num_agents(self) -> int:
         """K."""
         return int(self.states.shape[1])
+
+    @property
+    def positions(self) -> np.ndarray:
+        """Positions of the true states, shape (S+1, K, P)."""
+        states = np.asarray(self.states)
+        return states if self.position is None else states[..., self.position]
+
+    @property
+    def plan_positions(self) -> np.ndarray:
+        """Positions of the plans, shape (S, K, T+1, P)."""
+        plans = np.asarray(self.plans)
+        return plans if self.position is None else plans[..., self.position]
 
     def save(self, path: str | Path) -> None:
         """Write ``rollout.npz`` atomically (arrays only; config and names as JSON text)."""
@@ -105,7 +120,7 @@ class Rollout:
             if getattr(self, name) is not None:
                 arrays[name] = np.asarray(getattr(self, name))
         meta = {"method": self.method, "seed": self.seed, "wall_time_s": self.wall_time_s,
-                "config": self.config}
+                "config": self.config, "position": self.position}
         arrays["meta_json"] = np.array(json.dumps(meta))
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
@@ -119,7 +134,7 @@ class Rollout:
                 arrays = {k: data[k] for k in data.files}
             meta = json.loads(str(arrays.pop("meta_json")))
             return cls(**arrays, method=meta["method"], seed=meta["seed"],
-                       wall_time_s=meta["wall_time_s"], config=meta["config"])
+                       wall_time_s=meta["wall_time_s"], config=meta["config"], position=meta.get("position"))
         except Exception as exc:  # noqa: BLE001 - BadZipFile, KeyError, TypeError, ... on a damaged file
             first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             raise GpmpcError(f"rollout file {str(path)!r} cannot be read (corrupt, truncated or not "

@@ -162,9 +162,9 @@ def make_scenario(cfg: Config, path: str | Path | None = None) -> Scenario:
     if path is not None:
         return load_scenario_file(path, cfg)
     if cfg.scenario == "paper":
-        starts, targets = circle_positions(3, cfg.dim, cfg.circle_radius)
+        starts, targets = circle_positions(3, cfg.position_dim, cfg.circle_radius)
     elif cfg.scenario == "circle":
-        starts, targets = circle_positions(cfg.num_agents, cfg.dim, cfg.circle_radius)
+        starts, targets = circle_positions(cfg.num_agents, cfg.position_dim, cfg.circle_radius)
     elif cfg.scenario == "random":
         starts, targets = random_positions(cfg)
     else:  # pragma: no cover - Config already restricts the choices
@@ -214,10 +214,10 @@ def random_positions(cfg: Config) -> tuple[Tensor, Tensor]:
 def _sample_separated(cfg: Config, sep: float, gen: torch.Generator, what: str) -> Tensor:
     """K points uniform in the box, pairwise >= ``sep`` apart -> (K, D)."""
     box = cfg.circle_radius
-    points = torch.empty(0, cfg.dim, dtype=torch.float64)
+    points = torch.empty(0, cfg.position_dim, dtype=torch.float64)
     for k in range(cfg.num_agents):
         for _ in range(_RANDOM_BATCHES):
-            cand = (torch.rand(_RANDOM_BATCH, cfg.dim, generator=gen, dtype=torch.float64) * 2 - 1) * box
+            cand = (torch.rand(_RANDOM_BATCH, cfg.position_dim, generator=gen, dtype=torch.float64) * 2 - 1) * box
             if points.shape[0] == 0:
                 ok = torch.ones(_RANDOM_BATCH, dtype=torch.bool)
             else:
@@ -228,7 +228,7 @@ def _sample_separated(cfg: Config, sep: float, gen: torch.Generator, what: str) 
         else:
             raise GpmpcError(
                 f"scenario 'random': could not place the {what} of agent {k} at least {sep:g} from the "
-                f"other {what}s in [-{box:g}, {box:g}]^{cfg.dim} within {_RANDOM_BATCH * _RANDOM_BATCHES} "
+                f"other {what}s in [-{box:g}, {box:g}]^{cfg.position_dim} within {_RANDOM_BATCH * _RANDOM_BATCHES} "
                 f"tries; lower min_separation (or r_safe) or num_agents, or raise circle_radius"
             )
     return points
@@ -257,7 +257,7 @@ def load_scenario_file(path: str | Path, cfg: Config) -> Scenario:
             raise GpmpcError(f"{where}: missing key {key!r}; give {key} as a K x D list of numbers")
     starts = _parse_matrix(data["starts"], "starts", where)
     targets = _parse_matrix(data["targets"], "targets", where)
-    _check_shapes(starts, targets, cfg.dim, where)
+    _check_shapes(starts, targets, cfg.position_dim, where)
     reference = _parse_reference(data.get("reference", cfg.reference), where)
     ref_points = _parse_ref_points(data.get("ref_points", cfg.ref_points), where)
     name = data.get("name", path.stem)

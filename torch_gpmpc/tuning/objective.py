@@ -10,7 +10,7 @@ from torch import Tensor
 from torch_gpmpc.coordination.admm import ADMM
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.coordination.graph import communication_graph
-from torch_gpmpc.dynamics.systems import TrueSystem, clip_norm, make_system
+from torch_gpmpc.dynamics.systems import TrueSystem, clip_norm, system_from_config
 from torch_gpmpc.tuning.instances import TuneInstance
 from torch_gpmpc.tuning.parameters import ObjectiveWeights, TuningParameters
 from torch_gpmpc.tuning.unroll import distance_penalty, unroll_admm
@@ -77,7 +77,7 @@ class TuningObjective:
         self.admm_iters = int(admm_iters)
         self.mpc_steps = int(mpc_steps)
         self.warmup_iters = int(warmup_iters)
-        self.system = system or make_system(self.cfg.dim, self.cfg.noise_std, self.cfg.wind_scale)
+        self.system = system or system_from_config(self.cfg)
         self.evaluations = 0
 
     def __call__(self, params: TuningParameters | None = None, rho: Tensor | None = None,

@@ -21,12 +21,14 @@ def make_local_solver(
     dim: int,
     num_neighbors: int,
     nominal: NominalModel,
-    u_max: float,
+    u_max: float | None,
     alpha: float,
     slack_penalty: float = 1e4,
     solver: str = "clarabel",
 ) -> nn.Module:
-    """A shared local-problem module per (T, D, M, constants, solver) (building one is slow).
+    """A shared local-problem module per (T, D, M, model, constants, solver) (building one is slow).
+
+    ``u_max`` overrides the model's norm input bound (``None``: the model's bound).
 
     ``solver='fast'`` gives :class:`~torch_gpmpc.control.solvers.interior_point.FastLocalMPC`;
     ``clarabel`` and ``reference`` give the cvxpylayers
@@ -36,10 +38,10 @@ def make_local_solver(
     if solver == "fast":
         from torch_gpmpc.control.solvers.interior_point import FastLocalMPC
 
-        return FastLocalMPC(horizon, dim, num_neighbors, nominal, float(u_max), float(alpha),
+        return FastLocalMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max), float(alpha),
                             float(slack_penalty))
     # cvxpy and cvxpylayers are imported only when a cvxpylayers path is asked for
     from torch_gpmpc.control.solvers.conic import LocalMPC
 
-    return LocalMPC(horizon, dim, num_neighbors, nominal, float(u_max), float(alpha),
+    return LocalMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max), float(alpha),
                     float(slack_penalty), solver)

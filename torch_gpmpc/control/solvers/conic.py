@@ -53,15 +53,16 @@ _BACKWARD_ONLY_KEYS = frozenset({"n_jobs_backward", "mode", "derivative_kwargs"}
 class LocalMPC(nn.Module):
     r"""Agent-local augmented-Lagrangian MPC problem (paper eqs. 26-27), batched over agents.
 
-    For one agent with horizon T, state/input dimension D and M neighbour slots::
+    For one agent with horizon T, state dimension D, input dimension Du and M neighbour slots::
 
         minimize    ||X - Xref||_F^2 + alpha ||U||_F^2 + slack_penalty * sum(s)
                     + sum_j [ lam_own_j . X + lam_nbr_j . Y_j
                               + rho_j / 2 (||X - z_own_j||_F^2 + ||Y_j - z_nbr_j||_F^2) ]
-        over        X (T+1, D), U (T, D), Y_j (T+1, D) for j < M, s (M, T)
+        over        X (T+1, D), U (T, Du), Y_j (T+1, D) for j < M, s (M, T)
         subject to  X_0 = x0
-                    X_{tau+1} = dyn_A_tau X_tau + B U_tau + dyn_c_tau        tau = 0..T-1
-                    ||U_tau||_2 <= u_max                                    tau = 0..T-1
+                    X_{tau+1} = dyn_A_tau X_tau + dyn_B_tau U_tau + dyn_c_tau   tau = 0..T-1
+                    ||U_tau||_2 <= u_max   (or the model's box |U_tau,i| <= b_i)  tau = 0..T-1
+                    ||X_tau[idx]||_2 <= state_bound   (if the model has one)     tau = 1..T
                     n_{j,tau}^T (X_tau - Y_{j,tau}) + s_{j,tau} >= bound_{j,tau}   tau = 1..T
                     s >= 0
 
@@ -89,10 +90,11 @@ class LocalMPC(nn.Module):
 
     Args:
         horizon: T.
-        dim: D (inputs have dimension D too).
+        dim: D, the state dimension.
         num_neighbors: M, the number of neighbour slots (0 allowed).
-        nominal: the nominal model (its B is a build-time constant).
-        u_max: input norm bound.
+        nominal: the nominal model: its B where the data has no ``dyn_B``, its input bound
+            (norm or box) and its optional state bound.
+        u_max: input norm bound (``None``: the model's; ignored with a box bound).
         alpha: control-effort weight.
         slack_penalty: exact-penalty weight of the collision slacks.
         solver: ``clarabel`` (diffcp with Clarabel) or ``reference`` (cvxpylayers'
@@ -105,7 +107,7 @@ class LocalMPC(nn.Module):
         dim: int,
         num_neighbors: int,
         nominal: NominalModel,
-        u_max: float,
+        u_max: float | None,
         alpha: float,
         slack_penalty: float = 1e4,
         solver: str = "clarabel",
@@ -118,6 +120,9 @@ class LocalMPC(nn.Module):
                              f"{horizon}, {dim}, {num_neighbors}")
         if nominal.dim != dim:
             raise GpmpcError(f"nominal model has dim {nominal.dim}, LocalMPC dim is {dim}")
+        u_max = nominal.spec.input_norm if u_max is None else u_max
+        if nominal.spec.input_box is not None:
+            u_max = max(nominal.spec.input_box)
         if u_max <= 0 or alpha <= 0 or slack_penalty <= 0:
             raise GpmpcError(f"u_max, alpha and slack_penalty must be > 0; got {u_max}, {alpha}, {slack_penalty}")
         self.horizon, self.dim, self.num_neighbors = horizon, dim, num_neighbors
@@ -133,20 +138,28 @@ class LocalMPC(nn.Module):
     def _build_problem(self) -> tuple[cp.Problem, list[cp.Parameter], list[cp.Variable]]:
         """The DPP problem, its parameters (layer order) and returned variables."""
         T, D, M = self.horizon, self.dim, self.num_neighbors
-        b_mat = self.nominal.B().numpy()
-        X, U = cp.Variable((T + 1, D), name="X"), cp.Variable((T, D), name="U")
+        spec, Du = self.nominal.spec, self.nominal.input_dim
+        X, U = cp.Variable((T + 1, D), name="X"), cp.Variable((T, Du), name="U")
         x0 = cp.Parameter(D, name="x0")
         scale_x = cp.Parameter(nonneg=True, name="scale_X")
         shift_x = cp.Parameter((T + 1, D), name="shift_X")
         a_cols = [cp.Parameter((T, D), name=f"A_col{e}") for e in range(D)]
+        b_cols = [cp.Parameter((T, D), name=f"B_col{j}") for j in range(Du)]
         dyn_c = cp.Parameter((T, D), name="dyn_c")
         ones_row = np.ones((1, D))
         drift = sum(cp.multiply(a_cols[e], cp.reshape(X[:-1, e], (T, 1), order="F") @ ones_row)
                     for e in range(D))
+        drive = sum(cp.multiply(b_cols[j], cp.reshape(U[:, j], (T, 1), order="F") @ ones_row)
+                    for j in range(Du))
         objective = cp.sum_squares(scale_x * X - shift_x) + self.alpha * cp.sum_squares(U)
-        constraints = [X[0] == x0, X[1:] == drift + U @ b_mat.T + dyn_c,
-                       cp.norm(U, 2, axis=1) <= self.u_max]
-        parameters = [x0, scale_x, shift_x, *a_cols, dyn_c]
+        constraints = [X[0] == x0, X[1:] == drift + drive + dyn_c]
+        if spec.input_box is not None:
+            constraints.append(cp.abs(U) <= np.ones((T, 1)) @ np.array(spec.input_box)[None, :])
+        else:
+            constraints.append(cp.norm(U, 2, axis=1) <= self.u_max)
+        if spec.state_bound_norm is not None:
+            constraints.append(cp.norm(X[1:, list(spec.state_bound_indices)], 2, axis=1) <= spec.state_bound_norm)
+        parameters = [x0, scale_x, shift_x, *a_cols, *b_cols, dyn_c]
         variables = [X, U]
         if M > 0:
             Ys = [cp.Variable((T + 1, D), name=f"Y{j}") for j in range(M)]
@@ -175,14 +188,17 @@ class LocalMPC(nn.Module):
             data: the problem inputs (validated by the caller).
 
         Returns:
-            Tensors ``[x0, scale_X, shift_X, A_col_0..A_col_{D-1}, dyn_c]`` and, if M > 0,
+            Tensors ``[x0, scale_X, shift_X, A_col_0..A_col_{D-1}, B_col_0..B_col_{Du-1}, dyn_c]`` and, if M > 0,
             ``[scale_Y, shift_Y_0.., normal_0.., bounds]`` (see the class docstring).
         """
         M = self.num_neighbors
         terms = ConsensusTerms.of(data)
         scale_x = torch.sqrt(terms.c_x)
         shift_x = (data.xref + 0.5 * terms.w_own.sum(dim=1)) / scale_x[:, None, None]
-        params = [data.x0, scale_x, shift_x, *[data.dyn_A[..., e] for e in range(self.dim)], data.dyn_c]
+        dyn_B = data.dyn_B if data.dyn_B is not None else \
+            self.nominal.B(data.x0.dtype, data.x0.device).expand(data.x0.shape[0], self.horizon, -1, -1)
+        params = [data.x0, scale_x, shift_x, *[data.dyn_A[..., e] for e in range(self.dim)],
+                  *[dyn_B[..., j] for j in range(self.nominal.input_dim)], data.dyn_c]
         if M > 0:
             scale_y = torch.sqrt(0.5 * terms.rho_y)
             shift_y = terms.w_nbr / (2.0 * scale_y[:, :, None, None])
@@ -204,7 +220,7 @@ class LocalMPC(nn.Module):
         Returns:
             The :class:`LocalSolution`.
         """
-        batch = data.validate(self.horizon, self.dim, self.num_neighbors)
+        batch = data.validate(self.horizon, self.dim, self.num_neighbors, self.nominal.input_dim)
         params = self.layer_parameters(data)
         needs_grad = torch.is_grad_enabled() and any(p.requires_grad for p in params)
         args = {**SOLVER_ARGS[self.solver], **(BACKWARD_ARGS if needs_grad else {}), **(solver_args or {})}
@@ -274,6 +290,7 @@ class LocalMPC(nn.Module):
 
     def _check(self, data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor) -> Tensor:
         """Failure code per problem, (B,): see :func:`acceptance_failures`."""
-        return acceptance_failures(data, X, U, Y, slack, self.nominal, self.u_max)
+        return acceptance_failures(data, X, U, Y, slack, self.nominal,
+                                   None if self.nominal.spec.input_box is not None else self.u_max)
 
 

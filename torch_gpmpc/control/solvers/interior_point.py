@@ -39,28 +39,31 @@ def _mv(mat: Tensor, vec: Tensor) -> Tensor:
 
 
 # --------------------------------------------------------------------------- problem data
-def condense_dynamics(x0: Tensor, dyn_A: Tensor, dyn_c: Tensor, b: float) -> tuple[Tensor, Tensor]:
+def condense_dynamics(x0: Tensor, dyn_A: Tensor, dyn_c: Tensor, dyn_B: Tensor) -> tuple[Tensor, Tensor]:
     """Eliminate the dynamics: ``X_{1..T} = G U + h`` (differentiable).
 
-    With ``X_0 = x0`` and ``X_{t+1} = A_t X_t + b U_t + c_t``, block row ``t`` of ``G``
-    is ``b A_{t-1} ... A_{k+1}`` in block column ``k < t`` and ``b I`` for ``k = t - 1``.
+    With ``X_0 = x0`` and ``X_{t+1} = A_t X_t + B_t U_t + c_t``, block row ``t`` of ``G``
+    is ``A_{t-1} ... A_{k+1} B_k`` in block column ``k < t`` and ``B_{t-1}`` for ``k = t - 1``.
 
     Args:
         x0: initial states, shape (B, D).
         dyn_A: state matrices, shape (B, T, D, D).
         dyn_c: offsets, shape (B, T, D).
-        b: the input gain (the nominal input matrix is ``b I``).
+        dyn_B: input matrices, shape (B, T, D, Du), or one (D, Du) matrix for every step.
 
     Returns:
-        ``(G, h)`` with G of shape (B, T*D, T*D) and h of shape (B, T*D), states and
-        inputs flattened time-major (index ``t * D + d``).
+        ``(G, h)`` with G of shape (B, T*D, T*Du) and h of shape (B, T*D), states and
+        inputs flattened time-major (index ``t * D + d``, ``t * Du + j``).
     """
     batch, horizon, dim = dyn_c.shape
-    n = horizon * dim
-    # What step t adds to the augmented block row [G_t | h_t]: b I in block column t and
-    # c_t in the last column; built once, shape (B, T, D, n + 1).
-    eye_blocks = b * torch.eye(n, dtype=dyn_c.dtype, device=dyn_c.device).view(horizon, dim, n)
-    inject = torch.cat([eye_blocks.expand(batch, horizon, dim, n), dyn_c[..., None]], dim=3)
+    dyn_B = dyn_B.expand(batch, horizon, *dyn_B.shape[-2:])
+    du = dyn_B.shape[-1]
+    n = horizon * du
+    # What step t adds to the augmented block row [G_t | h_t]: B_t in block column t and
+    # c_t in the last column; shape (B, T, D, n + 1).
+    eye = torch.eye(horizon, dtype=dyn_c.dtype, device=dyn_c.device)
+    blocks = torch.einsum("ts,btdj->btdsj", eye, dyn_B).reshape(batch, horizon, dim, n)
+    inject = torch.cat([blocks, dyn_c[..., None]], dim=3)
     row = torch.cat([x0.new_zeros(batch, dim, n), x0[:, :, None]], dim=2)
     rows = []
     for t in range(horizon):
@@ -80,7 +83,7 @@ class CanonicalData:
         + sum_j (rho_y_j / 2 ||Y_j||^2 - w_y_j . Y_j) + slack_penalty * sum(s)
 
     Attributes:
-        G: condensed input-to-state map, shape (B, T*D, T*D).
+        G: condensed input-to-state map, shape (B, T*D, T*Du).
         h: condensed free response, shape (B, T*D).
         c_x: quadratic weight of the states, ``1 + sum_{active j} rho_j / 2``, shape (B,).
         l_x: linear weight of X_{1..T}, ``2 Xref + sum_{active j} (rho_j z_own_j - lam_own_j)``,
@@ -104,15 +107,16 @@ class CanonicalData:
     bounds: Tensor
 
 
-def canonicalize(data: LocalProblemData, b: float) -> CanonicalData:
+def canonicalize(data: LocalProblemData, B: Tensor) -> CanonicalData:
     """Map :class:`LocalProblemData` to :class:`CanonicalData` (differentiable).
 
     Inactive slots get ``rho = 1``, ``w = 0`` (so ``Y_j = 0``), normal 0 and bound -1,
     and contribute nothing to the state cost (as in :class:`~torch_gpmpc.control.solvers.conic.LocalMPC`).
+    ``B`` (D, Du) is the nominal input matrix, used when ``data.dyn_B`` is ``None``.
     """
     terms = ConsensusTerms.of(data)
     l_x = (2.0 * data.xref[:, 1:] + terms.w_own[:, :, 1:].sum(dim=1)).flatten(1)
-    G, h = condense_dynamics(data.x0, data.dyn_A, data.dyn_c, b)
+    G, h = condense_dynamics(data.x0, data.dyn_A, data.dyn_c, B if data.dyn_B is None else data.dyn_B)
     y0 = terms.w_nbr[:, :, 0] / terms.rho_y[:, :, None]
     return CanonicalData(G=G, h=h, c_x=terms.c_x, l_x=l_x, rho_y=terms.rho_y, w_y=terms.w_nbr[:, :, 1:], y0=y0,
                          normals=terms.normals, bounds=terms.bounds)
@@ -174,7 +178,7 @@ class _LocalQpFunction(torch.autograd.Function):
         alpha, u_max, penalty, tol, max_iter, stats = settings
         arrays = _kernel_arrays((G, h, c_x, l_x, rho_y, w_y, normals, bounds))
         B, M, T, D = normals.shape
-        R, n = M * T, T * D
+        R, n = M * T, G.shape[2]
         point = _Iterate(np.empty((B, n)), np.empty((B, R, D)), np.empty((B, 2 * R + T)), np.empty((B, 2 * R + T)))
         converged, iterations, kkt_error = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
         ipm.solve_batch(*arrays, alpha, u_max, penalty, tol, max_iter, point.u, point.y, point.w, point.z, False,
@@ -247,8 +251,8 @@ class FastLocalMPC(nn.Module):
                     + sum_{active j} [ lam_own_j . X + lam_nbr_j . Y_j
                                        + rho_j / 2 (||X - z_own_j||^2 + ||Y_j - z_nbr_j||^2) ]
                     + sum_{inactive j} 1/2 ||Y_j||^2
-        over        X (T+1, D), U (T, D), Y_j (T+1, D), s (M, T)
-        subject to  X_0 = x0,  X_{t+1} = dyn_A_t X_t + b U_t + dyn_c_t       t = 0..T-1
+        over        X (T+1, D), U (T, Du), Y_j (T+1, D), s (M, T)
+        subject to  X_0 = x0,  X_{t+1} = dyn_A_t X_t + dyn_B_t U_t + dyn_c_t   t = 0..T-1
                     ||U_t||_2 <= u_max                                      t = 0..T-1
                     n_{j,t}^T (X_t - Y_{j,t}) + s_{j,t} >= bound_{j,t},  s >= 0   t = 1..T
 
@@ -256,7 +260,7 @@ class FastLocalMPC(nn.Module):
 
     * **Condensing.** ``X_{1..T} = G u + h`` with ``u = vec(U)`` (:func:`condense_dynamics`);
       ``Y_{j,0} = (rho z_nbr - lam_nbr)_{j,0} / rho_j`` in closed form. Variables left:
-      ``u`` (T D), ``Y_{j,1..T}`` (M T D), ``s`` (M T).
+      ``u`` (T Du), ``Y_{j,1..T}`` (M T D), ``s`` (M T).
     * **Interior point.** Primal-dual, infeasible start, Mehrotra predictor-corrector,
       one step length, fraction to the boundary 0.99. The input bounds are the smooth
       convex constraints ``(u_max^2 - ||U_t||^2) / 2 >= 0`` with their own slacks (not
@@ -267,9 +271,9 @@ class FastLocalMPC(nn.Module):
       recomputed; near the solution the projection is inactive).
     * **Linear algebra** (:mod:`torch_gpmpc.control.solvers.ipm_kernel`, compiled per problem). Per collision
       row, ``Y_{j,t}`` and ``s_{j,t}`` are eliminated in closed form (diagonal Hessian
-      ``rho_j``), leaving ``S0 = H + blockdiag(z_q I) + A^T diag(deff) A`` (T D x T D) with
+      ``rho_j``), leaving ``S0 = H + blockdiag(z_q I) + A^T diag(deff) A`` (T Du x T Du) with
       bounded weights; the input-bound multipliers stay in the system (augmented,
-      quasi-definite, size T D + T) and are solved through their T x T Schur complement,
+      quasi-definite, size T Du + T) and are solved through their T x T Schur complement,
       so no 1/mu-sized term is ever factored. Two Cholesky factorizations per iteration
       serve the predictor and the corrector.
     * **Stopping.** Relative dual residuals, relative primal residuals and the absolute
@@ -285,19 +289,22 @@ class FastLocalMPC(nn.Module):
     Never raises on numerical trouble: problems that do not converge within
     ``max_iter`` (or have non-finite data) get ``ok = False`` and finite outputs.
 
+    Only a norm input bound and no state bound (use the cvxpylayers path,
+    :class:`~torch_gpmpc.control.solvers.conic.LocalMPC`, for box input bounds and state bounds).
+
     Args:
         horizon: T.
-        dim: D (inputs have dimension D too).
+        dim: D, the state dimension.
         num_neighbors: M (0 allowed).
-        nominal: the nominal model; its ``B() = b I`` is used.
-        u_max: input norm bound.
+        nominal: the nominal model: its B (D, Du) is used where the data has no ``dyn_B``.
+        u_max: input norm bound (``None``: the model's).
         alpha: control-effort weight.
         slack_penalty: exact-penalty weight of the collision slacks.
         tol: stopping tolerance on the KKT error.
         max_iter: iteration limit.
     """
 
-    def __init__(self, horizon: int, dim: int, num_neighbors: int, nominal: NominalModel, u_max: float,
+    def __init__(self, horizon: int, dim: int, num_neighbors: int, nominal: NominalModel, u_max: float | None,
                  alpha: float, slack_penalty: float = 1e4, tol: float = 1e-10, max_iter: int = 50) -> None:
         super().__init__()
         if horizon < 1 or dim < 1 or num_neighbors < 0:
@@ -305,15 +312,17 @@ class FastLocalMPC(nn.Module):
                              f"{horizon}, {dim}, {num_neighbors}")
         if nominal.dim != dim:
             raise GpmpcError(f"nominal model has dim {nominal.dim}, FastLocalMPC dim is {dim}")
+        spec = nominal.spec
+        if spec.input_box is not None or spec.state_bound_norm is not None:
+            raise GpmpcError(f"solver 'fast' supports a norm input bound and no state bound; model {spec.name!r} has "
+                             f"{'a box input bound' if spec.input_box is not None else 'a state bound'}: "
+                             "use --set solver=clarabel")
+        u_max = spec.input_norm if u_max is None else u_max
         if u_max <= 0 or alpha <= 0 or slack_penalty <= 0 or tol <= 0 or max_iter < 1:
             raise GpmpcError(f"u_max, alpha, slack_penalty, tol must be > 0 and max_iter >= 1; got "
                              f"{u_max}, {alpha}, {slack_penalty}, {tol}, {max_iter}")
-        b_mat = nominal.B()
-        b = float(b_mat[0, 0])
-        if not torch.equal(b_mat, b * torch.eye(dim, dtype=b_mat.dtype)):
-            raise GpmpcError("FastLocalMPC needs an input matrix B = b I")
         self.horizon, self.dim, self.num_neighbors = horizon, dim, num_neighbors
-        self.nominal, self.b = nominal, b
+        self.nominal, self.input_dim = nominal, nominal.input_dim
         self.u_max, self.alpha, self.slack_penalty = float(u_max), float(alpha), float(slack_penalty)
         self.tol, self.max_iter = float(tol), int(max_iter)
         #: Iterations used by the last call (for benchmarks and logging).
@@ -333,9 +342,9 @@ class FastLocalMPC(nn.Module):
         Raises:
             GpmpcError: if a field has the wrong shape.
         """
-        batch = data.validate(self.horizon, self.dim, self.num_neighbors)
+        batch = data.validate(self.horizon, self.dim, self.num_neighbors, self.input_dim)
         T, D, M = self.horizon, self.dim, self.num_neighbors
-        canon = canonicalize(data, self.b)
+        canon = canonicalize(data, self.nominal.B(data.x0.dtype, data.x0.device))
         canon, valid = _sanitize(canon)
         stats: dict = {}
         settings = (self.alpha, self.u_max, self.slack_penalty, self.tol, self.max_iter, stats)
@@ -344,7 +353,7 @@ class FastLocalMPC(nn.Module):
         self.last_iterations = stats["iterations"]
         x0 = torch.where(valid[:, None], data.x0, torch.zeros_like(data.x0))
         X = torch.cat([x0[:, None], (_mv(canon.G, u) + canon.h).view(batch, T, D)], dim=1)
-        U = u.view(batch, T, D)
+        U = u.view(batch, T, self.input_dim)
         Y = torch.cat([canon.y0[:, :, None], y1], dim=2)
         # the same acceptance rule as the cvxpylayers path; unconverged or invalid rows fail too
         failure = acceptance_failures(data, X.detach(), U.detach(), Y.detach(), slack.detach(),

@@ -1,7 +1,7 @@
 """The interior-point kernel of :class:`~torch_gpmpc.control.solvers.interior_point.FastLocalMPC`, compiled by numba.
 
 One local problem (paper eq. 27) after condensing the dynamics, in the variables
-``u = vec(U)`` (n = T D), the neighbour copies ``y`` (R = M T rows of D; R counts collision rows) and the
+``u = vec(U)`` (n = T Du), the neighbour copies ``y`` (R = M T rows of D; R counts collision rows) and the
 collision slacks ``s`` (R)::
 
     minimize    1/2 u^T H u + g0^T u + sum_k (rho_k / 2 ||y_k||^2 - wy_k . y_k) + P sum(s)
@@ -139,23 +139,24 @@ def _backward(L: np.ndarray, x: np.ndarray, size: int) -> None:
 def _setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, alpha, H, g0, A, bt, rho, N, wy) -> None:
     """Fill the problem arrays of one problem from its canonical data (see module docstring).
 
-    Shapes: G (n, n), h (n,), l_x (n,), rho_y (M,), w_y (M, T, D), normals (M, T, D),
-    bounds (M, T); outputs H (n, n), g0 (n,), A (R, n), bt (R,), rho (R,), N (R, D), wy (R, D).
+    Shapes: G (nx, n), h (nx,), l_x (nx,), rho_y (M,), w_y (M, T, D), normals (M, T, D),
+    bounds (M, T) with nx = T D states and n = T Du inputs; outputs H (n, n), g0 (n,), A (R, n),
+    bt (R,), rho (R,), N (R, D), wy (R, D).
     """
-    n = h.shape[0]
+    nx, n = G.shape
     M, T, D = normals.shape
     c2 = 2.0 * c_x
     for i in range(n):
         for j in range(i + 1):
             v = 0.0
-            for r in range(n):
+            for r in range(nx):
                 v += G[r, i] * G[r, j]
             H[i, j] = c2 * v
             H[j, i] = c2 * v
         H[i, i] += 2.0 * alpha
     for i in range(n):
         v = 0.0
-        for r in range(n):
+        for r in range(nx):
             v += G[r, i] * (c2 * h[r] - l_x[r])
         g0[i] = v
     for j in range(M):
@@ -200,14 +201,14 @@ def _initial_point(N, bt, rho, wy, u_max2, penalty, u, y, w, z) -> None:
 
 
 @_jit
-def _residuals(H, g0, A, N, bt, rho, wy, u_max2, penalty, D, u, y, w, z, r_u, r_y, r_s, r_pc, r_pq) -> None:
+def _residuals(H, g0, A, N, bt, rho, wy, u_max2, penalty, Du, u, y, w, z, r_u, r_y, r_s, r_pc, r_pq) -> None:
     """Dual residuals ``r_u (n,), r_y (R, D), r_s (R,)`` and primal residuals
-    ``r_pc (R,), r_pq (T,)`` at ``(u, y, w, z)``, written in place."""
+    ``r_pc (R,), r_pq (T,)`` at ``(u, y, w, z)``, written in place (``Du``: input dimension)."""
     n = u.shape[0]
-    R = N.shape[0]
+    R, D = N.shape
     T = r_pq.shape[0]
     for i in range(n):
-        v = g0[i] + z[2 * R + i // D] * u[i]
+        v = g0[i] + z[2 * R + i // Du] * u[i]
         for j in range(n):
             v += H[i, j] * u[j]
         r_u[i] = v
@@ -225,8 +226,8 @@ def _residuals(H, g0, A, N, bt, rho, wy, u_max2, penalty, D, u, y, w, z, r_u, r_
         r_s[k] = penalty - zc - z[R + k]
     for t in range(T):
         v = u_max2
-        for d in range(D):
-            v -= u[t * D + d] * u[t * D + d]
+        for d in range(Du):
+            v -= u[t * Du + d] * u[t * Du + d]
         r_pq[t] = 0.5 * v - w[2 * R + t]
 
 
@@ -250,7 +251,7 @@ def _kkt_error(r_u, r_y, r_s, r_pc, r_pq, w, z, scale_u, scale_y, scale_p, penal
 
 
 @_jit
-def _factor(H, A, N, rho, D, u, w, z, deff, S, V, Sch) -> bool:
+def _factor(H, A, N, rho, Du, u, w, z, deff, S, V, Sch) -> bool:
     """Factor the reduced Newton matrix at ``(u, w, z)`` (see the module docstring).
 
     Writes ``deff (R,)``, the Cholesky factor of S0 into ``S (n, n)``, ``V = L^-1 E^T``
@@ -258,12 +259,12 @@ def _factor(H, A, N, rho, D, u, w, z, deff, S, V, Sch) -> bool:
     ``Sch (T, T)``. Returns False if a factorization breaks down.
     """
     n = u.shape[0]
-    R = N.shape[0]
+    R, D = N.shape
     T = V.shape[0]
     for i in range(n):
         for j in range(i + 1):
             S[i, j] = H[i, j]
-        S[i, i] += z[2 * R + i // D]
+        S[i, i] += z[2 * R + i // Du]
     for k in range(R):
         nn = 0.0
         for d in range(D):
@@ -279,9 +280,9 @@ def _factor(H, A, N, rho, D, u, w, z, deff, S, V, Sch) -> bool:
         return False
     for t in range(T):
         _fill(V[t], 0.0)
-        for d in range(D):
-            V[t, t * D + d] = -u[t * D + d]
-        _forward(S, V[t], n, t * D)
+        for d in range(Du):
+            V[t, t * Du + d] = -u[t * Du + d]
+        _forward(S, V[t], n, t * Du)
     for t1 in range(T):
         for t2 in range(t1 + 1):
             v = 0.0
@@ -316,7 +317,7 @@ def _solve(S, V, Sch, rhs1, rhs2, x1, x2) -> None:
 
 
 @_jit
-def _direction(A, N, rho, D, u, w, z, deff, S, V, Sch, r_u, r_y, r_s, r_pc, r_pq, rc,
+def _direction(A, N, rho, Du, u, w, z, deff, S, V, Sch, r_u, r_y, r_s, r_pc, r_pq, rc,
                du, dy, dw, dz, rhs1, rhs2, gam, dq) -> None:
     """Newton direction for the complementarity residual ``rc`` (``z dw + w dz = -rc``), shape (m,).
 
@@ -324,7 +325,7 @@ def _direction(A, N, rho, D, u, w, z, deff, S, V, Sch, r_u, r_y, r_s, r_pc, r_pq
     dq (T,)`` are work space.
     """
     n = u.shape[0]
-    R = N.shape[0]
+    R, D = N.shape
     T = rhs2.shape[0]
     for i in range(n):
         rhs1[i] = -r_u[i]
@@ -356,8 +357,8 @@ def _direction(A, N, rho, D, u, w, z, deff, S, V, Sch, r_u, r_y, r_s, r_pc, r_pq
         dz[R + k] = r_s[k] + xi
     for t in range(T):
         v = r_pq[t]
-        for d in range(D):
-            v -= u[t * D + d] * du[t * D + d]
+        for d in range(Du):
+            v -= u[t * Du + d] * du[t * Du + d]
         dw[2 * R + t] = v
         dz[2 * R + t] = -dq[t]
 
@@ -372,7 +373,7 @@ def _max_step(w, z, dw, dz) -> float:
 
 
 @_jit
-def _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, D, tol, max_iter, u, y, w, z):
+def _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, Du, tol, max_iter, u, y, w, z):
     """Run the method on one problem from ``(u, y, w, z)`` (updated in place).
 
     Returns:
@@ -380,7 +381,7 @@ def _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, D, tol, max_iter, u, y, 
         or whose step is not finite stops there, unconverged.
     """
     n = u.shape[0]
-    R = N.shape[0]
+    R, D = N.shape
     m = w.shape[0]
     T = m - 2 * R
     radius2 = TRUST_RADIUS * TRUST_RADIUS * u_max2
@@ -395,11 +396,11 @@ def _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, D, tol, max_iter, u, y, 
     S, V, Sch = np.empty((n, n)), np.empty((T, n)), np.empty((T, T))
     err = np.inf
     for it in range(max_iter + 1):
-        _residuals(H, g0, A, N, bt, rho, wy, u_max2, penalty, D, u, y, w, z, r_u, r_y, r_s, r_pc, r_pq)
+        _residuals(H, g0, A, N, bt, rho, wy, u_max2, penalty, Du, u, y, w, z, r_u, r_y, r_s, r_pc, r_pq)
         err = _kkt_error(r_u, r_y, r_s, r_pc, r_pq, w, z, scale_u, scale_y, scale_p, penalty)
         if err <= tol:
             return True, it, err
-        if it == max_iter or not _factor(H, A, N, rho, D, u, w, z, deff, S, V, Sch):
+        if it == max_iter or not _factor(H, A, N, rho, Du, u, w, z, deff, S, V, Sch):
             return False, it, err
         mu = 0.0
         for i in range(m):
@@ -407,7 +408,7 @@ def _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, D, tol, max_iter, u, y, 
             mu += wz[i]
         mu /= m
         # predictor (affine scaling)
-        _direction(A, N, rho, D, u, w, z, deff, S, V, Sch, r_u, r_y, r_s, r_pc, r_pq, wz,
+        _direction(A, N, rho, Du, u, w, z, deff, S, V, Sch, r_u, r_y, r_s, r_pc, r_pq, wz,
                    du, dy, dw, dz, rhs1, rhs2, gam, dq)
         a_aff = _max_step(w, z, dw, dz)
         mu_aff = 0.0
@@ -417,7 +418,7 @@ def _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, D, tol, max_iter, u, y, 
         # corrector
         for i in range(m):
             rc[i] = wz[i] + dw[i] * dz[i] - sigma * mu
-        _direction(A, N, rho, D, u, w, z, deff, S, V, Sch, r_u, r_y, r_s, r_pc, r_pq, rc,
+        _direction(A, N, rho, Du, u, w, z, deff, S, V, Sch, r_u, r_y, r_s, r_pc, r_pq, rc,
                    du, dy, dw, dz, rhs1, rhs2, gam, dq)
         step = min(STEP_FRACTION * _max_step(w, z, dw, dz), 1.0)
         total = step + _absmax(du) + _absmax2(dy) + _absmax(dw) + _absmax(dz)
@@ -425,14 +426,14 @@ def _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, D, tol, max_iter, u, y, 
             return False, it, err
         for t in range(T):  # update U_t, then project it onto the trust ball
             norm2 = 0.0
-            for d in range(D):
-                i = t * D + d
+            for d in range(Du):
+                i = t * Du + d
                 u[i] += step * du[i]
                 norm2 += u[i] * u[i]
             if norm2 > radius2:
                 shrink = np.sqrt(radius2 / norm2)
-                for d in range(D):
-                    u[t * D + d] *= shrink
+                for d in range(Du):
+                    u[t * Du + d] *= shrink
         for k in range(R):
             for d in range(D):
                 y[k, d] += step * dy[k, d]
@@ -449,7 +450,7 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, alpha, u_max, penal
     """Solve B problems one after another.
 
     Args:
-        G (B, n, n), h (B, n), c_x (B,), l_x (B, n), rho_y (B, M), w_y (B, M, T, D),
+        G (B, nx, n), h (B, nx), c_x (B,), l_x (B, nx), rho_y (B, M), w_y (B, M, T, D),
         normals (B, M, T, D), bounds (B, M, T): the canonical data (float64, C-contiguous).
         alpha, u_max, penalty, tol: floats; max_iter: int.
         u (B, n), y (B, R, D), w (B, m), z (B, m): the primal-dual iterate, written in
@@ -461,9 +462,9 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, alpha, u_max, penal
     new arrays would make the compiled code call back into Python, where a pending
     KeyboardInterrupt surfaces as a SystemError.
     """
-    B, n = h.shape
+    B, n = h.shape[0], G.shape[2]
     M, T, D = normals.shape[1], normals.shape[2], normals.shape[3]
-    R = M * T
+    R, Du = M * T, n // T
     u_max2 = u_max * u_max
     H, g0, A = np.empty((n, n)), np.empty(n), np.empty((R, n))
     bt, rho, N, wy = np.empty(R), np.empty(R), np.empty((R, D)), np.empty((R, D))
@@ -471,7 +472,7 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, alpha, u_max, penal
         _setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], alpha, H, g0, A, bt, rho, N, wy)
         if not warm:
             _initial_point(N, bt, rho, wy, u_max2, penalty, u[b], y[b], w[b], z[b])
-        converged[b], iterations[b], kkt_error[b] = _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, D, tol,
+        converged[b], iterations[b], kkt_error[b] = _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, Du, tol,
                                                              max_iter, u[b], y[b], w[b], z[b])
 
 
@@ -486,9 +487,9 @@ def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, alpha, u, w, z, g
     ``xi``, the scaled multiplier ``(z_c / w_c) (grad g_c . a)`` of the collision rows,
     and ``failed (B,)`` bool: problems whose matrix cannot be factored (they get zeros).
     """
-    B, n = h.shape
+    B, n = h.shape[0], G.shape[2]
     M, T, D = normals.shape[1], normals.shape[2], normals.shape[3]
-    R = M * T
+    R, Du = M * T, n // T
     H, g0, A = np.empty((n, n)), np.empty(n), np.empty((R, n))
     bt, rho, N, wy = np.empty(R), np.empty(R), np.empty((R, D)), np.empty((R, D))
     S, V, Sch = np.empty((n, n)), np.empty((T, n)), np.empty((T, T))
@@ -500,7 +501,7 @@ def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, alpha, u, w, z, g
         _fill(xi[b], 0.0)
         for k in range(R):
             _fill(a_y[b, k], 0.0)
-        if not _factor(H, A, N, rho, D, u[b], w[b], z[b], deff, S, V, Sch):
+        if not _factor(H, A, N, rho, Du, u[b], w[b], z[b], deff, S, V, Sch):
             failed[b] = True
             continue
         _copy(g_u[b], rhs1)

@@ -33,7 +33,7 @@ from torch_gpmpc.coordination.controller import make_controller
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
 from torch_gpmpc.coordination.graph import graph_from_edges
 from torch_gpmpc.coordination.state import ADMMState, StepResult, adapt_state, initial_state
-from torch_gpmpc.dynamics.systems import make_system
+from torch_gpmpc.dynamics.systems import system_from_config
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +105,7 @@ class AgentController:
     def __init__(self, k: int, num_agents: int, cfg: Config, reference: Tensor, gp=None) -> None:
         self.k, self.num_agents, self.cfg = k, num_agents, cfg
         self.reference = torch.as_tensor(reference, dtype=DTYPE)
-        system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
+        system = system_from_config(cfg)
         # indexed by agent id; this process holds only its own GP
         gps = None if gp is None else [gp if j == k else None for j in range(self.num_agents)]
         self.local = make_controller(cfg, system, gps).local
@@ -128,15 +128,17 @@ class AgentController:
         """
         cfg, k, K = self.cfg, self.k, self.num_agents
         self.x0 = x0
-        self.xref = reference_window(self.reference, t, cfg.horizon)[None]
+        nominal = self.local.nominal
+        self.xref = nominal.reference_states(reference_window(self.reference, t, cfg.horizon))[None]
         if self.state is None:  # cold start: the plan is to stay (initial_state's rule)
-            own = initial_state(x0[None], cfg.horizon, graph_from_edges(1, []))
-            plans = x0.new_zeros(K, cfg.horizon + 1, cfg.dim)
-            inputs = x0.new_zeros(K, cfg.horizon, cfg.dim)
+            D, Du = nominal.dim, nominal.input_dim
+            own = initial_state(x0[None], cfg.horizon, graph_from_edges(1, []), Du)
+            plans = x0.new_zeros(K, cfg.horizon + 1, D)
+            inputs = x0.new_zeros(K, cfg.horizon, Du)
             plans[k], inputs[k] = own.plans[0], own.inputs[0]
             self.state = ADMMState(plans, inputs, torch.zeros(0, 2, dtype=torch.long),
-                                   x0.new_zeros(0, 2, cfg.horizon + 1, cfg.dim),
-                                   x0.new_zeros(0, 2, 2, cfg.horizon + 1, cfg.dim))
+                                   x0.new_zeros(0, 2, cfg.horizon + 1, D),
+                                   x0.new_zeros(0, 2, 2, cfg.horizon + 1, D))
         else:
             self.state = ADMMState(self.state.plans.clone(), self.state.inputs, self.state.edges,
                                    self.state.z, self.state.lam)
@@ -274,7 +276,8 @@ class AgentController:
         bounds = self.assembled.data.bounds[:, :, 0].detach()
         full_bounds = bounds.new_full((self.num_agents, bounds.shape[1]), float("-inf"))
         full_bounds[k] = bounds[0]
-        unsafe, _, _ = pair_safety(state.plans, self.graph, full_bounds, tol)
+        unsafe, _, _ = pair_safety(state.plans, self.graph, full_bounds, tol,
+                                   self.local.nominal.position)
         if not converged and bool(unsafe[k]):
             data = obstacle_problem(self.assembled.data, state.plans[self.graph.slot_nbr[k:k + 1]])
             sol = self.local.solve(self.layer, data)
@@ -283,7 +286,8 @@ class AgentController:
                 plans[k], inputs[k] = sol.X[0], sol.U[0]
                 self.state = dataclasses.replace(state, plans=plans, inputs=inputs)
                 self.counters["fallback"] = 1.0
-                unsafe, _, _ = pair_safety(self.state.plans, self.graph, full_bounds, tol)
+                unsafe, _, _ = pair_safety(self.state.plans, self.graph, full_bounds, tol,
+                                           self.local.nominal.position)
         self.counters["unsafe_plan"] = float(bool(unsafe[k]))
 
     def end_step(self) -> Telemetry:

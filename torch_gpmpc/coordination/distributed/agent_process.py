@@ -25,7 +25,7 @@ from torch_gpmpc.coordination.distributed.protocol import (
 )
 from torch_gpmpc.coordination.distributed.transport import Network, destroy_group, init_group
 from torch_gpmpc.dynamics.methods import Method
-from torch_gpmpc.dynamics.systems import make_system
+from torch_gpmpc.dynamics.systems import system_from_config
 
 log = logging.getLogger(__name__)
 
@@ -40,11 +40,11 @@ class _LostWorld(Exception):
 def agent_gp(cfg, k: int, gp_model: str | None = None):
     """Agent k's own residual GP: loaded from ``gp_model``, or trained by the one per-agent
     recipe (:func:`~torch_gpmpc.gp.fit.fit_agent_gp`) in this process, from its own data."""
-    from torch_gpmpc.gp import ResidualGP, fit_agent_gp
+    from torch_gpmpc.gp import fit_agent_gp, load_model_gp
 
     if gp_model:
-        return ResidualGP.load(gp_model, expected_dim=cfg.dim, expected_input_dim=cfg.dim)
-    return fit_agent_gp(cfg, make_system(cfg.dim, cfg.noise_std, cfg.wind_scale), k)
+        return load_model_gp(gp_model, cfg.model_spec())
+    return fit_agent_gp(cfg, system_from_config(cfg), k)
 
 
 class AgentHost:
@@ -84,7 +84,7 @@ class AgentHost:
         wait = first_wait_s
         try:
             while True:
-                sensed = self._receive(sensing_size(self.num_agents, self.cfg.dim), Kind.SENSE, wait)
+                sensed = self._receive(sensing_size(self.num_agents, self.cfg.state_dim), Kind.SENSE, wait)
                 wait = max(4 * self.timeout_s, 60.0)
                 if float(sensed[0][0]) == CMD_STOP:
                     return EXIT_OK
@@ -104,7 +104,7 @@ class AgentHost:
 
     def _begin_step(self, sensed: list[Tensor]) -> float:
         """Take the measurements, exchange plans on new edges; returns the communication time."""
-        cfg, D = self.cfg, self.cfg.dim
+        cfg, D = self.cfg, self.cfg.state_dim
         t0 = time.perf_counter()
         t = int(sensed[0][1])
         new_edges = {}

@@ -89,8 +89,8 @@ def sensing_size(num_agents: int, dim: int) -> int:
 
 def telemetry_size(cfg: Config) -> int:
     """Numbers in one telemetry message (agent -> world, once per step)."""
-    T, D = cfg.horizon, cfg.dim
-    return D + (T + 1) * D + T * D + len(TELEMETRY_KEYS)
+    T, D, Du = cfg.horizon, cfg.state_dim, cfg.input_dim
+    return Du + (T + 1) * D + T * Du + len(TELEMETRY_KEYS)
 
 
 @dataclass
@@ -98,9 +98,9 @@ class Telemetry:
     """What an agent reports to the world at the end of a step.
 
     Attributes:
-        u: the input it applies, shape (D,).
+        u: the input it applies, shape (Du,).
         plan: its planned states, shape (T+1, D).
-        inputs: its planned inputs, shape (T, D).
+        inputs: its planned inputs, shape (T, Du).
         counters: ``{key: value}`` for every key of :data:`TELEMETRY_KEYS`.
     """
 
@@ -117,9 +117,10 @@ class Telemetry:
     @classmethod
     def unpack(cls, vec: Tensor, cfg: Config) -> "Telemetry":
         """Read a message packed by :meth:`pack`."""
-        T, D = cfg.horizon, cfg.dim
-        u = vec[:D]
-        plan = vec[D:D + (T + 1) * D].reshape(T + 1, D)
-        inputs = vec[D + (T + 1) * D:D + (2 * T + 1) * D].reshape(T, D)
-        counters = dict(zip(TELEMETRY_KEYS, vec[D + (2 * T + 1) * D:].tolist()))
+        T, D, Du = cfg.horizon, cfg.state_dim, cfg.input_dim
+        u = vec[:Du]
+        plan = vec[Du:Du + (T + 1) * D].reshape(T + 1, D)
+        end = Du + (T + 1) * D + T * Du
+        inputs = vec[Du + (T + 1) * D:end].reshape(T, Du)
+        counters = dict(zip(TELEMETRY_KEYS, vec[end:].tolist()))
         return cls(u, plan, inputs, counters)

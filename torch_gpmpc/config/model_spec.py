@@ -1,0 +1,276 @@
+"""The agent model description: built-in names and model files (TOML or JSON).
+
+A :class:`ModelSpec` is plain, validated data (lists of floats and indices); the dynamics
+layer turns it into tensors (:class:`~torch_gpmpc.dynamics.systems.NominalModel`). A model
+file looks like::
+
+    name = "my-quadrotor"
+    dt = 0.02
+    A = [[...]]                 # n x n
+    B = [[...]]                 # n x m
+    position = [0, 1, 2]        # state indices of the position (collision rows, references, arrival)
+    residual = [3, 4, 5]        # state indices the GPs learn (one GP each); other rows: zero residual
+    gp_inputs = ["x3", "x4", "x5", "u0", "u1", "u2"]   # default: all states
+    [input_bound]
+    norm = 2.0                  # ||u|| <= norm   (or: box = [b0, b1, ...], |u_i| <= b_i)
+    [state_bound]               # optional, e.g. a speed limit ||x[indices]|| <= norm
+    indices = [3, 4, 5]
+    norm = 1.5
+
+Built-ins: ``single-integrator`` (the paper: ``A = I``, ``B = 0.1 I``, state = position of
+dimension ``dim``) and ``double-integrator`` (state ``[p, v]``, input acceleration,
+``p' = p + dt v + dt^2/2 u``, ``v' = v + dt u``; the GPs learn the velocity rows from the
+position, where the wind acts). Both bound the input by ``||u|| <= u_max`` of the config.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from torch_gpmpc.config.fields import nearest_key
+from torch_gpmpc.config.reader import read_table
+from torch_gpmpc.errors import GpmpcError
+
+BUILTIN_MODELS = ("single-integrator", "double-integrator")
+MODEL_SUFFIXES = (".toml", ".json")
+_KEYS = ("name", "dt", "A", "B", "position", "residual", "gp_inputs", "input_bound", "state_bound")
+_REQUIRED = ("A", "B", "position", "residual")
+_COLUMN = re.compile(r"^([xu])(\d+)$")
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """A linear agent model ``x' = A x + B u`` (+ residual on some rows), validated.
+
+    Attributes:
+        name: a label.
+        dt: the sampling time (s), used to scale the wind of the built-in double integrator.
+        A: (n, n) rows. B: (n, m) rows.
+        position: state indices of the position (length P, 2 or 3 for the built-in wind).
+        residual: state indices with a residual, one GP each (length R).
+        gp_inputs: GP input columns, ``x<i>`` (state i) or ``u<j>`` (input j), length Din.
+        input_norm: ``||u|| <= input_norm``, or ``None`` with a box.
+        input_box: ``|u_j| <= input_box[j]`` (length m), or ``None`` with a norm.
+        state_bound_indices: state indices of an optional bound ``||x[idx]|| <= state_bound_norm``.
+        state_bound_norm: that bound, or ``None``.
+    """
+
+    name: str
+    dt: float
+    A: tuple[tuple[float, ...], ...]
+    B: tuple[tuple[float, ...], ...]
+    position: tuple[int, ...]
+    residual: tuple[int, ...]
+    gp_inputs: tuple[str, ...]
+    input_norm: float | None = None
+    input_box: tuple[float, ...] | None = None
+    state_bound_indices: tuple[int, ...] | None = None
+    state_bound_norm: float | None = None
+
+    @property
+    def state_dim(self) -> int:
+        """n."""
+        return len(self.A)
+
+    @property
+    def input_dim(self) -> int:
+        """m."""
+        return len(self.B[0])
+
+    @property
+    def position_dim(self) -> int:
+        """P."""
+        return len(self.position)
+
+    @property
+    def is_single_integrator(self) -> bool:
+        """The paper's model: every state is a position and has a residual."""
+        n = self.state_dim
+        return self.position == tuple(range(n)) and self.residual == tuple(range(n))
+
+    def gp_columns(self) -> tuple[list[int], list[int]]:
+        """Which state and which input indices feed the GP, in ``gp_inputs`` order:
+        ``(state_idx, input_idx)`` with the position of each in the input vector implied by order."""
+        xs, us = [], []
+        for col in self.gp_inputs:
+            kind, idx = _COLUMN.match(col).groups()
+            (xs if kind == "x" else us).append(int(idx))
+        return xs, us
+
+
+def single_integrator(dim: int, u_max: float, b: float = 0.1) -> ModelSpec:
+    """The paper's model in ``dim`` dimensions: ``A = I``, ``B = b I``, ``||u|| <= u_max``."""
+    eye = [[1.0 if i == j else 0.0 for j in range(dim)] for i in range(dim)]
+    return ModelSpec(name="single-integrator", dt=0.1, A=_rows(eye), B=_rows([[b * v for v in r] for r in eye]),
+                     position=tuple(range(dim)), residual=tuple(range(dim)),
+                     gp_inputs=tuple(f"x{i}" for i in range(dim)), input_norm=u_max)
+
+
+def double_integrator(dim: int, dt: float, u_max: float) -> ModelSpec:
+    """State ``[p (dim), v (dim)]``, input acceleration: ``p' = p + dt v + dt^2/2 u``,
+    ``v' = v + dt u``, ``||u|| <= u_max``. The GPs learn the velocity rows from the position."""
+    n = 2 * dim
+    A = [[0.0] * n for _ in range(n)]
+    B = [[0.0] * dim for _ in range(n)]
+    for i in range(dim):
+        A[i][i] = A[dim + i][dim + i] = 1.0
+        A[i][dim + i] = dt
+        B[i][i] = 0.5 * dt * dt
+        B[dim + i][i] = dt
+    return ModelSpec(name="double-integrator", dt=dt, A=_rows(A), B=_rows(B), position=tuple(range(dim)),
+                     residual=tuple(range(dim, n)), gp_inputs=tuple(f"x{i}" for i in range(dim)), input_norm=u_max)
+
+
+@functools.lru_cache(maxsize=64)
+def resolve_model(model: str, dim: int, dt: float, u_max: float) -> ModelSpec:
+    """The model named by the config key ``model``: a built-in name or a model file path
+    (read once per process)."""
+    if model == "single-integrator":
+        return single_integrator(dim, u_max)
+    if model == "double-integrator":
+        return double_integrator(dim, dt, u_max)
+    return load_model_file(model)
+
+
+def check_model_name(model: str) -> None:
+    """Refuse a ``model`` value that is neither a built-in nor an existing model file."""
+    if model in BUILTIN_MODELS:
+        return
+    path = Path(model)
+    if path.suffix.lower() not in MODEL_SUFFIXES:
+        raise GpmpcError(f"config key 'model': {model!r} is neither {' nor '.join(BUILTIN_MODELS)} nor a "
+                         "model file (.toml or .json)")
+    if not path.is_file():
+        raise GpmpcError(f"config key 'model': model file {model!r} does not exist; check the path")
+
+
+def load_model_file(path: str | Path) -> ModelSpec:
+    """Read and validate a model file (TOML or JSON).
+
+    Raises:
+        GpmpcError: one line naming the file and the first problem (unknown keys with the
+            nearest valid one, shapes, indices out of range, non-finite numbers, unknown
+            ``gp_inputs`` columns, a missing or ambiguous input bound).
+    """
+    where = f"model file {str(path)!r}"
+    data = read_table(path, "model file", suffixes=MODEL_SUFFIXES, expect="a table with A, B, position, residual")
+    return parse_model(data, where)
+
+
+def parse_model(data: dict[str, Any], where: str = "model") -> ModelSpec:
+    """Validate a model mapping (see :func:`load_model_file`)."""
+    for key in data:
+        if key not in _KEYS:
+            raise GpmpcError(f"{where}: unknown key {key!r} (did you mean {nearest_key(key, _KEYS)!r}?)")
+    missing = [k for k in _REQUIRED if k not in data]
+    if missing:
+        raise GpmpcError(f"{where}: missing key(s) {', '.join(missing)}")
+    A = _matrix(data["A"], "A", where)
+    B = _matrix(data["B"], "B", where)
+    n, m = len(A), len(B[0])
+    if any(len(r) != n for r in A):
+        raise GpmpcError(f"{where}: A must be square (n x n), got {len(A)} rows of lengths {sorted({len(r) for r in A})}")
+    if len(B) != n:
+        raise GpmpcError(f"{where}: B must have n = {n} rows (as A), got {len(B)}")
+    dt = _positive(data.get("dt", 0.1), "dt", where)
+    position = _indices(data["position"], "position", n, where)
+    residual = _indices(data["residual"], "residual", n, where)
+    if not 1 <= len(position) <= 3:
+        raise GpmpcError(f"{where}: position must list 1 to 3 state indices, got {len(position)}")
+    gp_inputs = tuple(_gp_inputs(data.get("gp_inputs", [f"x{i}" for i in range(n)]), n, m, where))
+    norm, box = _input_bound(data.get("input_bound"), m, where)
+    sb_idx, sb_norm = _state_bound(data.get("state_bound"), n, where)
+    return ModelSpec(name=str(data.get("name", Path(where).stem)), dt=dt, A=A, B=B, position=position,
+                     residual=residual, gp_inputs=gp_inputs, input_norm=norm, input_box=box,
+                     state_bound_indices=sb_idx, state_bound_norm=sb_norm)
+
+
+def _rows(m: list[list[float]]) -> tuple[tuple[float, ...], ...]:
+    return tuple(tuple(float(v) for v in r) for r in m)
+
+
+def _number(value: Any, field: str, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise GpmpcError(f"{where}: {field} must be a number, got {value!r}")
+    if not math.isfinite(value):
+        raise GpmpcError(f"{where}: {field} must be finite, got {value!r}")
+    return float(value)
+
+
+def _positive(value: Any, field: str, where: str) -> float:
+    v = _number(value, field, where)
+    if v <= 0:
+        raise GpmpcError(f"{where}: {field} must be > 0, got {v}")
+    return v
+
+
+def _matrix(value: Any, field: str, where: str) -> tuple[tuple[float, ...], ...]:
+    if not isinstance(value, list) or not value or not all(isinstance(r, list) and r for r in value):
+        raise GpmpcError(f"{where}: {field} must be a non-empty list of non-empty rows (a matrix)")
+    if len({len(r) for r in value}) != 1:
+        raise GpmpcError(f"{where}: {field} rows have different lengths {sorted({len(r) for r in value})}")
+    return tuple(tuple(_number(v, f"{field}[{i}][{j}]", where) for j, v in enumerate(r)) for i, r in enumerate(value))
+
+
+def _indices(value: Any, field: str, n: int, where: str) -> tuple[int, ...]:
+    if not isinstance(value, list) or not value:
+        raise GpmpcError(f"{where}: {field} must be a non-empty list of state indices")
+    out = []
+    for v in value:
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < n:
+            raise GpmpcError(f"{where}: {field} index {v!r} is not a state index in 0..{n - 1}")
+        out.append(v)
+    if len(set(out)) != len(out):
+        raise GpmpcError(f"{where}: {field} lists an index twice: {out}")
+    return tuple(out)
+
+
+def _gp_inputs(value: Any, n: int, m: int, where: str) -> list[str]:
+    if not isinstance(value, list) or not value:
+        raise GpmpcError(f"{where}: gp_inputs must be a non-empty list of columns such as \"x0\" or \"u1\"")
+    valid = [f"x{i}" for i in range(n)] + [f"u{j}" for j in range(m)]
+    for col in value:
+        if col not in valid:
+            raise GpmpcError(f"{where}: gp_inputs column {col!r} does not exist (states x0..x{n - 1}, inputs "
+                             f"u0..u{m - 1}; nearest: {nearest_key(str(col), valid)!r})")
+    if len(set(value)) != len(value):
+        raise GpmpcError(f"{where}: gp_inputs lists a column twice: {value}")
+    return list(value)
+
+
+def _input_bound(value: Any, m: int, where: str) -> tuple[float | None, tuple[float, ...] | None]:
+    if value is None:
+        raise GpmpcError(f"{where}: missing [input_bound] with norm = <max ||u||> or box = [<max |u_j|>, ...]")
+    if not isinstance(value, dict):
+        raise GpmpcError(f"{where}: input_bound must be a table with norm or box")
+    for key in value:
+        if key not in ("norm", "box"):
+            raise GpmpcError(f"{where}: unknown key input_bound.{key} (did you mean "
+                             f"{nearest_key(key, ('norm', 'box'))!r}?)")
+    if ("norm" in value) == ("box" in value):
+        raise GpmpcError(f"{where}: input_bound needs exactly one of norm or box")
+    if "norm" in value:
+        return _positive(value["norm"], "input_bound.norm", where), None
+    box = value["box"]
+    if not isinstance(box, list) or len(box) != m:
+        raise GpmpcError(f"{where}: input_bound.box must list m = {m} bounds, got {box!r}")
+    return None, tuple(_positive(b, f"input_bound.box[{j}]", where) for j, b in enumerate(box))
+
+
+def _state_bound(value: Any, n: int, where: str) -> tuple[tuple[int, ...] | None, float | None]:
+    if value is None:
+        return None, None
+    if not isinstance(value, dict):
+        raise GpmpcError(f"{where}: state_bound must be a table with indices and norm")
+    for key in value:
+        if key not in ("indices", "norm"):
+            raise GpmpcError(f"{where}: unknown key state_bound.{key} (did you mean "
+                             f"{nearest_key(key, ('indices', 'norm'))!r}?)")
+    if "indices" not in value or "norm" not in value:
+        raise GpmpcError(f"{where}: state_bound needs indices and norm")
+    return _indices(value["indices"], "state_bound.indices", n, where), _positive(value["norm"], "state_bound.norm", where)
