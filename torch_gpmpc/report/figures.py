@@ -229,8 +229,30 @@ def _nanmean_rows(values: np.ndarray) -> np.ndarray:
     return np.divide(total, count, out=np.full(values.shape[1], np.nan), where=count > 0)
 
 
+def plot_trajectories_3d(rollout: Rollout, path: str | Path) -> Path:
+    """The agents' 3D paths (positions (S+1, K, 3)) with starts (o) and targets (x)."""
+    pos = np.asarray(rollout.positions, dtype=np.float64)
+    if pos.shape[-1] != 3:
+        raise GpmpcError(f"plot_trajectories_3d needs 3D positions, got P = {pos.shape[-1]}")
+    fig = Figure(figsize=(5.5, 5.0))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(projection="3d")
+    targets = np.asarray(rollout.targets, dtype=np.float64)
+    for k in range(pos.shape[1]):
+        c = _color(k)
+        ax.plot(pos[:, k, 0], pos[:, k, 1], pos[:, k, 2], "-", color=c, lw=1.5, label=f"agent {k}")
+        ax.scatter(*pos[0, k], color=c, marker="o")
+        ax.scatter(*targets[k], color=c, marker="x")
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    ax.set_zlabel("z")
+    ax.legend(loc="upper left", fontsize=7)
+    return _save(fig, path)
+
+
 def save_run_figures(rollout: Rollout, outdir: str | Path, reference_paths: Any = None) -> list[Path]:
-    """Write ``trajectories.png``, ``distances.png`` and ``admm_residuals.png`` into ``outdir``.
+    """Write ``trajectories.png``, ``distances.png`` and ``admm_residuals.png`` into ``outdir``
+    (and ``trajectories_3d.png`` for 3D positions; ``trajectories.png`` shows the x-y plane).
 
     Args:
         rollout: the run.
@@ -241,11 +263,14 @@ def save_run_figures(rollout: Rollout, outdir: str | Path, reference_paths: Any 
         The written paths.
     """
     outdir = Path(outdir)
-    return [
+    written = [
         plot_trajectories(rollout, outdir / "trajectories.png", reference_paths=reference_paths),
         plot_distances(rollout, outdir / "distances.png"),
         plot_admm_residuals(rollout, outdir / "admm_residuals.png"),
     ]
+    if np.asarray(rollout.positions).shape[-1] == 3:
+        written.append(plot_trajectories_3d(rollout, outdir / "trajectories_3d.png"))
+    return written
 
 
 # ---------------------------------------------------------------------------
