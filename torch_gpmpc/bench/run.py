@@ -128,4 +128,26 @@ def run(quick: bool = False, out: Path | str | None = None) -> dict:
     result.update({"table": table, "steps": rollout.num_steps, "admm_iterations": iterations,
                    "calls": {label: count for label, (_, count) in totals.items()},
                    "notes": "in-process closed loop with timers; gpmpc_run_wall_s is the whole command"})
+    result["models"] = _model_workloads(quick, 1e3 * loop / iterations)
     return result
+
+
+def _model_workloads(quick: bool, paper_ms_per_iteration: float) -> list[dict]:
+    """The closed loop with the double integrator (3D, four agents on a circle, noiseless): time
+    per ADMM iteration against the paper workload's (the local problems have 6 states, 3 inputs)."""
+    from torch_gpmpc.config.schema import Config
+    from torch_gpmpc.dynamics.systems import system_from_config
+    from torch_gpmpc.gp.fit import fit_agent_gps
+    from torch_gpmpc.sim.closed_loop import simulate
+
+    cfg = Config(model="double-integrator", dim=3, scenario="circle", num_agents=4, noise_std=0.0,
+                 max_steps=10 if quick else 150)
+    gps = fit_agent_gps(cfg, system_from_config(cfg), cfg.num_agents)
+    start = time.perf_counter()
+    rollout = simulate(cfg, gps=gps)
+    wall = time.perf_counter() - start
+    iterations = int(rollout.admm_iterations.sum())
+    ms = 1e3 * wall / max(iterations, 1)
+    return [{"workload": "double-integrator 3D, circle of 4, noiseless (closed loop)", "steps": rollout.num_steps,
+             "admm_iterations_per_step": iterations / max(rollout.num_steps, 1), "wall_s": wall,
+             "ms_per_admm_iteration": ms, "ratio_to_paper_per_iteration": ms / paper_ms_per_iteration}]

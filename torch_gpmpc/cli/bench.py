@@ -59,6 +59,7 @@ def main(args) -> int:
         section["section_wall_s"] = time.perf_counter() - t0
         result["sections"][name] = section
         _print_table(name, section.get("table", []))
+        _print_table(f"{name}: agent models", section.get("models", []))
     write_json(out / "bench.json", result)
     print(f"\nwrote {out / 'bench.json'}")
     return 0

@@ -12,6 +12,7 @@ from torch import Tensor
 from torch_gpmpc.coordination.admm import ADMM, ADMMState
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.coordination.graph import communication_graph
+from torch_gpmpc.dynamics.systems import NominalModel
 from torch_gpmpc.sim.scenarios import Scenario, make_scenario
 from torch_gpmpc.config.tune_settings import TuneSettings
 from torch_gpmpc.tuning.unroll import detached_state
@@ -24,10 +25,10 @@ class TuneInstance:
     """One training situation: a start, a reference and fixed closed-loop noise.
 
     Attributes:
-        x0: start states, shape (K, D).
+        x0: start states, shape (K, D) (at rest: positions set, other states 0).
         scenario: gives the reference windows.
         t0: reference time index of the start.
-        noise: standard-normal process noise of the closed-loop steps, shape (S, K, D)
+        noise: standard-normal process noise of the closed-loop steps, shape (S, K, R) (R residual rows)
             (scaled by the system's ``noise_std`` when stepping).
         name: a label.
         warm: ADMM warm start of the first MPC step (``None``: cold start); see
@@ -80,14 +81,16 @@ def make_instances(
     """
     settings = settings or TuneSettings()
     scenario = scenario or make_scenario(cfg)
+    nominal = NominalModel(cfg.model_spec())
     t0 = crossing_index(scenario, settings.crossing_distance)
-    base = scenario.reference_window(t0, 0)[:, 0]  # (K, D)
+    base = scenario.reference_window(t0, 0)[:, 0]  # (K, P) positions
     out = []
     for seed in seeds:
         gen = torch.Generator().manual_seed(int(seed))
-        x0 = base + settings.perturb_std * torch.randn(base.shape, generator=gen, dtype=torch.float64)
-        x0 = _separate(x0, cfg.r_safe)
-        noise = torch.randn(settings.mpc_steps, *base.shape, generator=gen, dtype=torch.float64)
+        p0 = base + settings.perturb_std * torch.randn(base.shape, generator=gen, dtype=torch.float64)
+        x0 = nominal.states_at(_separate(p0, cfg.r_safe))
+        noise = torch.randn(settings.mpc_steps, base.shape[0], len(nominal.residual), generator=gen,
+                            dtype=torch.float64)
         out.append(TuneInstance(x0=x0, scenario=scenario, t0=t0, noise=noise, name=f"{scenario.name}@t{t0}/s{seed}"))
     return out
 
@@ -121,14 +124,16 @@ def with_warm_starts(admm: ADMM, instances: Sequence[TuneInstance], rho: float =
     """
     cfg = admm.cfg.replace(admm_tol=tol, admm_dual_tol=tol, admm_max_iter=max_iter)
     solver = admm.with_config(cfg)
+    nominal = admm.local.nominal
     out = []
     with torch.no_grad():
         for inst in instances:
             t_prev = max(inst.t0 - 1, 0)
             step = inst.scenario.reference_window(inst.t0, 0)[:, 0] - inst.scenario.reference_window(t_prev, 0)[:, 0]
-            x_prev = inst.x0 - step
-            graph = communication_graph(x_prev, cfg.comm_radius)
-            res = solver.solve_step(x_prev, inst.scenario.reference_window(t_prev, cfg.horizon), graph,
+            x_prev = inst.x0 - nominal.states_at(step)
+            graph = communication_graph(nominal.positions(x_prev), cfg.comm_radius)
+            xref = nominal.reference_states(inst.scenario.reference_window(t_prev, cfg.horizon))
+            res = solver.solve_step(x_prev, xref, graph,
                                     rho=float(rho), safety_fallback=False)
             if not res.converged:
                 log.warning("warm start of %s did not converge in %d iterations (primal %.2e, dual %.2e)",

@@ -10,7 +10,7 @@ from torch import Tensor
 from torch_gpmpc.coordination.admm import ADMM
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.coordination.graph import communication_graph
-from torch_gpmpc.dynamics.systems import TrueSystem, clip_norm, system_from_config
+from torch_gpmpc.dynamics.systems import TrueSystem, project_input, system_from_config
 from torch_gpmpc.tuning.instances import TuneInstance
 from torch_gpmpc.tuning.parameters import ObjectiveWeights, TuningParameters
 from torch_gpmpc.tuning.unroll import distance_penalty, unroll_admm
@@ -95,11 +95,12 @@ class TuningObjective:
         w = self.weights
         sums = {name: rho.new_zeros(()) for name in PARTS}
         count = 0
+        nominal = self.admm.local.nominal
         for inst in self.instances:
             x, warm = inst.x0, inst.warm
             for step in range(self.mpc_steps):
-                graph = communication_graph(x.detach(), self.cfg.comm_radius)
-                xref = inst.scenario.reference_window(inst.t0 + step, self.cfg.horizon)
+                graph = communication_graph(nominal.positions(x.detach()), self.cfg.comm_radius)
+                xref = nominal.reference_states(inst.scenario.reference_window(inst.t0 + step, self.cfg.horizon))
                 un = unroll_admm(self.admm, x, xref, graph, self.admm_iters, rho, split, warm=warm,
                                  warmup_iters=self.warmup_iters)
                 sol = un.result.solution
@@ -107,10 +108,10 @@ class TuningObjective:
                 sums["dual"] = sums["dual"] + un.dual[-1]
                 sums["cost"] = sums["cost"] + sol.cost.mean()
                 sums["distance_penalty"] = sums["distance_penalty"] + distance_penalty(
-                    sol.X, self.cfg.r_safe, w.distance_width)
+                    nominal.positions(sol.X), self.cfg.r_safe, w.distance_width)
                 count += 1
                 if step + 1 < self.mpc_steps:
-                    u = clip_norm(un.result.inputs[:, 0], self.cfg.u_max)
+                    u = project_input(un.result.inputs[:, 0], nominal.spec)
                     x = self.system.step(x, u, noise=inst.noise[step])
                     warm = un.result.state.shifted()
         parts = {k: v / count for k, v in sums.items()}
