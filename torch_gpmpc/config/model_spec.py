@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import functools
 import math
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,7 +39,6 @@ BUILTIN_MODELS = ("single-integrator", "double-integrator")
 MODEL_SUFFIXES = (".toml", ".json")
 _KEYS = ("name", "dt", "A", "B", "position", "residual", "gp_inputs", "input_bound", "state_bound")
 _REQUIRED = ("A", "B", "position", "residual")
-_COLUMN = re.compile(r"^([xu])(\d+)$")
 
 
 @dataclass(frozen=True)
@@ -86,21 +84,6 @@ class ModelSpec:
     def position_dim(self) -> int:
         """P."""
         return len(self.position)
-
-    @property
-    def is_single_integrator(self) -> bool:
-        """The paper's model: every state is a position and has a residual."""
-        n = self.state_dim
-        return self.position == tuple(range(n)) and self.residual == tuple(range(n))
-
-    def gp_columns(self) -> tuple[list[int], list[int]]:
-        """Which state and which input indices feed the GP, in ``gp_inputs`` order:
-        ``(state_idx, input_idx)`` with the position of each in the input vector implied by order."""
-        xs, us = [], []
-        for col in self.gp_inputs:
-            kind, idx = _COLUMN.match(col).groups()
-            (xs if kind == "x" else us).append(int(idx))
-        return xs, us
 
 
 def single_integrator(dim: int, u_max: float, b: float = 0.1) -> ModelSpec:
@@ -174,7 +157,8 @@ def parse_model(data: dict[str, Any], where: str = "model") -> ModelSpec:
     B = _matrix(data["B"], "B", where)
     n, m = len(A), len(B[0])
     if any(len(r) != n for r in A):
-        raise GpmpcError(f"{where}: A must be square (n x n), got {len(A)} rows of lengths {sorted({len(r) for r in A})}")
+        raise GpmpcError(f"{where}: A must be square (n x n), got {len(A)} rows of lengths "
+                         f"{sorted({len(r) for r in A})}")
     if len(B) != n:
         raise GpmpcError(f"{where}: B must have n = {n} rows (as A), got {len(B)}")
     dt = _positive(data.get("dt", 0.1), "dt", where)
@@ -273,4 +257,5 @@ def _state_bound(value: Any, n: int, where: str) -> tuple[tuple[int, ...] | None
                              f"{nearest_key(key, ('indices', 'norm'))!r}?)")
     if "indices" not in value or "norm" not in value:
         raise GpmpcError(f"{where}: state_bound needs indices and norm")
-    return _indices(value["indices"], "state_bound.indices", n, where), _positive(value["norm"], "state_bound.norm", where)
+    indices = _indices(value["indices"], "state_bound.indices", n, where)
+    return indices, _positive(value["norm"], "state_bound.norm", where)

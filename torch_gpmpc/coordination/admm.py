@@ -155,7 +155,8 @@ class ADMM:
         eps_self = slot_risks(graph, cfg.eps, cfg.risk_split if risk_split is None else risk_split)
         max_iter = cfg.admm_max_iter if max_iter is None else max_iter
         tol = cfg.admm_tol if tol is None else tol
-        state = initial_state(x0, cfg.horizon, graph, self.local.nominal.input_dim) if warm is None else adapt_state(warm, graph)
+        state = initial_state(x0, cfg.horizon, graph, self.local.nominal.input_dim) if warm is None \
+            else adapt_state(warm, graph)
         layer = self.local.solver(graph.num_slots)
         result = StepResult(plans=state.plans, inputs=state.inputs, state=state, iterations=0, converged=False)
         frozen_plans = state.plans
@@ -211,7 +212,7 @@ class ADMM:
                                             inputs=torch.where(use[:, None, None], sol.U, state.inputs))
                 result.fallback = True
                 unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.cfg.admm_tol,
-                                       self.local.nominal.position)
+                                               self.local.nominal.position)
         result.unsafe_plan = bool(unsafe.any())
         result.pair_separation, result.pair_required = sep, req
         return state

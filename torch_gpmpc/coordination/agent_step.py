@@ -187,7 +187,8 @@ class LocalStep:
         slot_nbr = graph.slot_nbr[rows]
         agent_ids = torch.arange(graph.num_agents)[rows]
         pos = self.nominal.position
-        normals_p = collision_normals(xbar[..., pos], state.plans[slot_nbr][..., pos], agent_ids, slot_nbr)[:, :, 1:]
+        normals_p = collision_normals(xbar[..., pos], state.plans[slot_nbr][..., pos], agent_ids,
+                                      slot_nbr)[:, :, 1:]
         normals = normals_p.new_zeros(*normals_p.shape[:3], xbar.shape[-1])
         normals[..., pos] = normals_p  # collision rows act on the position states only
         own_var = None

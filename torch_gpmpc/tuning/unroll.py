@@ -64,7 +64,8 @@ def unroll_admm(
     """
     if iters < 1:
         raise GpmpcError(f"unroll_admm: iters must be >= 1, got {iters}")
-    state = initial_state(x0.detach(), admm.cfg.horizon, graph, admm.local.nominal.input_dim) if warm is None else adapt_state(warm, graph)
+    state = initial_state(x0.detach(), admm.cfg.horizon, graph, admm.local.nominal.input_dim) if warm is None \
+        else adapt_state(warm, graph)
     lin_plans, lin_inputs = state.plans, state.inputs  # relinearize=False keeps these
     if warmup_iters > 0:
         with torch.no_grad():
