@@ -23,6 +23,8 @@ METHODS = METHOD_NAMES
 UNCERTAINTY_MODES = ("pointwise", "propagated", "feedback")
 MARGIN_VARIANCES = ("latent", "predictive")
 PAIR_MARGINS = ("own", "sum", "joint")
+RHO_UPDATES = ("fixed", "adaptive")
+ADMM_STOPS = ("primal", "primal-dual")
 SOLVERS = ("fast", "clarabel", "reference")
 REFERENCES = ("line", "target")
 SCENARIOS = ("paper", "circle", "random")
@@ -42,7 +44,13 @@ class Config:
         alpha: control-effort weight in the cost.
         noise_std: standard deviation s of the process noise w ~ N(0, s^2 I).
         admm_tol: stop when the largest per-edge primal residual ||y - z|| is below this.
-        admm_dual_tol: if set, also require the dual residual rho ||z - z_prev|| below this.
+        admm_dual_tol: with ``admm_stop = primal-dual``, the dual residual rho ||z - z_prev|| must
+            also be below this (``null``: 10 ``admm_tol``); with ``primal``, if set, likewise.
+        admm_stop: ``primal-dual`` (both residuals, Boyd et al. 2011 §3.3.1) or ``primal`` (the
+            paper's rule: a consensus that is feasible, not necessarily optimal).
+        rho_update: ``adaptive`` (residual balancing per edge, Boyd et al. 2011 §3.4.1: rho_e
+            doubles when its primal residual exceeds 10x its dual one, halves in the opposite
+            case; ``rho`` is the start, carried over by warm starts) or ``fixed``.
         admm_max_iter: ADMM iteration cap per time step.
         comm_radius: agents closer than this communicate; ``None`` = all pairs.
         goal_tol: an agent has arrived when within this distance of its target.
@@ -96,6 +104,8 @@ class Config:
     admm_tol: float = 1e-3
     admm_dual_tol: float | None = None
     admm_max_iter: int = 100
+    admm_stop: str = "primal-dual"
+    rho_update: str = "adaptive"
     comm_radius: float | None = None
     goal_tol: float = 0.1
     max_steps: int = 150
@@ -171,6 +181,8 @@ _CHOICES = {
     "uncertainty": ("auto", *UNCERTAINTY_MODES),
     "margin_variance": MARGIN_VARIANCES,
     "pair_margin": PAIR_MARGINS,
+    "rho_update": RHO_UPDATES,
+    "admm_stop": ADMM_STOPS,
     "scenario": SCENARIOS,
     "solver": SOLVERS,
     "method": METHODS,

@@ -41,7 +41,8 @@ from torch_gpmpc.coordination.state import ADMMState, StepResult, adapt_state, i
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 
-__all__ = ["ADMM", "ADMMState", "StepResult", "adapt_state", "consensus_update", "initial_state", "should_stop"]
+__all__ = ["ADMM", "ADMMState", "StepResult", "adapt_state", "balance_penalty", "consensus_update", "initial_state",
+           "should_stop", "starting_penalties"]
 
 
 def consensus_update(copies: Tensor, z: Tensor, lam: Tensor, rho: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -51,23 +52,72 @@ def consensus_update(copies: Tensor, z: Tensor, lam: Tensor, rho: Tensor) -> tup
         copies: (E, 2 [holder], 2 [half], T+1, D) both ends' copies ``y_{e,a}`` of ``z_e``.
         z: (E, 2, T+1, D) previous consensus.
         lam: (E, 2, 2, T+1, D) previous duals, ``lam[e, a]`` held by end ``a``.
-        rho: ADMM penalty.
+        rho: ADMM penalty: a scalar, or (E,) one per edge.
 
     Returns:
         ``(z_new (E, 2, T+1, D), lam_new (E, 2, 2, T+1, D), primal (E, 2), dual (E,))`` with
         ``primal[e, a] = ||y_{e,a} - z_new_e||`` and ``dual[e] = rho ||z_new_e - z_e||``.
     """
+    if RELAXATION != 1.0:  # over-relaxation (Boyd et al. 2011 §3.4.3)
+        copies = RELAXATION * copies + (1.0 - RELAXATION) * z.unsqueeze(1)
     z_new = copies.mean(dim=1)
     gap = copies - z_new.unsqueeze(1)
-    lam_new = lam + rho * gap
+    rho_e = rho.reshape(-1, 1, *[1] * (z.dim() - 1)) if rho.dim() == 1 else rho  # per edge: (E, 1, 1, 1, 1)
+    lam_new = lam + rho_e * gap
     primal = gap.flatten(2).norm(dim=2)
     dual = rho * (z_new - z).flatten(1).norm(dim=1)
     return z_new, lam_new, primal, dual
 
 
-def should_stop(primal: float, dual: float, tol: float, dual_tol: float | None) -> bool:
-    """The stopping rule: largest primal residual below ``tol`` (the paper's criterion) and,
-    when ``dual_tol`` is set, largest dual residual below it too."""
+#: Residual balancing (Boyd et al. 2011, eq. 3.13): change rho_e by RHO_FACTOR when one
+#: residual exceeds RHO_BALANCE times the other; keep it within RHO_BOUNDS.
+RHO_BALANCE, RHO_FACTOR, RHO_BOUNDS = 10.0, 2.0, (1e-3, 1e4)
+#: Re-linearize (Algorithm 1, step 9) in the first this many iterations of a step, then hold the
+#: linearization so ADMM converges on one convex problem.
+RELINEARIZE_ITERS = 10**9
+RELAXATION = 1.0
+#: Adapt every this many iterations (each change of rho perturbs the fixed point).
+RHO_ADAPT_EVERY = 1
+
+
+def starting_penalties(carried: Tensor | None, rho: Tensor, num_edges: int) -> Tensor:
+    """(E,) penalties at the start of a step: carried over where known, else ``rho``."""
+    start = rho.expand(num_edges) if rho.dim() == 0 else rho
+    return start if carried is None else torch.where(torch.isnan(carried), start, carried)
+
+
+def balance_penalty(rho: Tensor, primal: Tensor, dual: Tensor) -> Tensor:
+    """Each edge's next penalty by residual balancing, from what both its agents know.
+
+    Args:
+        rho: (E,) current penalties.
+        primal: (E,) the edge's primal residual ``max_a ||y_{e,a} - z_e||``.
+        dual: (E,) its dual residual ``rho_e ||z_e - z_e_prev||``.
+
+    Returns:
+        (E,) penalties: ``rho * 2`` where primal > 10 dual, ``rho / 2`` where dual > 10 primal,
+        else unchanged; within :data:`RHO_BOUNDS`. The factor is a constant, so gradients
+        reach the starting rho. The duals ``lam`` are unscaled (``lam = rho u``), so nothing
+        needs rescaling when rho changes.
+    """
+    p, d = primal.detach(), dual.detach()
+    factor = torch.where(p > RHO_BALANCE * d, RHO_FACTOR, torch.where(d > RHO_BALANCE * p, 1.0 / RHO_FACTOR, 1.0))
+    low, high = RHO_BOUNDS
+    return rho * factor.clamp(min=low / rho.detach(), max=high / rho.detach()).clamp(max=RHO_FACTOR, min=1 / RHO_FACTOR)
+
+
+def should_stop(primal: float, dual: float, cfg: Config, tol: float | None = None) -> bool:
+    """The stopping rule of ``cfg.admm_stop``.
+
+    ``primal`` (the paper's): the largest primal residual below ``tol`` (default
+    ``cfg.admm_tol``) and, if ``cfg.admm_dual_tol`` is set, the largest dual residual below it.
+    ``primal-dual`` (Boyd et al. 2011 §3.3.1): both, the dual one below ``cfg.admm_dual_tol``
+    or, when that is null, ``10 tol``.
+    """
+    tol = cfg.admm_tol if tol is None else tol
+    dual_tol = cfg.admm_dual_tol
+    if dual_tol is None and cfg.admm_stop == "primal-dual":
+        dual_tol = 10.0 * tol
     return primal < tol and (dual_tol is None or dual < dual_tol)
 
 
@@ -141,7 +191,9 @@ class ADMM:
             xref: (K, T+1, D) reference window.
             graph: communication graph at this step.
             warm: previous step's state, already shifted (cold start if ``None``).
-            rho: penalty (defaults to ``cfg.rho``); a tensor keeps gradients.
+            rho: penalty (defaults to ``cfg.rho``); a tensor keeps gradients. With
+                ``rho_update = adaptive`` it is the start of every edge the warm state does not
+                carry a penalty for (edges carried over keep their adapted one).
             risk_split: scalar or (K, K) split (defaults to ``cfg.risk_split``).
             max_iter: iteration cap (defaults to ``cfg.admm_max_iter``).
             tol: primal tolerance (defaults to ``cfg.admm_tol``).
@@ -152,17 +204,24 @@ class ADMM:
         """
         cfg = self.cfg
         rho_t = torch.as_tensor(cfg.rho if rho is None else rho, dtype=x0.dtype)
+        adaptive = cfg.rho_update == "adaptive"
         eps_self = slot_risks(graph, cfg.eps, cfg.risk_split if risk_split is None else risk_split)
         max_iter = cfg.admm_max_iter if max_iter is None else max_iter
         tol = cfg.admm_tol if tol is None else tol
         state = initial_state(x0, cfg.horizon, graph, self.local.nominal.input_dim) if warm is None \
             else adapt_state(warm, graph)
+        if adaptive:
+            state = dataclasses.replace(state, rho=starting_penalties(state.rho, rho_t, graph.num_edges))
         layer = self.local.solver(graph.num_slots)
         result = StepResult(plans=state.plans, inputs=state.inputs, state=state, iterations=0, converged=False)
         frozen_plans = state.plans
         for it in range(1, max_iter + 1):
-            lin_state = state if cfg.relinearize else dataclasses.replace(state, plans=frozen_plans)
-            assembled = self.local.assemble(x0, xref, lin_state, graph, rho_t, eps_self)
+            if cfg.relinearize and it <= RELINEARIZE_ITERS:
+                frozen_plans = state.plans
+            lin_state = dataclasses.replace(state, plans=frozen_plans)
+            rho_now = state.rho if adaptive else rho_t
+            rho_slots = state.rho[graph.slot_edge] if adaptive and graph.num_edges else rho_t
+            assembled = self.local.assemble(x0, xref, lin_state, graph, rho_slots, eps_self)
             data = assembled.data
             t0 = time.perf_counter()
             sol = self.local.solve(layer, data)
@@ -172,21 +231,23 @@ class ADMM:
             result.infeasible_solves += int((sol.slack_active | ~sol.ok).sum())
             if graph.num_edges:
                 z_new, lam, gap_norms, dual_norms = consensus_update(
-                    edge_copies(sol, graph), state.z, state.lam, rho_t)
+                    edge_copies(sol, graph), state.z, state.lam, rho_now)
                 primal, dual = gap_norms.max(), dual_norms.max()
+                if adaptive and it % RHO_ADAPT_EVERY == 0:
+                    rho_now = balance_penalty(rho_now, gap_norms.max(dim=1).values, dual_norms)
             else:
                 z_new, lam = state.z, state.lam
                 primal = dual = x0.new_zeros(())
             pvar = state.pvar
             if assembled.own_variance is not None:
                 pvar = edge_variances(assembled.own_variance, graph, state.pvar)
-            state = ADMMState(sol.X, sol.U, graph.edges, z_new, lam, pvar)
+            state = ADMMState(sol.X, sol.U, graph.edges, z_new, lam, pvar, rho_now if adaptive else None)
             result.primal_residuals.append(float(primal.detach()))
             result.dual_residuals.append(float(dual.detach()))
             result.iterations = it
             result.solution = sol
             result.max_margin = float(assembled.max_margin.detach())
-            if should_stop(result.primal_residuals[-1], result.dual_residuals[-1], tol, cfg.admm_dual_tol):
+            if should_stop(result.primal_residuals[-1], result.dual_residuals[-1], cfg, tol):
                 result.converged = True
                 break
         if graph.num_edges and result.iterations:

@@ -29,6 +29,8 @@ class ADMMState:
         pvar: (E, 2, T) each end's variance along the edge's collision normal at tau = 1..T,
             as that end last reported it (what the ``sum`` and ``joint`` pair margins exchange);
             NaN or ``None`` where not known yet.
+        rho: (E,) each edge's ADMM penalty (adapted by residual balancing); ``None``: the
+            step's starting rho on every edge.
     """
 
     plans: Tensor
@@ -37,6 +39,7 @@ class ADMMState:
     z: Tensor
     lam: Tensor
     pvar: Tensor | None = None
+    rho: Tensor | None = None
 
     def shifted(self) -> "ADMMState":
         """Shift everything one step forward in time (drop the first point, hold the last)."""
@@ -47,6 +50,7 @@ class ADMMState:
             z=shift_in_time(self.z, dim=2),
             lam=shift_in_time(self.lam, dim=3),
             pvar=None if self.pvar is None else shift_in_time(self.pvar, dim=2),
+            rho=self.rho,
         )
 
 
@@ -135,7 +139,9 @@ def adapt_state(state: ADMMState, graph: Graph) -> ADMMState:
     old = {tuple(e.tolist()): i for i, e in enumerate(state.edges)}
     z = state.plans[graph.edges].clone() if graph.num_edges else state.z[:0]
     lam = state.lam.new_zeros(graph.num_edges, *state.lam.shape[1:])
-    pvar = None
+    pvar = rho = None
+    if state.rho is not None:
+        rho = state.rho.new_full((graph.num_edges,), float("nan"))
     if state.pvar is not None:
         pvar = state.pvar.new_full((graph.num_edges, *state.pvar.shape[1:]), float("nan"))
     for i, e in enumerate(graph.edges.tolist()):
@@ -144,4 +150,6 @@ def adapt_state(state: ADMMState, graph: Graph) -> ADMMState:
             lam[i] = state.lam[old[tuple(e)]]
             if pvar is not None:
                 pvar[i] = state.pvar[old[tuple(e)]]
-    return ADMMState(state.plans, state.inputs, graph.edges, z, lam, pvar)
+            if rho is not None:
+                rho = rho.index_put((torch.tensor(i),), state.rho[old[tuple(e)]])
+    return ADMMState(state.plans, state.inputs, graph.edges, z, lam, pvar, rho)

@@ -217,7 +217,7 @@ class RemotePlanner:
             res.primal_residuals.append(primal)
             res.dual_residuals.append(dual)
             res.iterations = it
-            res.converged = should_stop(primal, dual, cfg.admm_tol, cfg.admm_dual_tol)
+            res.converged = should_stop(primal, dual, cfg)
             stop = 2.0 if res.converged else (1.0 if it == cfg.admm_max_iter else 0.0)
             self.net.exchange([(torch.tensor([primal, dual, stop], dtype=DTYPE), rank_of(k, self.per),
                                 tag(Kind.DECIDE, 0, k)) for k in self._live()], [], self.timeout_s)

@@ -75,10 +75,14 @@ def unroll_admm(
         state = detached_state(res.state)
         if not admm.cfg.relinearize:
             state = dataclasses.replace(state, plans=lin_plans.detach(), inputs=lin_inputs.detach())
+    adaptive = admm.cfg.rho_update == "adaptive"
+    if adaptive:  # the tuned rho is every edge's start; residual balancing adapts it from there
+        state = dataclasses.replace(state, rho=torch.as_tensor(rho, dtype=torch.float64).expand(graph.num_edges))
     primal, dual = [], []
     res = None
     for _ in range(iters):
         z_prev = state.z
+        rho_used = state.rho if adaptive else rho
         with warnings.catch_warnings():  # solve_step logs float() of residuals that carry gradients
             warnings.filterwarnings("ignore", message="Converting a tensor with requires_grad=True")
             res = admm.solve_step(x0, xref, graph, warm=state, rho=rho, risk_split=split, max_iter=1, tol=0.0,
@@ -88,7 +92,7 @@ def unroll_admm(
             copies = edge_copies(res.solution, graph)  # (E, 2, 2, T+1, D)
             gap = copies - new.z.unsqueeze(1)
             primal.append(torch.sqrt(gap.pow(2).sum(dim=(2, 3, 4)).mean() + _SQRT_FLOOR))
-            dual.append(rho * torch.sqrt((new.z - z_prev).pow(2).sum(dim=(1, 2, 3)).mean() + _SQRT_FLOOR))
+            dual.append(torch.sqrt((rho_used * (new.z - z_prev).flatten(1).norm(dim=1)).pow(2).mean() + _SQRT_FLOOR))
         else:
             primal.append(x0.new_zeros(()))
             dual.append(x0.new_zeros(()))
@@ -103,7 +107,7 @@ def _detach(x: Tensor | float) -> Tensor | float:
 
 def detached_state(s: ADMMState) -> ADMMState:
     return ADMMState(s.plans.detach(), s.inputs.detach(), s.edges, s.z.detach(), s.lam.detach(),
-                     None if s.pvar is None else s.pvar.detach())
+                     None if s.pvar is None else s.pvar.detach(), None if s.rho is None else s.rho.detach())
 
 
 def distance_penalty(plans: Tensor, r_safe: float, width: float) -> Tensor:

@@ -25,7 +25,7 @@ from torch import Tensor
 
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.control.problem import FAILURE_KINDS, LocalSolution
-from torch_gpmpc.coordination.admm import consensus_update
+from torch_gpmpc.coordination.admm import balance_penalty, consensus_update, starting_penalties
 from torch_gpmpc.coordination.agent_step import (
     edge_copies, fall_back_to_previous, message_size, obstacle_problem, pair_safety, slot_risks,
 )
@@ -167,6 +167,10 @@ class AgentController:
         self.nbrs = nbrs
         self.graph = graph_from_edges(self.num_agents, [(k, j) for j in nbrs])
         self.state = adapt_state(self.state, self.graph)
+        self.adaptive = cfg.rho_update == "adaptive"
+        if self.adaptive:
+            self.state = dataclasses.replace(
+                self.state, rho=starting_penalties(self.state.rho, self.rho, self.graph.num_edges))
         self.eps_self = slot_risks(self.graph, cfg.eps, cfg.risk_split)[k:k + 1]
         self.layer = self.local.solver(self.graph.num_slots)
         self.frozen = self.state.plans
@@ -188,7 +192,8 @@ class AgentController:
         ``y_{kj,k}`` (2, T+1, D), flattened, then the projected variances when exchanged."""
         cfg, k, state = self.cfg, self.k, self.state
         lin_state = state if cfg.relinearize else dataclasses.replace(state, plans=self.frozen)
-        assembled = self.local.assemble(self.x0[None], self.xref, lin_state, self.graph, self.rho,
+        rho = state.rho[self.graph.slot_edge[k:k + 1]] if self.adaptive and self.graph.num_edges else self.rho
+        assembled = self.local.assemble(self.x0[None], self.xref, lin_state, self.graph, rho,
                                         self.eps_self, rows=slice(k, k + 1))
         self.assembled = assembled
         data, max_margin = assembled.data, assembled.max_margin
@@ -240,14 +245,18 @@ class AgentController:
                     if pvar is not None and msg.numel() > n_copy:
                         pvar[e, 1 - a] = msg[n_copy:]
                 copies[e, 1 - a] = copy
-            z_new, lam, gap_norms, dual_norms = consensus_update(copies, state.z, state.lam, self.rho)
+            rho_now = state.rho if self.adaptive else self.rho
+            z_new, lam, gap_norms, dual_norms = consensus_update(copies, state.z, state.lam, rho_now)
             lam[self.slot_e, 1 - self.slot_a] = 0.0  # the neighbour's dual is the neighbour's
             primal = gap_norms[self.slot_e, self.slot_a].max()
             dual = dual_norms.max()
         else:
             z_new, lam = state.z, state.lam
             primal = dual = self.x0.new_zeros(())
-        self.state = ADMMState(plans, inputs, self.graph.edges, z_new, lam, pvar)
+        rho_next = None
+        if self.adaptive and self.graph.num_edges:  # both ends balance the same residuals: the same rho_e
+            rho_next = balance_penalty(state.rho, gap_norms.max(dim=1).values, dual_norms)
+        self.state = ADMMState(plans, inputs, self.graph.edges, z_new, lam, pvar, rho_next)
         self.result.iterations += 1
         self.counters["iterations_total"] += 1
         return float(primal), float(dual)
