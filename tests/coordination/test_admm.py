@@ -66,7 +66,8 @@ def test_admm_matches_centralized_solution(method, pair_margin):
     Phi^-1(1 - eps) sqrt(s_k + s_j)) in an independent centralized cvxpy solve."""
     # primal-only stopping can halt at a consensus that is not yet optimal:
     # demand the dual residual too.
-    cfg = Config(horizon=6, rho=5.0, admm_tol=1e-7, admm_dual_tol=1e-7, admm_max_iter=1500, relinearize=False,
+    cfg = Config(horizon=6, rho=5.0, admm_tol=1e-7, admm_dual_tol=1e-7, admm_rel_tol=0.0, admm_max_iter=1500,
+                 relinearize=False,
                  eps=0.1, risk_split=0.3, noise_std=0.0, pair_margin=pair_margin)
     x0 = torch.tensor([[-0.6, 0.0], [0.6, 0.1], [0.0, 0.9]], dtype=torch.float64)
     xref = torch.stack([torch.linspace(0, 1, 7, dtype=torch.float64)[:, None] * (-x0[k] * 2) + x0[k] for k in range(3)])

@@ -40,8 +40,8 @@ from torch_gpmpc.tuning import (
 SMALL = dict(horizon=6, method="nominal-chance", circle_radius=2.0, ref_points=25, pair_margin="own")
 
 
-def _small_objective(seeds, settings: TuneSettings, variances=(0.01, 0.02, 0.04)) -> TuningObjective:
-    cfg = Config(**SMALL)
+def _small_objective(seeds, settings: TuneSettings, variances=(0.01, 0.02, 0.04), **overrides) -> TuningObjective:
+    cfg = Config(**{**SMALL, **overrides})
     admm = ADMM(cfg, cfg.method, NominalModel(2), None, [ConstantVarianceGP(v) for v in variances])
     instances = with_warm_starts(admm, make_instances(cfg, seeds, settings))
     return TuningObjective(admm, instances, ObjectiveWeights.from_settings(settings), settings.admm_iters, settings.mpc_steps)
@@ -79,10 +79,14 @@ def test_gradient_matches_finite_differences(mpc_steps):
 
 
 def test_tuned_parameters_beat_defaults_on_heldout_seeds():
-    """Adam on (log rho, theta) vs the defaults (rho 20, split 0.5) and vs a rho grid."""
+    """Adam on (log rho, theta) vs the defaults (rho 20, split 0.5) and vs a rho grid, under the
+    paper's ADMM (fixed rho, primal stop, re-linearized iterates), where rho matters most; the
+    default adaptive ADMM is judged in closed loop (tests/cli/test_tune.py)."""
     settings = TuneSettings(admm_iters=4, lr=0.5, lr_decay=0.9)
-    train = _small_objective([0, 1], settings)
-    heldout = _small_objective([100, 101], settings)
+    train = _small_objective([0, 1], settings, rho_update="fixed", relinearize=True,
+                             admm_stop="primal")
+    heldout = _small_objective([100, 101], settings, rho_update="fixed", relinearize=True,
+                             admm_stop="primal")
     params = TuningParameters(3, rho=20.0, split=0.5)
     tuner = Tuner(train, params, settings)
     tuner.run(6)

@@ -43,14 +43,18 @@ class Config:
         u_max: bound on the Euclidean norm of each input.
         alpha: control-effort weight in the cost.
         noise_std: standard deviation s of the process noise w ~ N(0, s^2 I).
-        admm_tol: stop when the largest per-edge primal residual ||y - z|| is below this.
-        admm_dual_tol: with ``admm_stop = primal-dual``, the dual residual rho ||z - z_prev|| must
-            also be below this (``null``: 10 ``admm_tol``); with ``primal``, if set, likewise.
+        admm_tol: absolute tolerance of the per-edge primal residual ||y - z||.
+        admm_dual_tol: absolute tolerance of the per-edge dual residual rho ||z - z_prev||
+            (``null``: 10 ``admm_tol``; the paper's ``primal`` rule tests it only when set).
+        admm_rel_tol: relative tolerance (Boyd et al. 2011 §3.3.1) of the ``primal-dual`` rule:
+            adds ``admm_rel_tol * max(||y||, ||z||)`` to the primal and ``admm_rel_tol * ||lam||``
+            to the dual tolerance of each edge (:mod:`torch_gpmpc.coordination.penalty`).
         admm_stop: ``primal-dual`` (both residuals, Boyd et al. 2011 §3.3.1) or ``primal`` (the
             paper's rule: a consensus that is feasible, not necessarily optimal).
         rho_update: ``adaptive`` (residual balancing per edge, Boyd et al. 2011 §3.4.1: rho_e
-            doubles when its primal residual exceeds 10x its dual one, halves in the opposite
-            case; ``rho`` is the start, carried over by warm starts) or ``fixed``.
+            doubles when its primal residual ratio (residual over tolerance) exceeds 10x its
+            dual one, halves in the opposite case; ``rho`` is the start, carried over by warm
+            starts) or ``fixed``.
         admm_max_iter: ADMM iteration cap per time step.
         comm_radius: agents closer than this communicate; ``None`` = all pairs.
         goal_tol: an agent has arrived when within this distance of its target.
@@ -89,7 +93,9 @@ class Config:
         gp_optimizer: ``lbfgs`` (paper) or ``adam``.
         gp_iters: optimizer iterations for GP fitting.
         slack_penalty: exact-penalty weight on collision slacks.
-        relinearize: re-set linearization points from each ADMM iterate (Algorithm 1, step 9).
+        relinearize: re-set linearization points from each ADMM iterate (Algorithm 1, step 9);
+            false (default): linearize once per control step around the warm start, so ADMM
+            converges on one convex problem (the paper's per-iterate rule keeps it moving).
         wind_scale: amplitude of the vortex wind g (paper: 0.1).
     """
 
@@ -103,6 +109,7 @@ class Config:
     noise_std: float = 0.1
     admm_tol: float = 1e-3
     admm_dual_tol: float | None = None
+    admm_rel_tol: float = 1e-4
     admm_max_iter: int = 100
     admm_stop: str = "primal-dual"
     rho_update: str = "adaptive"
@@ -129,7 +136,7 @@ class Config:
     gp_optimizer: str = "lbfgs"
     gp_iters: int = 50
     slack_penalty: float = 1e4
-    relinearize: bool = True
+    relinearize: bool = False
     wind_scale: float = 0.1
 
     def __post_init__(self) -> None:
@@ -203,6 +210,7 @@ _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "noise_std": (lambda v: v >= 0, "a number >= 0"),
     "admm_tol": (lambda v: v > 0, "a number > 0"),
     "admm_dual_tol": (lambda v: v is None or v > 0, "a number > 0 or null"),
+    "admm_rel_tol": (lambda v: 0 <= v < 1, "a number in [0, 1)"),
     "admm_max_iter": (lambda v: 1 <= v <= 100_000, "an integer in [1, 100000]"),
     "comm_radius": (lambda v: v is None or v > 0, "a number > 0 or null (all pairs)"),
     "goal_tol": (lambda v: v > 0, "a number > 0"),

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from torch_gpmpc.control.problem import FAILURE_KINDS, LocalSolution
+from torch_gpmpc.control.problem import FAILURE_KINDS, LocalProblemData, LocalSolution
 from torch_gpmpc.coordination.graph import Graph
 
 
@@ -82,6 +82,8 @@ class StepResult:
             their collision rows require (``r_safe`` plus the pair's margin, less ``admm_tol``).
         pair_separation: (K, K) the applied plans' distance at tau = 1 per pair (NaN off edges).
         pair_required: (K, K) the larger of the pair's two tau = 1 row bounds (NaN off edges).
+        problem: the agents' local problems of the last iteration (its convexification; what
+            :func:`~torch_gpmpc.coordination.centralized.solve_centralized` solves jointly).
     """
 
     plans: Tensor
@@ -104,6 +106,7 @@ class StepResult:
     unsafe_plan: bool = False
     pair_separation: Tensor | None = None
     pair_required: Tensor | None = None
+    problem: LocalProblemData | None = None
 
 
 def shift_in_time(x: Tensor, dim: int) -> Tensor:

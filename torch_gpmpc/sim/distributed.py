@@ -49,7 +49,7 @@ from torch_gpmpc.coordination.distributed.protocol import (
     Telemetry, rank_of, sensing_size, tag, telemetry_size,
 )
 from torch_gpmpc.coordination.distributed.transport import Network, destroy_group, env_rank, free_port, init_group
-from torch_gpmpc.coordination.admm import should_stop
+from torch_gpmpc.coordination.penalty import should_stop
 from torch_gpmpc.coordination.agent_step import message_size
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.state import StepResult, shift_in_time
@@ -208,16 +208,17 @@ class RemotePlanner:
                          iterations=0, converged=False)
         for it in range(1, cfg.admm_max_iter + 1):
             self._mark_lost(t)
-            got = self.net.exchange([], [((2,), rank_of(k, self.per), tag(Kind.RESID, k)) for k in self._live()],
+            got = self.net.exchange([], [((4,), rank_of(k, self.per), tag(Kind.RESID, k)) for k in self._live()],
                                     2 * self.timeout_s + 5.0)
             vals = [g for g in got if g is not None]
             self._mark_lost(t)
             primal = max((float(v[0]) for v in vals), default=0.0)
             dual = max((float(v[1]) for v in vals), default=0.0)
+            ratios = [max((float(v[i]) for v in vals), default=0.0) for i in (2, 3)]
             res.primal_residuals.append(primal)
             res.dual_residuals.append(dual)
             res.iterations = it
-            res.converged = should_stop(primal, dual, cfg)
+            res.converged = should_stop(*ratios, cfg)
             stop = 2.0 if res.converged else (1.0 if it == cfg.admm_max_iter else 0.0)
             self.net.exchange([(torch.tensor([primal, dual, stop], dtype=DTYPE), rank_of(k, self.per),
                                 tag(Kind.DECIDE, 0, k)) for k in self._live()], [], self.timeout_s)

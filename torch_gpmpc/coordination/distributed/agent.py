@@ -25,7 +25,8 @@ from torch import Tensor
 
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.control.problem import FAILURE_KINDS, LocalSolution
-from torch_gpmpc.coordination.admm import balance_penalty, consensus_update, starting_penalties
+from torch_gpmpc.coordination.admm import consensus_update
+from torch_gpmpc.coordination.penalty import balance_penalty, edge_residuals, starting_penalties
 from torch_gpmpc.coordination.agent_step import (
     edge_copies, fall_back_to_previous, message_size, obstacle_problem, pair_safety, slot_risks,
 )
@@ -141,7 +142,7 @@ class AgentController:
                                    x0.new_zeros(0, 2, 2, cfg.horizon + 1, D))
         else:
             self.state = ADMMState(self.state.plans.clone(), self.state.inputs, self.state.edges,
-                                   self.state.z, self.state.lam)
+                                   self.state.z, self.state.lam, self.state.pvar, self.state.rho)
         self.known[k] = True
         self._next_nbrs = sorted(int(j) for j in nbr_ids if int(j) != k)
         return [j for j in self._next_nbrs if j not in self.nbrs]
@@ -215,14 +216,16 @@ class AgentController:
             out[j] = torch.cat(parts)
         return out
 
-    def update(self, received: dict[int, Tensor | None]) -> tuple[float, float]:
+    def update(self, received: dict[int, Tensor | None]) -> tuple[float, float, float, float]:
         """Consensus (28) and own duals (29) from the neighbours' copies.
 
         Args:
             received: neighbour id -> its message (:meth:`solve`'s format), or ``None`` if lost.
 
         Returns:
-            ``(largest ||y_{e,k} - z_e|| over own edges, largest rho ||z_e - z_e_prev||)``.
+            ``(primal, dual, primal ratio, dual ratio)``: the largest ``||y_{e,k} - z_e||`` over
+            own edges, the largest ``rho ||z_e - z_e_prev||``, and the largest of each over its
+            tolerance (:mod:`~torch_gpmpc.coordination.penalty`).
         """
         k, state, sol = self.k, self.state, self.solution
         plans = sol.X.clone()  # row k: own plan; neighbour rows are overwritten below (same layout)
@@ -247,19 +250,24 @@ class AgentController:
                 copies[e, 1 - a] = copy
             rho_now = state.rho if self.adaptive else self.rho
             z_new, lam, gap_norms, dual_norms = consensus_update(copies, state.z, state.lam, rho_now)
+            own_lam = torch.zeros(copies.shape[0], dtype=lam.dtype)
+            own_lam[self.slot_e] = lam[self.slot_e, self.slot_a].flatten(1).norm(dim=1)
+            res = edge_residuals(copies, z_new, own_lam, gap_norms, dual_norms, self.cfg)
             lam[self.slot_e, 1 - self.slot_a] = 0.0  # the neighbour's dual is the neighbour's
             primal = gap_norms[self.slot_e, self.slot_a].max()
             dual = dual_norms.max()
+            ratios = (float(res.primal_ratio.max()), float(res.dual_ratio.max()))
         else:
             z_new, lam = state.z, state.lam
             primal = dual = self.x0.new_zeros(())
+            ratios = (0.0, 0.0)
         rho_next = None
         if self.adaptive and self.graph.num_edges:  # both ends balance the same residuals: the same rho_e
-            rho_next = balance_penalty(state.rho, gap_norms.max(dim=1).values, dual_norms)
+            rho_next = balance_penalty(state.rho, res)
         self.state = ADMMState(plans, inputs, self.graph.edges, z_new, lam, pvar, rho_next)
         self.result.iterations += 1
         self.counters["iterations_total"] += 1
-        return float(primal), float(dual)
+        return float(primal), float(dual), *ratios
 
     def _own_variances(self) -> Tensor | None:
         """``state.pvar`` with this agent's own ends set from its latest assembly."""

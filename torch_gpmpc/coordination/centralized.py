@@ -1,0 +1,150 @@
+"""The centralized solve of one convexified step problem: the optimum ADMM should reach.
+
+Consensus ADMM splits one joint problem over the agents; this module states that joint
+problem directly, with cvxpy, from the same per-agent data the local solvers get
+(:class:`~torch_gpmpc.control.problem.LocalProblemData`), with every neighbour copy
+``Y_{k,j}`` replaced by agent j's own plan ``X_j``::
+
+    minimize    sum_k ||X_k - Xref_k||^2 + alpha ||U_k||^2 + slack_penalty sum(s)
+    subject to  X_k,0 = x0_k,  X_k,tau+1 = dyn_A X_k,tau + dyn_B U_k,tau + dyn_c
+                input bound (norm or box), optional state bound
+                n_{k,m,tau}^T (X_k,tau - X_j,tau) + s_{k,m,tau} >= bound_{k,m,tau},  s >= 0
+
+for every agent k, active slot m (neighbour j) and tau = 1..T. It is the independent
+answer for tests and, as :class:`CentralizedPlanner`, the baseline of the evaluation; it is
+not a controller an agent could run (it needs every agent's data in one place).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cvxpy as cp
+import numpy as np
+import torch
+from torch import Tensor
+
+from torch_gpmpc.control.problem import LocalProblemData
+from torch_gpmpc.coordination.admm import ADMM
+from torch_gpmpc.coordination.agent_step import edge_variances, slot_risks
+from torch_gpmpc.coordination.graph import Graph
+from torch_gpmpc.coordination.state import ADMMState, StepResult, adapt_state, initial_state
+from torch_gpmpc.dynamics.systems import NominalModel
+from torch_gpmpc.errors import GpmpcError
+
+
+@dataclass
+class CentralizedSolution:
+    """Optimum of the joint problem.
+
+    Attributes:
+        plans: (K, T+1, n) states.
+        inputs: (K, T, m) inputs.
+        cost: the optimal objective (tracking + effort + slack penalty).
+    """
+
+    plans: Tensor
+    inputs: Tensor
+    cost: float
+
+
+def plan_cost(plans: Tensor, inputs: Tensor, xref: Tensor, alpha: float) -> float:
+    """The agents' summed MPC cost ``sum_k ||X_k - Xref_k||^2 + alpha ||U_k||^2`` (no slack).
+
+    Args:
+        plans: (K, T+1, n); inputs: (K, T, m); xref: (K, T+1, n).
+    """
+    return float(((plans - xref) ** 2).sum() + alpha * (inputs ** 2).sum())
+
+
+def solve_centralized(data: LocalProblemData, graph: Graph, nominal: NominalModel, u_max: float,
+                      alpha: float, slack_penalty: float) -> CentralizedSolution:
+    """Solve the joint problem (module docstring) with Clarabel.
+
+    Args:
+        data: the K agents' convexified local problems (the consensus fields are ignored).
+        graph: the communication graph the slots refer to.
+        nominal: the model (input bound, state bound, B where ``data.dyn_B`` is None).
+        u_max: input norm bound (ignored with a box bound).
+        alpha, slack_penalty: the local problems' weights.
+
+    Raises:
+        GpmpcError: the solver did not find an optimum.
+    """
+    spec = nominal.spec
+    K, T, n = data.xref.shape[0], data.xref.shape[1] - 1, data.xref.shape[2]
+    m = nominal.input_dim
+    npy = lambda t: t.detach().cpu().numpy()  # noqa: E731
+    dyn_A, dyn_c, xref, x0 = npy(data.dyn_A), npy(data.dyn_c), npy(data.xref), npy(data.x0)
+    dyn_B = npy(data.dyn_B) if data.dyn_B is not None else np.broadcast_to(npy(nominal.B()), (K, T, n, m))
+    X = [cp.Variable((T + 1, n)) for _ in range(K)]
+    U = [cp.Variable((T, m)) for _ in range(K)]
+    cost, cons = 0, []
+    for k in range(K):
+        cost += cp.sum_squares(X[k] - xref[k]) + alpha * cp.sum_squares(U[k])
+        cons.append(X[k][0] == x0[k])
+        cons += [X[k][t + 1] == dyn_A[k, t] @ X[k][t] + dyn_B[k, t] @ U[k][t] + dyn_c[k, t] for t in range(T)]
+        if spec.input_box is not None:
+            cons.append(cp.abs(U[k]) <= np.ones((T, 1)) @ np.asarray(spec.input_box)[None, :])
+        else:
+            cons.append(cp.norm(U[k], 2, axis=1) <= u_max)
+        if spec.state_bound_norm is not None:
+            cons.append(cp.norm(X[k][1:, list(spec.state_bound_indices)], 2, axis=1) <= spec.state_bound_norm)
+    normals, bounds = npy(data.normals), npy(data.bounds)
+    active = data.active.cpu().numpy()
+    for k in range(K):
+        for slot in range(active.shape[1]):
+            if not active[k, slot]:
+                continue
+            j = int(graph.slot_nbr[k, slot])
+            s = cp.Variable(T, nonneg=True)
+            gap = cp.sum(cp.multiply(normals[k, slot], X[k][1:] - X[j][1:]), axis=1)
+            cons.append(gap + s >= bounds[k, slot])
+            cost += slack_penalty * cp.sum(s)
+    problem = cp.Problem(cp.Minimize(cost), cons)
+    problem.solve(solver=cp.CLARABEL)
+    if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        raise GpmpcError(f"centralized step problem: solver status {problem.status}")
+    as_t = lambda v: torch.as_tensor(np.stack([x.value for x in v]), dtype=data.x0.dtype)  # noqa: E731
+    return CentralizedSolution(as_t(X), as_t(U), float(problem.value))
+
+
+class CentralizedPlanner:
+    """Closed-loop baseline: every step, the joint problem solved centrally, re-linearized
+    around its own solution ``relinearizations`` times (sequential convex programming).
+
+    It convexifies exactly as the agents do (:meth:`~torch_gpmpc.coordination.agent_step.
+    LocalStep.assemble`: GP linearization, collision normals, pair margins) and follows the
+    :class:`~torch_gpmpc.sim.closed_loop.Planner` protocol, so ``run_closed_loop`` runs it.
+    ``StepResult.iterations`` counts the centralized solves.
+
+    Args:
+        admm: the agents' controller (its config, models and convexification are used).
+        relinearizations: joint solves per control step.
+    """
+
+    def __init__(self, admm: ADMM, relinearizations: int = 3) -> None:
+        if relinearizations < 1:
+            raise GpmpcError(f"relinearizations must be >= 1, got {relinearizations}")
+        self.admm, self.relinearizations = admm, int(relinearizations)
+        self.warm: ADMMState | None = None
+
+    def plan(self, t: int, x: Tensor, xref: Tensor, graph: Graph) -> StepResult:
+        """Solve step ``t`` centrally; keep the shifted plans as the next linearization point."""
+        cfg, local = self.admm.cfg, self.admm.local
+        state = initial_state(x, cfg.horizon, graph, local.nominal.input_dim) if self.warm is None \
+            else adapt_state(self.warm, graph)
+        eps_self = slot_risks(graph, cfg.eps, cfg.risk_split)
+        rho = torch.as_tensor(cfg.rho, dtype=x.dtype)
+        with torch.no_grad():
+            for _ in range(self.relinearizations):
+                assembled = local.assemble(x, xref, state, graph, rho, eps_self)
+                sol = solve_centralized(assembled.data, graph, local.nominal, cfg.u_max, cfg.alpha,
+                                        cfg.slack_penalty)
+                pvar = state.pvar if assembled.own_variance is None else \
+                    edge_variances(assembled.own_variance, graph, state.pvar)
+                z = sol.plans[graph.edges] if graph.num_edges else state.z
+                state = ADMMState(sol.plans, sol.inputs, graph.edges, z, torch.zeros_like(state.lam), pvar)
+        self.warm = state.shifted()
+        return StepResult(plans=sol.plans, inputs=sol.inputs, state=state, iterations=self.relinearizations,
+                          converged=True, problem=assembled.data, messages=torch.zeros(graph.num_agents))
