@@ -172,15 +172,21 @@ def _tune_argv(out, iters, *extra):
             "--set", "horizon=5", "--set", "circle_radius=2", "--set", "ref_points=25",
             "--set", "gp_samples=30", "--set", "gp_iters=5",
             "--set", "tune.admm_iters=2", "--set", "tune.seeds=[0]", "--set", "tune.heldout_seeds=[3]",
-            "--set", "tune.warm_max_iter=60", *extra]
+            "--set", "tune.warm_max_iter=60", "--set", "tune.closed_loop_seeds=[5]", "--set", "max_steps=6",
+            *extra]
 
 
 def test_cli_tune_writes_outputs_resumes_and_run_accepts_them(tmp_path, capsys):
     out = tmp_path / "tune"
     assert main(_tune_argv(out, 2)) == 0
     data = json.loads((out / "tuned.json").read_text())
-    assert set(data) >= {"config", "risk_split_per_edge", "history", "tune", "evaluation"}
+    assert set(data) >= {"config", "risk_split_per_edge", "history", "tune", "evaluation", "closed_loop"}
     assert len(data["history"]) == 2
+    closed = data["closed_loop"]
+    for name in ("default", "tuned"):  # seed 5, noisy (the default 0.1) and noiseless
+        assert set(closed[name]) >= {"arrival_step_max_mean", "violations_total", "admm_iterations_mean", "runs"}
+        assert closed[name]["runs"] == 2 and closed[name]["admm_iterations_mean"] > 0
+    assert closed["noise_std"] == [0.1, 0.0] and isinstance(closed["not_worse"], bool)
     assert set(data["risk_split_per_edge"]) == {"0_1", "0_2", "1_2"}
     split_mean = sum(data["risk_split_per_edge"].values()) / 3
     assert data["config"]["risk_split"] == pytest.approx(split_mean)
@@ -239,3 +245,15 @@ def test_paper_scenario_tuning_beats_defaults_and_grid():
         grid_best = float(heldout(rho=torch.tensor(grid["best_rho"], dtype=torch.float64), split=0.5).loss)
     assert tuned < 0.5 * default
     assert tuned < 1.1 * grid_best, (tuned, grid_best, grid, float(params.rho()))
+
+
+def test_closed_loop_summary_counts_never_arriving_runs_at_their_last_step():
+    from torch_gpmpc.tuning.closed_loop import not_worse, summarize
+
+    runs = [{"arrival_step_max": 50, "steps": 60, "violations": 1, "admm_iterations_mean": 10.0},
+            {"arrival_step_max": None, "steps": 150, "violations": 0, "admm_iterations_mean": 20.0}]
+    s = summarize(runs)
+    assert s == {"arrival_step_max_mean": 100.0, "violations_total": 1, "admm_iterations_mean": 15.0, "runs": 2,
+                 "never_arrived": 1}
+    assert not_worse(s, {**s, "arrival_step_max_mean": 105.0}) and not not_worse(s, {**s, "arrival_step_max_mean": 106.0})
+    assert not not_worse(s, {**s, "violations_total": 2})

@@ -60,6 +60,7 @@ def main(args) -> int:
         result["sections"][name] = section
         _print_table(name, section.get("table", []))
         _print_table(f"{name}: agent models", section.get("models", []))
+        _print_table(f"{name}: default ADMM stopping", section.get("default_stopping", []))
     write_json(out / "bench.json", result)
     print(f"\nwrote {out / 'bench.json'}")
     return 0

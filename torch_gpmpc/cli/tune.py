@@ -19,9 +19,12 @@ Outputs (all written atomically):
   ``tune/dual``, ``tune/cost``, ``tune/distance_penalty`` per iteration (the values at
   the parameters before the step; step N holds the final parameters' evaluation);
 * ``DIR/tuned.json``: ``{"config": {...}, "risk_split_per_edge": {...}, "history":
-  [...], "tune": {...}, "final": {...}, "evaluation": {...}}``; ``config`` has every
-  flat key with ``rho`` tuned and ``risk_split`` the mean tuned split, so
-  ``gpmpc run --config DIR/tuned.json`` runs with them.
+  [...], "tune": {...}, "final": {...}, "evaluation": {...}, "closed_loop": {...}}``;
+  ``config`` has every flat key with ``rho`` tuned and ``risk_split`` the mean tuned
+  split, so ``gpmpc run --config DIR/tuned.json`` runs with them; ``closed_loop`` compares
+  the default and the tuned ``config`` in whole runs on ``tune.closed_loop_seeds``, noisy
+  and noiseless (``{"default": {...}, "tuned": {...}}``, each with
+  ``arrival_step_max_mean``, ``violations_total``, ``admm_iterations_mean``, ``runs``).
 """
 
 from __future__ import annotations
@@ -114,6 +117,8 @@ def main(args) -> int:
                  "ADMM.solve_step accepts the per-edge split as a (K, K) tensor: "
                  "torch_gpmpc.tuning.load_risk_split(path, K)"),
     })
+    if settings.closed_loop_seeds:
+        payload["closed_loop"] = _closed_loop(cfg, payload["config"], settings)
     write_json(out / "tuned.json", payload)
     print(_summary(payload, out))
     return 0
@@ -163,6 +168,28 @@ def _evaluate(settings, objective, params, cfg, build_objective) -> dict[str, An
     return result
 
 
+def _closed_loop(cfg, tuned_config: dict, settings) -> dict[str, Any]:
+    """Default vs tuned settings in whole closed-loop runs (:mod:`torch_gpmpc.tuning.closed_loop`)."""
+    from torch_gpmpc.config import load_config
+    from torch_gpmpc.sim.closed_loop import simulate
+    from torch_gpmpc.sim.metrics import compute_metrics
+    from torch_gpmpc.tuning.closed_loop import closed_loop_comparison
+
+    noise = (cfg.noise_std, 0.0) if cfg.noise_std > 0 else (0.0,)
+    bar = tqdm(total=2 * len(settings.closed_loop_seeds) * len(noise), desc="closed loop", unit="run", leave=False)
+
+    def run(run_cfg) -> dict:
+        metrics = compute_metrics(simulate(run_cfg))
+        bar.update(1)
+        return metrics
+
+    started = time.perf_counter()
+    with bar:
+        result = closed_loop_comparison(cfg, load_config(None, tuned_config), settings.closed_loop_seeds, noise, run)
+    result["wall_time_s"] = time.perf_counter() - started
+    return result
+
+
 def _summary(payload: dict, out: Path) -> str:
     cfg, ev = payload["config"], payload["evaluation"]
     split = ", ".join(f"{k}: {v:.3f}" for k, v in payload["risk_split_per_edge"].items())
@@ -178,5 +205,15 @@ def _summary(payload: dict, out: Path) -> str:
         extra = f", held-out {g['heldout_best']:.4g}" if "heldout_best" in g else ""
         lines.append(f"  grid search ({g['evaluations']} rho values): best rho {g['best_rho']:.4g}, "
                      f"objective {g['best_loss']:.4g}{extra}")
+    if "closed_loop" in payload:
+        cl = payload["closed_loop"]
+        for name in ("default", "tuned"):
+            c = cl[name]
+            lines.append(f"  closed loop, {name:7s} ({c['runs']} runs, seeds {cl['seeds']}, noise {cl['noise_std']}): "
+                         f"arrival {c['arrival_step_max_mean']:.1f}, violations {c['violations_total']}, "
+                         f"{c['admm_iterations_mean']:.1f} ADMM it/step")
+        if not cl["not_worse"]:
+            lines.append("  WARNING: the tuned settings are worse than the defaults in closed loop "
+                         "(later arrival by > 5 % or more violations); keep the defaults")
     lines.append(f"wrote {out / 'tuned.json'}")
     return "\n".join(lines)

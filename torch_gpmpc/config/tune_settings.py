@@ -17,6 +17,9 @@ class TuneSettings:
     Attributes:
         seeds: training instance seeds.
         heldout_seeds: seeds of held-out instances (evaluated before and after tuning).
+        closed_loop_seeds: seeds of the closed-loop comparison after tuning: whole runs with
+            the default and the tuned settings, noisy (the config's ``noise_std``) and noiseless,
+            written to ``tuned.json``'s ``closed_loop`` (empty: skip it).
         admm_iters: ADMM iterations unrolled per MPC step (fixed, no early stop).
         mpc_steps: closed-loop MPC steps per instance (noise fixed by the seed).
         warmup_iters: gradient-free ADMM iterations before the unrolled ones (0 = none).
@@ -47,6 +50,7 @@ class TuneSettings:
 
     seeds: tuple[int, ...] = (0, 1)
     heldout_seeds: tuple[int, ...] = (100, 101)
+    closed_loop_seeds: tuple[int, ...] = (100, 101)
     admm_iters: int = 6
     mpc_steps: int = 1
     warmup_iters: int = 0
@@ -73,6 +77,7 @@ class TuneSettings:
     def __post_init__(self) -> None:
         object.__setattr__(self, "seeds", _int_tuple(self.seeds, "seeds"))
         object.__setattr__(self, "heldout_seeds", _int_tuple(self.heldout_seeds, "heldout_seeds"))
+        object.__setattr__(self, "closed_loop_seeds", _int_tuple(self.closed_loop_seeds, "closed_loop_seeds"))
         validate(self, TUNE_RULES)
         if self.grid_max < self.grid_min:
             raise GpmpcError(f"tune setting 'grid_max': {self.grid_max!r} is out of range; use a number >= grid_min")
@@ -86,6 +91,7 @@ class TuneSettings:
         """Plain JSON-serializable dict."""
         out = asdict(self)
         out["seeds"], out["heldout_seeds"] = list(self.seeds), list(self.heldout_seeds)
+        out["closed_loop_seeds"] = list(self.closed_loop_seeds)
         return out
 
 
@@ -105,6 +111,7 @@ TUNE_RULES = Rules(
     ranges={
         "seeds": (lambda v: len(v) >= 1 and min(v) >= 0, "a non-empty list of integers >= 0"),
         "heldout_seeds": (lambda v: all(s >= 0 for s in v), "a list of integers >= 0"),
+        "closed_loop_seeds": (lambda v: all(s >= 0 for s in v), "a list of integers >= 0"),
         "admm_iters": (lambda v: v >= 1, "an integer >= 1"),
         "mpc_steps": (lambda v: v >= 1, "an integer >= 1"),
         "warmup_iters": (lambda v: v >= 0, "an integer >= 0"),

@@ -168,12 +168,17 @@ class ADMM:
             state = dataclasses.replace(state, rho=starting_penalties(state.rho, rho_t, graph.num_edges))
         layer = self.local.solver(graph.num_slots)
         result = StepResult(plans=state.plans, inputs=state.inputs, state=state, iterations=0, converged=False)
-        frozen_plans = state.plans
+        frozen = dataclasses.replace(state)  # the linearization points unless relinearizing
+        linearization = None
         for it in range(1, max_iter + 1):
-            lin_state = state if cfg.relinearize else dataclasses.replace(state, plans=frozen_plans)
+            lin_state = state if cfg.relinearize else \
+                dataclasses.replace(state, plans=frozen.plans, inputs=frozen.inputs)
             rho_now = state.rho if adaptive else rho_t
             rho_slots = state.rho[graph.slot_edge] if adaptive and graph.num_edges else rho_t
-            assembled = self.local.assemble(x0, xref, lin_state, graph, rho_slots, eps_self)
+            assembled = self.local.assemble(x0, xref, lin_state, graph, rho_slots, eps_self,
+                                            linearization=linearization)
+            if not cfg.relinearize:
+                linearization = assembled.linearization
             data = assembled.data
             t0 = time.perf_counter()
             sol = self.local.solve(layer, data)

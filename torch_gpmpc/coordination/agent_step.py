@@ -13,6 +13,7 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -81,11 +82,14 @@ class Assembled:
         max_margin: largest chance margin of an active row, 0-d.
         own_variance: (B, M, T) each agent's variance along each slot's normal at tau = 1..T
             (what it sends its neighbours for ``sum``/``joint`` margins); ``None`` without margins.
+        linearization: the dynamics linearization used (reused by the caller while the
+            linearization points stay fixed within a step).
     """
 
     data: LocalProblemData
     max_margin: Tensor
     own_variance: Tensor | None = None
+    linearization: Any = None
 
 
 def exchanges_variance(cfg: Config, method: str | Method | None = None) -> bool:
@@ -160,7 +164,7 @@ class LocalStep:
 
     def assemble(
         self, x0: Tensor, xref: Tensor, state: ADMMState, graph: Graph, rho: Tensor, eps_self: Tensor,
-        rows: slice = slice(None),
+        rows: slice = slice(None), linearization: Any = None,
     ) -> Assembled:
         """Linearize around the current plans and assemble the local problems of agents ``rows``.
 
@@ -177,12 +181,16 @@ class LocalStep:
             eps_self: (B, M) own risk per slot of the selected agents.
             rows: which agents (B of them): all by default; an agent process passes its own row.
                 ``self.gps`` is indexed by agent id (an agent process may hold ``None`` for others).
+            linearization: a previous call's ``Assembled.linearization`` at the same plans and
+                inputs (the GP linearization dominates an iteration's cost); ``None``: compute it.
         """
         cfg = self.cfg
         xbar = state.plans[rows]
-        gps = None if self.gps is None else self.gps[rows]
-        lin = linearize_plan(self.method, xbar, self.nominal, self.wind, gps,
-                             include_noise=cfg.margin_variance == "predictive", ubar=state.inputs[rows])
+        lin = linearization
+        if lin is None:
+            gps = None if self.gps is None else self.gps[rows]
+            lin = linearize_plan(self.method, xbar, self.nominal, self.wind, gps,
+                                 include_noise=cfg.margin_variance == "predictive", ubar=state.inputs[rows])
         slot_edge, side, active = graph.slot_edge[rows], graph.slot_side[rows], graph.active[rows]
         slot_nbr = graph.slot_nbr[rows]
         agent_ids = torch.arange(graph.num_agents)[rows]
@@ -210,7 +218,7 @@ class LocalStep:
             lam_own=lam_mine[r, c, side], lam_nbr=lam_mine[r, c, 1 - side],
         )
         max_margin = margins[active].max() if bool(active.any()) else margins.new_zeros(())
-        return Assembled(data, max_margin, own_var)
+        return Assembled(data, max_margin, own_var, lin)
 
     def solve(self, layer: nn.Module, data: LocalProblemData) -> LocalSolution:
         """One batched local solve; an exception escaping the layer fails every agent (kind

@@ -71,9 +71,10 @@ def config_hash(cfg: Config) -> str:
 
 def sweep_config(base: Config, steps: int, iterations: int) -> dict:
     """Config of a Fig. 4 sweep run: ``steps`` closed-loop steps, exactly ``iterations``
-    ADMM iterations each (the tolerance is set unreachably low so no step stops early)."""
+    ADMM iterations each (the tolerance is set unreachably low so no step stops early), at the
+    sweep's fixed rho (the paper's study; an adaptive rho would only start there)."""
     return {**base.to_dict(), "max_steps": steps, "admm_max_iter": iterations, "admm_tol": 1e-300,
-            "admm_dual_tol": None}
+            "admm_dual_tol": None, "rho_update": "fixed"}
 
 
 #: The paper's formulation (eq. 24 margins of the latent GP variance): reproduce's six methods.

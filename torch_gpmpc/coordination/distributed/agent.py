@@ -174,7 +174,8 @@ class AgentController:
                 self.state, rho=starting_penalties(self.state.rho, self.rho, self.graph.num_edges))
         self.eps_self = slot_risks(self.graph, cfg.eps, cfg.risk_split)[k:k + 1]
         self.layer = self.local.solver(self.graph.num_slots)
-        self.frozen = self.state.plans
+        self.frozen = (self.state.plans, self.state.inputs)  # linearization points unless relinearizing
+        self.linearization = None
         self.result = StepResult(plans=self.state.plans, inputs=self.state.inputs, state=self.state,
                                  iterations=0, converged=False)
         m = torch.arange(self.graph.num_slots)
@@ -192,10 +193,13 @@ class AgentController:
         """Local solve (27) and fallback; returns the message per neighbour: the own copy
         ``y_{kj,k}`` (2, T+1, D), flattened, then the projected variances when exchanged."""
         cfg, k, state = self.cfg, self.k, self.state
-        lin_state = state if cfg.relinearize else dataclasses.replace(state, plans=self.frozen)
+        lin_state = state if cfg.relinearize else \
+            dataclasses.replace(state, plans=self.frozen[0], inputs=self.frozen[1])
         rho = state.rho[self.graph.slot_edge[k:k + 1]] if self.adaptive and self.graph.num_edges else self.rho
         assembled = self.local.assemble(self.x0[None], self.xref, lin_state, self.graph, rho,
-                                        self.eps_self, rows=slice(k, k + 1))
+                                        self.eps_self, rows=slice(k, k + 1), linearization=self.linearization)
+        if not cfg.relinearize:
+            self.linearization = assembled.linearization
         self.assembled = assembled
         data, max_margin = assembled.data, assembled.max_margin
         t0 = time.perf_counter()
