@@ -6,8 +6,9 @@ default config):
 1. ``gpmpc run --out DIR/run`` as a child process, timed from outside: the wall time a
    user sees (imports, GP fitting, closed loop, rollout, figures, TensorBoard).
 2. The same closed loop in this process with timers wrapped around its parts:
-   GP fitting; per ADMM iteration the linearization (GP mean, Jacobian and variance),
-   the rest of the problem assembly (normals, margins, consensus slots), the local
+   GP fitting; the linearization (GP mean, Jacobian and variance; once per step with the
+   default ``relinearize=false``, every iteration otherwise); per ADMM iteration the rest of
+   the problem assembly (normals, margins, consensus slots), the local
    solve (split into canonicalization, the compiled kernel and the rest of the layer:
    acceptance check, outputs) and the consensus/dual update; "ADMM other" is the rest of
    each ADMM iteration (fallback, bookkeeping) and "loop other" the rest of each step
