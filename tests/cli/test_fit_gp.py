@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -45,7 +47,7 @@ def test_fit_gp_writes_model_events_figure(collected, tmp_path, capsys):
                  "--holdout", "0.25", "--agent", "1", "--iters", "5", "--figure", str(fig)])
     assert code == 0
     out = capsys.readouterr().out
-    assert "NLL" in out and "lengthscale" in out and "held-out (10 rows): RMSE" in out and "coverage" in out
+    assert "NLL" in out and "lengthscale" in out and "held-out (10 rows, blocks split): RMSE" in out and "method: exact GP" in out and "coverage" in out
     gp = ResidualGP.load(model, expected_dim=2)
     assert gp.num_data == 30 and gp.gp_inputs == "state"
     assert fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -57,6 +59,27 @@ def test_fit_gp_writes_model_events_figure(collected, tmp_path, capsys):
     # the logged final hyperparameters are the saved model's (raw units)
     assert scalars["gp/noise/d1"][-1][1] == pytest.approx(float(gp.noise[1]), rel=1e-6)
     assert all(tag.startswith("gp/") for tag in scalars)
+
+
+def test_fit_gp_report_sparse_model_and_run_with_it(collected, tmp_path, capsys):
+    """--report holds the contract's keys (lists in the order of the residual rows); the sparse
+    method is said in the summary, saved, and accepted by run --gp-model."""
+    model, report, fig = tmp_path / "gp.pt", tmp_path / "r.json", tmp_path / "h.png"
+    assert main(["fit-gp", "--transitions", str(collected), "--out", str(model), "--holdout", "0.25",
+                 "--holdout-split", "random", "--report", str(report), "--gp-method", "sgpr", "--iters", "5",
+                 "--holdout-figure", str(fig)]) == 0
+    out = capsys.readouterr().out
+    assert "method: sparse GP (SGPR" in out and "R^2" in out and "random split" in out
+    data = json.loads(report.read_text())
+    assert set(data) == {"n_train", "n_holdout", "residual", "holdout", "fit_seconds"}
+    assert (data["n_train"], data["n_holdout"], data["residual"]) == (60, 20, [0, 1])
+    assert set(data["holdout"]) == {"rmse", "r2", "coverage95"}
+    assert all(len(v) == 2 for v in data["holdout"].values()) and data["fit_seconds"] > 0
+    assert fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert ResidualGP.load(model).method == "sgpr"
+    run_out = tmp_path / "run"
+    assert main(["run", "--gp-model", str(model), "--set", "max_steps=2", "--out", str(run_out), "--no-figures"]) == 0
+    assert json.loads((run_out / "metrics.json").read_text())["steps"] == 2
 
 
 def test_fit_gp_state_input_and_adam(collected, tmp_path):
@@ -89,6 +112,11 @@ def test_fit_gp_bad_input(collected, tmp_path, capsys):
                                                    capsys)
     err = _fails(["fit-gp", "--transitions", str(collected), "--out", str(tmp_path / "gp.json")], capsys)
     assert "must end in .pt" in err
+    err = _fails([*base, "--transitions", str(collected), "--report", str(tmp_path / "r.json")], capsys)
+    assert "need held-out rows: add --holdout 0.2" in err
+    err = _fails([*base, "--transitions", str(collected), "--holdout", "0.2", "--report", str(tmp_path / "r.txt")],
+                 capsys)
+    assert "must end in .json" in err
     three_d = tmp_path / "d3.npz"
     assert main(["collect", "--out", str(three_d), "--dim", "3", "--samples", "5", "--agents", "1"]) == 0
     capsys.readouterr()

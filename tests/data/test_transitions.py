@@ -124,6 +124,24 @@ def test_residuals_for_agent_and_split(data):
         data.residuals(NominalModel(), gp_inputs="foo")
 
 
+def test_block_split_holds_out_contiguous_time_blocks(data):
+    """60 rows in 20 blocks of 3: a 0.2 holdout is 4 whole blocks, chosen by the seed; train and
+    holdout partition the rows, and the result is reproducible."""
+    index = torch.arange(60, dtype=torch.float64)[:, None].expand(60, 2)
+    tagged = Transitions(x=index, u=data.u, x_next=data.x_next)
+    train, test = tagged.split(0.2, seed=3, mode="blocks")
+    held = test.x[:, 0].long().tolist()
+    assert len(held) == 12 and held == sorted(held)
+    starts = sorted({h // 3 for h in held})
+    assert len(starts) == 4 and held == [3 * b + i for b in starts for i in range(3)]
+    assert sorted(held + train.x[:, 0].long().tolist()) == list(range(60))
+    again = tagged.split(0.2, seed=3, mode="blocks")[1]
+    assert torch.equal(again.x, test.x)
+    assert not torch.equal(tagged.split(0.2, seed=4, mode="blocks")[1].x, test.x)
+    with pytest.raises(GpmpcError, match="holdout split must be one of"):
+        tagged.split(0.2, mode="time")
+
+
 # ---------------------------------------------------------------------- one error per problem
 def test_missing_file(tmp_path):
     assert "file not found" in _load_error(tmp_path / "nope.npz")

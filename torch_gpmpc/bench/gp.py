@@ -9,6 +9,10 @@ Workloads (synthetic data from the paper recipe, one agent, seed 0):
   forced via ``max_cholesky_size``) plus the Jacobian by ``torch.autograd`` (one
   backward pass per output dimension). Both run warm (caches built by a first call).
 * ``fit``: L-BFGS, 50 iterations, N = 100.
+* ``linearize`` of the same 42 points with the sparse (SGPR) model of
+  :mod:`~torch_gpmpc.gp.sparse` (512 inducing points) on N = 1000, 5000 and 10000 rows,
+  against the exact model on the same rows (the exact N = 10000 model is skipped: its
+  Cholesky factor alone is 1.6 GB for two outputs); the ratio is exact / sparse.
 
 Only N = 100 is fitted; the N = 1000 / 5000 models reuse its hyperparameters and
 normalization on their own data and only build the prediction cache (fitting them is
@@ -26,10 +30,15 @@ import torch
 
 from torch_gpmpc.data import collect_transitions
 from torch_gpmpc.gp import ResidualGP, fit_residual_gp
+from torch_gpmpc.gp.normalization import Standardization
+from torch_gpmpc.gp.sparse import NUM_INDUCING, kmeans_centers
 from torch_gpmpc.dynamics.systems import NominalModel, make_system
 
 NUM_POINTS = 42
 SIZES = (100, 1000, 5000)
+SPARSE_SIZES = (1000, 5000, 10000)
+#: Largest N whose exact model the sparse rows are compared with.
+EXACT_COMPARE_MAX = 5000
 
 
 def _median_time(fn: Callable[[], object], reps: int) -> tuple[float, object]:
@@ -52,9 +61,12 @@ def _data(n: int, seed: int):
     return tr.residuals(NominalModel())
 
 
-def _reuse_hyperparameters(base: ResidualGP, X: torch.Tensor, Y: torch.Tensor) -> ResidualGP:
-    """A model on (X, Y) with ``base``'s hyperparameters and normalization (cache only)."""
-    gp = ResidualGP(X, Y, normalization=(base.x_mean, base.x_std, base.y_mean, base.y_std))
+def _reuse_hyperparameters(base: ResidualGP, X: torch.Tensor, Y: torch.Tensor, sparse: bool = False) -> ResidualGP:
+    """A model on (X, Y) with ``base``'s hyperparameters and normalization (cache only);
+    ``sparse``: the SGPR model with k-means inducing points."""
+    scale = Standardization(base.x_mean, base.x_std, base.y_mean, base.y_std)
+    inducing = kmeans_centers(scale.inputs(X), NUM_INDUCING, 0) * scale.x_std + scale.x_mean if sparse else None
+    gp = ResidualGP(X, Y, normalization=scale, inducing_points=inducing)
     gp.model.load_state_dict(base.model.state_dict())
     return gp.refresh()
 
@@ -85,6 +97,24 @@ def _default_threads_row(gp: ResidualGP, xq: torch.Tensor, quick: bool, default_
     return {"workload": f"linearize {NUM_POINTS} pts, N=100, {default_threads} threads",
             "ours_ms": 1e3 * t_ours, "gpytorch_ms": 1e3 * t_base, "ratio": t_base / t_ours,
             "max_abs_diff": None}
+
+
+def _sparse_rows(base: ResidualGP, xq: torch.Tensor, quick: bool) -> list[dict]:
+    """linearize with the SGPR model vs the exact model on the same N rows."""
+    rows = []
+    for n in SPARSE_SIZES[:2] if quick else SPARSE_SIZES:
+        X, Y = _data(n, seed=2)
+        sparse = _reuse_hyperparameters(base, X, Y, sparse=True)
+        t_sparse, _ = _median_time(lambda gp=sparse: gp.linearize(xq), 3 if quick else 30)
+        t_exact = None
+        if n <= EXACT_COMPARE_MAX:
+            exact = _reuse_hyperparameters(base, X, Y)
+            t_exact, _ = _median_time(lambda gp=exact: gp.linearize(xq), 2 if quick else 10)
+        rows.append({"workload": f"linearize {NUM_POINTS} pts, SGPR M={NUM_INDUCING} vs exact, N={n}",
+                     "ours_ms": 1e3 * t_sparse, "gpytorch_ms": None,
+                     "exact_ms": None if t_exact is None else 1e3 * t_exact,
+                     "ratio": None if t_exact is None else t_exact / t_sparse, "max_abs_diff": None})
+    return rows
 
 
 def _reps(n: int, quick: bool) -> tuple[int, int]:
@@ -138,10 +168,12 @@ def _run(quick: bool, default_threads: int) -> dict:
         rows.append({"workload": f"linearize {NUM_POINTS} pts, N={n}", "ours_ms": 1e3 * t_ours,
                      "gpytorch_ms": 1e3 * t_base, "ratio": t_base / t_ours, "max_abs_diff": diff})
     rows.append(_default_threads_row(base, xq, quick, default_threads))
+    rows += _sparse_rows(base, xq, quick)
     return {
         "table": rows,
         "threads": 1,
         "num_points": NUM_POINTS,
         "note": "N=1000/5000 reuse the N=100 hyperparameters (cache only); gpytorch baseline: "
-                "eval-mode model(x) with exact variances + autograd Jacobian, warm",
+                "eval-mode model(x) with exact variances + autograd Jacobian, warm; SGPR rows: ratio is "
+                "exact / sparse linearize on the same rows (exact skipped at N=10000)",
     }

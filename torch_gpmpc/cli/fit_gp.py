@@ -1,14 +1,17 @@
-"""``gpmpc fit-gp``: fit one residual GP per state dimension to logged transitions.
+"""``gpmpc fit-gp``: fit one residual GP per residual dimension to logged transitions.
 
-Thin over :mod:`torch_gpmpc.gp.model`: loads and validates the transitions, optionally
-holds out a fraction for RMSE/coverage, fits by exact marginal likelihood with a
-tqdm progress bar and TensorBoard logging (``gp/loss``,
-``gp/lengthscale/d{d}_in{i}``, ``gp/noise/d{d}``, ``gp/outputscale/d{d}`` per
-optimizer step, raw units), prints a summary and writes the model atomically.
+Thin over :mod:`torch_gpmpc.gp`: loads and validates the transitions, optionally holds
+out a fraction (contiguous time blocks by default, or random rows) for RMSE, R^2 and
+95 % coverage, fits (exact GP, or the sparse SGPR model above 1000 rows; the summary says
+which) with a tqdm progress bar and TensorBoard logging (``gp/loss``,
+``gp/lengthscale/d{d}_in{i}``, ``gp/noise/d{d}``, ``gp/outputscale/d{d}`` per optimizer
+step, raw units; ``gp/holdout_rmse|r2|coverage95/d{d}``), prints a summary and writes the
+model, the optional report JSON and the optional figure atomically.
 """
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from tqdm import tqdm
@@ -16,7 +19,10 @@ from tqdm import tqdm
 from torch_gpmpc.data.transitions import Transitions
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.config.model_spec import check_model_name, resolve_model
+from torch_gpmpc.fileio import write_json
 from torch_gpmpc.gp import check_training_size, fit_residual_gp, gp_input_label, holdout_metrics
+from torch_gpmpc.gp.fit import resolve_method
+from torch_gpmpc.gp.sparse import EXACT_MAX_POINTS, HYPERPARAMETER_SUBSET
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 from torch_gpmpc.report.tensorboard import TBLogger
 
@@ -41,6 +47,12 @@ def _validate_args(args) -> None:
         raise GpmpcError(f"--holdout must be in [0, 1) (a fraction such as 0.2), got {args.holdout}")
     if args.iters < 0:
         raise GpmpcError(f"--iters must be >= 0, got {args.iters}")
+    if args.report is not None and Path(args.report).suffix.lower() != ".json":
+        raise GpmpcError(f"--report {args.report!r}: the report file must end in .json")
+    if (args.report is not None or args.holdout_figure is not None) and args.holdout <= 0:
+        raise GpmpcError("--report and --holdout-figure need held-out rows: add --holdout 0.2")
+    if args.holdout_figure is not None and Path(args.holdout_figure).suffix.lower() != ".png":
+        raise GpmpcError(f"--holdout-figure {args.holdout_figure!r}: the figure file must end in .png")
     if args.figure is not None:
         if Path(args.figure).suffix.lower() != ".png":
             raise GpmpcError(f"--figure {args.figure!r}: the figure file must end in .png")
@@ -77,35 +89,49 @@ def _load(args) -> Transitions:
     return data
 
 
-def _summary(gp, train: Transitions, holdout: dict | None, final_loss: float) -> str:
+def _summary(gp, train: Transitions, holdout: dict | None, final_loss: float, seconds: float) -> str:
     hp = gp.hyperparameters()
     fmt = lambda xs: "[" + ", ".join(f"{x:.4g}" for x in xs) + "]"  # noqa: E731
+    if gp.method == "exact":
+        how = (f"exact GP; NLL (raw units, sum over dims) = {gp.negative_log_marginal_likelihood():.4f}; "
+               f"final loss (standardized, per datum) = {final_loss:.6f}")
+    else:
+        how = (f"sparse GP (SGPR, above {EXACT_MAX_POINTS} rows): {hp['num_inducing']} k-means inducing points, "
+               f"posterior on all {gp.num_data} rows, hyperparameters by exact marginal likelihood on "
+               f"{min(HYPERPARAMETER_SUBSET, gp.num_data)} of them (final loss {final_loss:.6f})")
     lines = [
         f"fit-gp: N={train.num_samples} ({train.source}), D={gp.output_dim}, inputs={gp.gp_inputs} "
-        f"(Din={gp.input_dim})",
-        f"  NLL (raw units, sum over dims) = {gp.negative_log_marginal_likelihood():.4f}; "
-        f"final loss (standardized, per datum) = {final_loss:.6f}",
+        f"(Din={gp.input_dim}), fitted in {seconds:.1f} s",
+        f"  method: {how}",
     ]
     for d in range(gp.output_dim):
         lines.append(f"  d{d}: lengthscale {fmt(hp['lengthscale'][d])}, outputscale {hp['outputscale'][d]:.4g}, "
                      f"noise var {hp['noise'][d]:.4g} (std {hp['noise'][d] ** 0.5:.4g})")
     if holdout is not None:
-        lines.append(f"  held-out ({holdout['num']} rows): RMSE per dim {fmt(holdout['rmse'])}, "
-                     f"95% coverage per dim {fmt(holdout['coverage95'])} (all {holdout['coverage95_all']:.3f}, "
-                     "predictive incl. noise)")
+        lines.append(f"  held-out ({holdout['num']} rows, {holdout['split']} split): RMSE per dim {fmt(holdout['rmse'])}, "
+                     f"R^2 {fmt(holdout['r2'])}, 95% coverage {fmt(holdout['coverage95'])} "
+                     f"(all {holdout['coverage95_all']:.3f}, predictive incl. noise)")
     return "\n".join(lines)
+
+
+def report(n_train: int, residual: list[int], holdout: dict, fit_seconds: float) -> dict:
+    """The ``--report`` JSON: ``{n_train, n_holdout, residual, holdout: {rmse, r2, coverage95},
+    fit_seconds}``; the lists follow ``residual`` (the model's residual state indices)."""
+    return {"n_train": n_train, "n_holdout": holdout["num"], "residual": list(residual),
+            "holdout": {k: holdout[k] for k in ("rmse", "r2", "coverage95")}, "fit_seconds": fit_seconds}
 
 
 def main(args) -> int:
     """Run ``gpmpc fit-gp`` (see module docstring)."""
     _validate_args(args)
     data = _load(args)
-    train, test = data.split(args.holdout, seed=args.seed) if args.holdout > 0 else (data, None)
     nominal = _nominal(args, data)
+    train, test = data.split(args.holdout, seed=args.seed, mode=args.holdout_split) if args.holdout > 0 \
+        else (data, None)
     gp_inputs = args.gp_inputs if args.model is None else None
     label = (gp_inputs or "state") if args.model is None else gp_input_label(nominal)
     X, Y = train.residuals(nominal, gp_inputs=gp_inputs)
-    check_training_size(X.shape[0])  # before the progress bar and the TensorBoard directory
+    check_training_size(X.shape[0], resolve_method(args.gp_method, X.shape[0]))  # before any output
     last = {"loss": float("nan")}
     with TBLogger(args.logdir) as tb, tqdm(total=args.iters + 1, desc="fit-gp", unit="step",
                                            leave=False) as bar:
@@ -115,17 +141,28 @@ def main(args) -> int:
             bar.set_postfix(loss=f"{loss:.4f}")
             bar.update(1)
 
+        started = time.perf_counter()
         gp = fit_residual_gp(X, Y, optimizer=args.optimizer, iters=args.iters, seed=args.seed,
-                             callback=callback, gp_inputs=label)
+                             callback=callback, gp_inputs=label, method=args.gp_method)
+        seconds = time.perf_counter() - started
         metrics = None
         if test is not None:
-            metrics = holdout_metrics(gp, *test.residuals(nominal, gp_inputs=gp_inputs))
-            for d, (r, c) in enumerate(zip(metrics["rmse"], metrics["coverage95"], strict=True)):
-                tb.scalar(f"gp/holdout_rmse/d{d}", r, args.iters)
-                tb.scalar(f"gp/holdout_coverage95/d{d}", c, args.iters)
+            X_test, Y_test = test.residuals(nominal, gp_inputs=gp_inputs)
+            metrics = {**holdout_metrics(gp, X_test, Y_test), "split": args.holdout_split}
+            for name in ("rmse", "r2", "coverage95"):
+                for d, value in enumerate(metrics[name]):
+                    tb.scalar(f"gp/holdout_{name}/d{d}", value, args.iters)
     gp.save(args.out)
-    print(_summary(gp, train, metrics, last["loss"]))
+    print(_summary(gp, train, metrics, last["loss"], seconds))
     print(f"wrote {args.out}")
+    if args.report is not None:
+        write_json(args.report, report(train.num_samples, list(nominal.residual), metrics, seconds))
+        print(f"wrote {args.report}")
+    if args.holdout_figure is not None:
+        from torch_gpmpc.report.gp_figures import plot_holdout_residuals
+
+        plot_holdout_residuals(gp, X_test, Y_test, list(nominal.residual), args.holdout_figure)
+        print(f"wrote {args.holdout_figure}")
     if args.figure is not None:
         from torch_gpmpc.report.gp_figures import plot_gp_field
 

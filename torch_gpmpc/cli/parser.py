@@ -49,7 +49,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--transitions", required=True, help="transitions file (.npz or .csv)")
     p.add_argument("--out", required=True, help="model file to write (.pt)")
     p.add_argument("--logdir", help="TensorBoard directory")
-    p.add_argument("--holdout", type=float, default=0.0, help="fraction held out for RMSE/coverage")
+    p.add_argument("--holdout", type=float, default=0.0, help="fraction held out for RMSE/R^2/coverage")
+    p.add_argument("--holdout-split", choices=("blocks", "random"), default="blocks",
+                   help="hold out contiguous time blocks (default: logs are autocorrelated) or random rows")
+    p.add_argument("--report", help="write the held-out metrics and fit time to this JSON file")
+    p.add_argument("--gp-method", choices=("auto", "exact", "sgpr"), default="auto",
+                   help="exact GP, sparse SGPR, or auto (exact up to 1000 rows; default)")
+    p.add_argument("--holdout-figure", help="PNG of held-out predictions vs measured residuals over time")
     p.add_argument("--agent", type=int, help="fit only rows of this agent id")
     p.add_argument("--model", help="agent model (double-integrator or a model file): its residual rows are the GP "
                                    "outputs and its gp_inputs the GP inputs (default: the paper's model)")

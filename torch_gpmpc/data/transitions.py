@@ -42,6 +42,12 @@ MAX_ABS_VALUE = 1e6
 MIN_SAMPLES = 2
 
 
+#: How ``Transitions.split`` holds rows out.
+SPLIT_MODES = ("random", "blocks")
+#: Contiguous blocks of the ``blocks`` split.
+SPLIT_BLOCKS = 20
+
+
 @dataclass(frozen=True, eq=False)
 class Transitions:
     """N logged transitions ``x -> x_next`` under inputs ``u``.
@@ -121,32 +127,49 @@ class Transitions:
         _check_count(out.num_samples, out.source)
         return out
 
-    def split(self, holdout_fraction: float, seed: int = 0) -> tuple["Transitions", "Transitions"]:
-        """Random split into training and held-out parts.
+    def split(self, holdout_fraction: float, seed: int = 0, mode: str = "random"
+              ) -> tuple["Transitions", "Transitions"]:
+        """Split into training and held-out parts.
 
         Args:
             holdout_fraction: share of rows held out, in (0, 1).
-            seed: seed of the permutation.
+            seed: seed of the permutation (``random``) or of the choice of blocks (``blocks``).
+            mode: ``random`` (rows drawn uniformly) or ``blocks``: the rows, in log order, cut
+                into :data:`SPLIT_BLOCKS` contiguous blocks of equal size and
+                ``round(fraction * blocks)`` (at least 1) of them held out. Logged transitions
+                are autocorrelated, so a random split puts near-copies of every held-out row in
+                the training set and flatters a model; held-out time blocks do not.
 
         Returns:
-            ``(train, holdout)``; ``holdout`` has ``round(fraction * N)`` rows (at least 1)
+            ``(train, holdout)``; ``holdout`` has about ``fraction * N`` rows (at least 1)
             and ``train`` keeps at least 2.
 
         Raises:
-            GpmpcError: if the fraction is outside (0, 1) or leaves too few rows.
+            GpmpcError: if the fraction is outside (0, 1), the mode is unknown, or the split
+                leaves too few rows.
         """
         f = float(holdout_fraction)
         if not 0.0 < f < 1.0:
             raise GpmpcError(f"holdout fraction must be in (0, 1), got {holdout_fraction}; "
                              "e.g. --holdout 0.2")
-        n_test = max(1, int(round(f * self.num_samples)))
-        if self.num_samples - n_test < MIN_SAMPLES:
-            raise source_error(self.source, f"holdout fraction {f} leaves {self.num_samples - n_test} "
-                        f"training rows of {self.num_samples}; use a smaller fraction or more data")
+        if mode not in SPLIT_MODES:
+            raise GpmpcError(f"holdout split must be one of {SPLIT_MODES}, got {mode!r}")
         gen = torch.Generator().manual_seed(int(seed))
-        perm = torch.randperm(self.num_samples, generator=gen)
-        return (self._rows(perm[n_test:], f"{self.source} (train)"),
-                self._rows(perm[:n_test], f"{self.source} (holdout)"))
+        n = self.num_samples
+        if mode == "random":
+            held = torch.randperm(n, generator=gen)[:max(1, int(round(f * n)))].sort().values
+        else:
+            blocks = min(SPLIT_BLOCKS, n)
+            bounds = torch.linspace(0, n, blocks + 1).round().long()
+            chosen = torch.randperm(blocks, generator=gen)[:max(1, int(round(f * blocks)))].sort().values
+            held = torch.cat([torch.arange(int(bounds[b]), int(bounds[b + 1])) for b in chosen.tolist()])
+        keep = torch.ones(n, dtype=torch.bool)
+        keep[held] = False
+        if int(keep.sum()) < MIN_SAMPLES:
+            raise source_error(self.source, f"holdout fraction {f} leaves {int(keep.sum())} "
+                               f"training rows of {n}; use a smaller fraction or more data")
+        return (self._rows(keep.nonzero().flatten(), f"{self.source} (train)"),
+                self._rows(held, f"{self.source} (holdout)"))
 
     def deduplicated(self) -> "Transitions":
         """Drop exact duplicate rows ``(x, u, x_next, agent)``, keeping the first.

@@ -22,7 +22,9 @@ log = logging.getLogger(__name__)
 class PredictionCache:
     """Everything ``ResidualGP.linearize`` needs (standardized units unless noted).
 
-    Shapes: D outputs, N training points, Din inputs.
+    Shapes: D outputs, N support points (the training points of an exact GP, the inducing
+    points of a sparse one), Din inputs. The latent variance is
+    ``outputscale - ||chol^-1 k||^2 (+ ||chol_add^-1 k||^2 for a sparse GP)``.
     """
 
     x_mean: Tensor  # (Din,) raw
@@ -37,6 +39,7 @@ class PredictionCache:
     y_mean: Tensor  # (D,) raw
     y_std: Tensor  # (D,) raw
     noise_raw: Tensor  # (D,) raw noise variance
+    chol_add: Tensor | None = None  # (D, N, N) sparse GP: lower factor of Sigma^-1 (gp.sparse)
 
 
 def squared_distances(a: Tensor, b: Tensor) -> Tensor:

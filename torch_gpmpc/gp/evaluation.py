@@ -14,7 +14,7 @@ Z95 = 1.959963984540054
 
 
 def holdout_metrics(gp: ResidualGP, inputs: Tensor, y: Tensor) -> dict[str, Any]:
-    """Held-out accuracy: RMSE of the mean and coverage of 95% predictive intervals.
+    """Held-out accuracy: RMSE and R^2 of the mean, coverage of 95% predictive intervals.
 
     Args:
         gp: a fitted model.
@@ -22,15 +22,20 @@ def holdout_metrics(gp: ResidualGP, inputs: Tensor, y: Tensor) -> dict[str, Any]
         y: held-out residual targets, shape (m, D).
 
     Returns:
-        ``{"rmse": [D floats], "coverage95": [D floats], "coverage95_all": float, "num": m}``
-        where coverage uses ``predict(include_noise=True)``.
+        ``{"rmse": [D floats], "r2": [D floats], "coverage95": [D floats], "coverage95_all": float,
+        "num": m}`` where ``r2 = 1 - SSE / SST`` per output over the held-out rows (SST about
+        their own mean; 0 for a constant held-out target) and coverage uses
+        ``predict(include_noise=True)``.
     """
     with torch.no_grad():
         mean, var = gp.predict(inputs, include_noise=True)
         err = y - mean
         inside = (err.abs() <= Z95 * var.sqrt()).to(torch.float64)
+        sst = (y - y.mean(0)).square().sum(0)
+        r2 = torch.where(sst > 0, 1.0 - err.square().sum(0) / sst.clamp_min(1e-300), torch.zeros_like(sst))
     return {
         "rmse": err.square().mean(0).sqrt().tolist(),
+        "r2": r2.tolist(),
         "coverage95": inside.mean(0).tolist(),
         "coverage95_all": float(inside.mean()),
         "num": int(y.shape[0]),

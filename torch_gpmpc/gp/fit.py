@@ -17,13 +17,19 @@ from torch import Tensor
 
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.gp.model import MAX_CHOLESKY_SIZE, ResidualGP
+from torch_gpmpc.gp.model import MAX_CHOLESKY_SIZE, ResidualGP, check_training_data
+from torch_gpmpc.gp.normalization import Standardization
+from torch_gpmpc.gp.sparse import EXACT_MAX_POINTS, HYPERPARAMETER_SUBSET, NUM_INDUCING, kmeans_centers
 
 log = logging.getLogger(__name__)
 
 #: Most training points :func:`fit_residual_gp` accepts: an exact GP needs O(N^2)
 #: memory and O(N^3) time per output dimension (5000 points: ~0.4 GB for D = 2).
 MAX_TRAINING_POINTS = 5000
+#: Most training points of a sparse fit (its factorization holds D x M x N numbers).
+MAX_SPARSE_POINTS = 100_000
+#: Fitting methods: ``auto`` is ``exact`` up to ``gp.sparse.EXACT_MAX_POINTS`` rows, else ``sgpr``.
+GP_METHODS = ("auto", "exact", "sgpr")
 #: Jitter levels (added to the kernel diagonal, standardized units) tried when a
 #: Cholesky factorization fails; ``None`` is GPyTorch's default.
 JITTERS = (None, 1e-6, 1e-4)
@@ -53,7 +59,7 @@ def _neg_mll(model: gpytorch.models.ExactGP, mll: gpytorch.mlls.ExactMarginalLog
 
 def fit_residual_gp(inputs: Tensor, y: Tensor, optimizer: str = "lbfgs", iters: int = 50, seed: int = 0,
                     callback: Callback | None = None, lr: float | None = None,
-                    gp_inputs: str = "state") -> ResidualGP:
+                    gp_inputs: str = "state", method: str = "auto", num_inducing: int = NUM_INDUCING) -> ResidualGP:
     """Fit a :class:`ResidualGP` by maximizing the exact marginal log likelihood.
 
     Args:
@@ -62,16 +68,22 @@ def fit_residual_gp(inputs: Tensor, y: Tensor, optimizer: str = "lbfgs", iters: 
         optimizer: ``"lbfgs"`` (``torch.optim.LBFGS`` with strong-Wolfe line search,
             the paper's choice) or ``"adam"``.
         iters: number of optimizer steps (L-BFGS iterations or Adam steps).
-        seed: seeds torch's RNG for the fit (the exact fit itself is deterministic).
+        seed: seeds torch's RNG for the fit and the sparse model's subset and k-means.
         callback: called as ``callback(step, loss, hyperparameters)`` for steps
             ``0..iters`` with the loss (negative MLL per datum, standardized units,
             summed over outputs) and the raw-unit :meth:`ResidualGP.hyperparameters`
             at which it was evaluated (step ``iters`` is the final model).
         lr: learning rate (default 1.0 for L-BFGS, 0.1 for Adam).
         gp_inputs: ``"state"`` or ``"state_input"`` (recorded in the model).
+        method: ``exact``; ``sgpr`` (hyperparameters by exact marginal likelihood on a seeded
+            subset of :data:`~torch_gpmpc.gp.sparse.HYPERPARAMETER_SUBSET` rows, then the SGPR
+            posterior on all rows with :data:`~torch_gpmpc.gp.sparse.NUM_INDUCING` k-means
+            inducing points: :mod:`~torch_gpmpc.gp.sparse`); ``auto``: ``exact`` up to
+            :data:`~torch_gpmpc.gp.sparse.EXACT_MAX_POINTS` rows, else ``sgpr``.
+        num_inducing: inducing points M of the sparse model.
 
     Returns:
-        The fitted model in eval mode with its prediction cache built.
+        The fitted model in eval mode with its prediction cache built (``gp.method`` says which).
 
     Raises:
         GpmpcError: bad arguments, non-PD kernel matrices, or a diverged fit.
@@ -81,24 +93,58 @@ def fit_residual_gp(inputs: Tensor, y: Tensor, optimizer: str = "lbfgs", iters: 
     if int(iters) < 0:
         raise GpmpcError(f"iters must be >= 0, got {iters}")
     inputs = torch.as_tensor(inputs, dtype=torch.float64)
-    check_training_size(int(inputs.shape[0]) if inputs.ndim else 0)
-    gp = ResidualGP(inputs, y, gp_inputs=gp_inputs)
+    y = torch.as_tensor(y, dtype=torch.float64)
+    num = int(inputs.shape[0]) if inputs.ndim else 0
+    method = resolve_method(method, num)
+    check_training_size(num, method)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(seed))
-        _optimize(gp, optimizer, int(iters), callback, lr)
+        if method == "exact":
+            gp = ResidualGP(inputs, y, gp_inputs=gp_inputs)
+            _optimize(gp, optimizer, int(iters), callback, lr)
+            return gp.refresh()
+        return _fit_sparse(inputs, y, optimizer, int(iters), int(seed), callback, lr, gp_inputs, int(num_inducing))
+
+
+def resolve_method(method: str, num_points: int) -> str:
+    """``exact`` or ``sgpr`` for ``method`` (one of :data:`GP_METHODS`) and N training points."""
+    if method not in GP_METHODS:
+        raise GpmpcError(f"GP method must be one of {GP_METHODS}, got {method!r}")
+    if method == "auto":
+        return "exact" if num_points <= EXACT_MAX_POINTS else "sgpr"
+    return method
+
+
+def _fit_sparse(inputs: Tensor, y: Tensor, optimizer: str, iters: int, seed: int, callback: Callback | None,
+                lr: float | None, gp_inputs: str, num_inducing: int) -> ResidualGP:
+    """Hyperparameters on a seeded subset (exact marginal likelihood), then the SGPR posterior on
+    all rows with k-means inducing points; the standardization is that of all rows."""
+    inputs, y = check_training_data(inputs, y)
+    scale = Standardization.from_data(inputs, y)
+    gen = torch.Generator().manual_seed(seed)
+    subset = torch.randperm(inputs.shape[0], generator=gen)[:HYPERPARAMETER_SUBSET]
+    hyper = ResidualGP(inputs[subset], y[subset], gp_inputs=gp_inputs, normalization=scale)
+    _optimize(hyper, optimizer, iters, callback, lr)
+    centres = kmeans_centers(scale.inputs(inputs), num_inducing, seed)
+    gp = ResidualGP(inputs, y, gp_inputs=gp_inputs, normalization=scale,
+                    inducing_points=centres * scale.x_std + scale.x_mean)
+    gp.model.load_state_dict(hyper.model.state_dict())
     return gp.refresh()
 
 
-def check_training_size(num_points: int) -> None:
-    """Raise if ``num_points`` exceeds :data:`MAX_TRAINING_POINTS`.
+def check_training_size(num_points: int, method: str = "exact") -> None:
+    """Raise if ``num_points`` exceeds what ``method`` (``exact`` or ``sgpr``) fits.
 
     Raises:
         GpmpcError: naming the size, the limit and the fix.
     """
-    if num_points > MAX_TRAINING_POINTS:
+    if method == "exact" and num_points > MAX_TRAINING_POINTS:
         raise GpmpcError(f"GP training data: N={num_points} points is more than an exact GP fits in "
-                         f"reasonable time and memory (at most {MAX_TRAINING_POINTS}); subsample the "
-                         "transitions or fit one agent's rows (fit-gp --agent K)")
+                         f"reasonable time and memory (at most {MAX_TRAINING_POINTS}); use --gp-method sgpr "
+                         "(or auto), subsample the transitions or fit one agent's rows (fit-gp --agent K)")
+    if num_points > MAX_SPARSE_POINTS:
+        raise GpmpcError(f"GP training data: N={num_points} points is more than the sparse GP holds "
+                         f"(at most {MAX_SPARSE_POINTS}); subsample the transitions")
 
 
 def _optimize(gp: ResidualGP, optimizer: str, iters: int, callback: Callback | None,
@@ -108,10 +154,13 @@ def _optimize(gp: ResidualGP, optimizer: str, iters: int, callback: Callback | N
     gp.likelihood.train()
     mll = gpytorch.mlls.ExactMarginalLogLikelihood(gp.likelihood, model)
     params = [p for p in model.parameters() if p.requires_grad]
-    if optimizer == "lbfgs":
-        opt = torch.optim.LBFGS(params, lr=lr or 1.0, max_iter=1, line_search_fn="strong_wolfe")
-    else:
-        opt = torch.optim.Adam(params, lr=lr or 0.1)
+
+    def new_optimizer() -> torch.optim.Optimizer:
+        if optimizer == "lbfgs":
+            return torch.optim.LBFGS(params, lr=lr or 1.0, max_iter=1, line_search_fn="strong_wolfe")
+        return torch.optim.Adam(params, lr=lr or 0.1)
+
+    opt = new_optimizer()
 
     def closure() -> Tensor:
         opt.zero_grad()
@@ -142,12 +191,24 @@ def _optimize(gp: ResidualGP, optimizer: str, iters: int, callback: Callback | N
                     callback(iters, float(loss.detach()), gp.hyperparameters())
                 return
             last_good = _copy_state(model)
+            if optimizer == "lbfgs" and _line_search_stalled(opt, params[0]):
+                # the strong-Wolfe search found no step along the quasi-Newton direction (seen on
+                # smooth, low-noise data after a first long step): L-BFGS would repeat it forever,
+                # so drop its curvature history and restart from steepest descent
+                log.debug("GP fit: L-BFGS line search stalled at step %d; restarting its history", step)
+                opt = new_optimizer()
         value = float(loss.detach())
         if not math.isfinite(value):
             raise GpmpcError(f"GP fit diverged (loss {value}) at step {step}; try --optimizer lbfgs, "
                              "fewer --iters or check the data")
         if callback is not None:
             callback(step, value, hp)
+
+
+def _line_search_stalled(opt: torch.optim.Optimizer, param: Tensor) -> bool:
+    """Whether the last L-BFGS step's line search returned a zero step length."""
+    t = opt.state.get(param, {}).get("t")
+    return t is not None and float(t) == 0.0
 
 
 def _copy_state(model: torch.nn.Module) -> dict:

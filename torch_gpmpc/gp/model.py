@@ -20,7 +20,9 @@ After fitting, :meth:`ResidualGP.refresh` caches (:mod:`~torch_gpmpc.gp.cache`) 
 ``K_d + s_d^2 I`` and ``alpha_d = (K_d + s_d^2 I)^{-1} Y_d``; :meth:`ResidualGP.linearize`
 then evaluates mean, Jacobian and variance for a batch of points with a few batched
 torch ops (no GPyTorch predictive machinery), because the controller calls it every
-ADMM iteration.
+ADMM iteration. With ``inducing_points`` the same model is the sparse (SGPR) posterior of
+:mod:`~torch_gpmpc.gp.sparse`, served by the same code with the inducing points as the
+support points.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.gp.cache import PredictionCache, safe_cholesky, squared_distances
 from torch_gpmpc.gp.io import FORMAT, VERSION, read_payload, verify_checksum, write_payload
 from torch_gpmpc.gp.normalization import Standardization
+from torch_gpmpc.gp.sparse import sparse_posterior
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +90,8 @@ class ResidualGP(torch.nn.Module):
             ``"state_input"`` (Din = D + Du). Stored in the model file.
         normalization: the :class:`~torch_gpmpc.gp.normalization.Standardization` to use;
             computed from the data when ``None``.
+        inducing_points: raw inducing inputs, shape (M, Din): the sparse (SGPR) posterior on
+            all N rows (:mod:`~torch_gpmpc.gp.sparse`); ``None``: the exact GP.
 
     Attributes:
         model: the GPyTorch ``ExactGP`` on standardized data (batch_shape [D]).
@@ -94,9 +99,10 @@ class ResidualGP(torch.nn.Module):
     """
 
     def __init__(self, inputs: Tensor, y: Tensor, gp_inputs: str = "state",
-                 normalization: Standardization | None = None):
+                 normalization: Standardization | None = None, inducing_points: Tensor | None = None):
         super().__init__()
-        inputs, y = _check_training_data(inputs, y)
+        inputs, y = check_training_data(inputs, y)
+        self.inducing_points = _check_inducing(inducing_points, inputs.shape[1])
         if gp_inputs not in GP_INPUTS and not _is_column_list(gp_inputs):
             raise GpmpcError(f"gp_inputs must be one of {GP_INPUTS} or model columns such as 'x3,x4,u0', "
                              f"got {gp_inputs!r}")
@@ -131,6 +137,11 @@ class ResidualGP(torch.nn.Module):
         """N."""
         return int(self.train_inputs_raw.shape[0])
 
+    @property
+    def method(self) -> str:
+        """``exact`` or ``sgpr`` (the sparse posterior on inducing points)."""
+        return "exact" if self.inducing_points is None else "sgpr"
+
     # ------------------------------------------------------------------ hyperparameters
     @property
     def lengthscales(self) -> Tensor:
@@ -158,6 +169,8 @@ class ResidualGP(torch.nn.Module):
             "output_dim": self.output_dim,
             "num_data": self.num_data,
             "gp_inputs": self.gp_inputs,
+            "method": self.method,
+            "num_inducing": 0 if self.inducing_points is None else int(self.inducing_points.shape[0]),
         }
 
     # ------------------------------------------------------------------ cache
@@ -178,16 +191,22 @@ class ResidualGP(torch.nn.Module):
             ls = self.model.covar_module.base_kernel.lengthscale.detach().reshape(D, 1, Din)
             outputscale = self.model.covar_module.outputscale.detach().reshape(D)
             noise = self.likelihood.noise.detach().reshape(D)
-            z = (self.train_inputs_raw - self.x_mean) / self.x_std
-            S = z / ls
-            K = outputscale[:, None, None] * torch.exp(-0.5 * squared_distances(S, S))
-            K = K + noise[:, None, None] * torch.eye(self.num_data, dtype=K.dtype)
-            chol = safe_cholesky(K, outputscale)
-            ys = ((self.train_y_raw - self.y_mean) / self.y_std).T.unsqueeze(-1)
-            alpha = torch.cholesky_solve(ys, chol).squeeze(-1)
+            S_f = ((self.train_inputs_raw - self.x_mean) / self.x_std) / ls
+            ys = ((self.train_y_raw - self.y_mean) / self.y_std).T
+            chol_add = None
+            if self.inducing_points is None:
+                S = S_f
+                K = outputscale[:, None, None] * torch.exp(-0.5 * squared_distances(S, S))
+                K = K + noise[:, None, None] * torch.eye(self.num_data, dtype=K.dtype)
+                chol = safe_cholesky(K, outputscale)
+                alpha = torch.cholesky_solve(ys.unsqueeze(-1), chol).squeeze(-1)
+            else:
+                S = ((self.inducing_points - self.x_mean) / self.x_std) / ls
+                post = sparse_posterior(S, S_f, ys, outputscale, noise)
+                chol, chol_add, alpha = post.chol_uu, post.chol_sigma, post.alpha
         S_cols = tuple(S[:, None, :, i].contiguous() for i in range(Din))
         self._cache = PredictionCache(self.x_mean, self.x_std, ls, self.x_std * ls, S, S_cols, outputscale, chol, alpha,
-                             self.y_mean, self.y_std, noise * self.y_std ** 2)
+                             self.y_mean, self.y_std, noise * self.y_std ** 2, chol_add)
         return self
 
     def _get_cache(self) -> PredictionCache:
@@ -218,7 +237,10 @@ class ResidualGP(torch.nn.Module):
     def _variance(c: PredictionCache, k: Tensor) -> Tensor:
         """Latent variance in standardized units, shape (D, n)."""
         v = torch.linalg.solve_triangular(c.chol, k.mT, upper=False)
-        return (c.outputscale[:, None] - v.square().sum(-2)).clamp_min(0.0)
+        var = c.outputscale[:, None] - v.square().sum(-2)
+        if c.chol_add is not None:  # sparse: + k Sigma k (gp.sparse)
+            var = var + torch.linalg.solve_triangular(c.chol_add, k.mT, upper=False).square().sum(-2)
+        return var.clamp_min(0.0)
 
     # ------------------------------------------------------------------ predictions
     def predict(self, x: Tensor, include_noise: bool = False) -> tuple[Tensor, Tensor]:
@@ -288,6 +310,9 @@ class ResidualGP(torch.nn.Module):
             ``(mean (n, D), var (n, D))`` in raw units (differentiable w.r.t. ``x``).
         """
         x = self._check_query(x)
+        if self.inducing_points is not None:
+            raise GpmpcError("gpytorch_predict is the exact GP's reference path; this model is sparse "
+                             "(tests/gp/test_sparse.py compares it with GPyTorch's SGPR)")
         self.model.eval()
         self.likelihood.eval()
         z = ((x - self.x_mean) / self.x_std).expand(self.output_dim, *x.shape)
@@ -299,7 +324,10 @@ class ResidualGP(torch.nn.Module):
         return self.y_mean + self.y_std * mean.T, self.y_std ** 2 * var.T
 
     def negative_log_marginal_likelihood(self) -> float:
-        """Exact ``-log p(Y)`` of the training data in raw units, summed over the D outputs."""
+        """Exact ``-log p(Y)`` of the training data in raw units, summed over the D outputs
+        (``nan`` for a sparse model, whose factorization does not give it)."""
+        if self.inducing_points is not None:
+            return float("nan")
         c = self._get_cache()
         ys = ((self.train_y_raw - self.y_mean) / self.y_std).T
         n = self.num_data
@@ -325,6 +353,8 @@ class ResidualGP(torch.nn.Module):
             "y_mean": self.y_mean.clone(), "y_std": self.y_std.clone(),
             "state_dict": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
         }
+        if self.inducing_points is not None:
+            payload["inducing_points"] = self.inducing_points.detach().clone()
         write_payload(path, payload)
 
     @classmethod
@@ -384,8 +414,14 @@ class ResidualGP(torch.nn.Module):
         if kind not in GP_INPUTS and not _is_column_list(kind):
             raise GpmpcError(f"{src}: entry 'input_kind' must be one of {GP_INPUTS} or model columns "
                              f"such as 'x3,u0', got {kind!r}")
+        inducing = payload.get("inducing_points")
+        if inducing is not None and not (isinstance(inducing, Tensor) and inducing.is_floating_point()
+                                         and inducing.ndim == 2 and inducing.shape[1] == X.shape[1]
+                                         and inducing.shape[0] >= 1 and bool(torch.isfinite(inducing).all())):
+            raise GpmpcError(f"{src}: entry 'inducing_points' must be a finite (M, {X.shape[1]}) float tensor "
+                             "(corrupt file)")
         gp = cls(X, Y, gp_inputs=kind, normalization=Standardization(
-            tensors["x_mean"], tensors["x_std"], tensors["y_mean"], tensors["y_std"]))
+            tensors["x_mean"], tensors["x_std"], tensors["y_mean"], tensors["y_std"]), inducing_points=inducing)
         gp._load_state(payload.get("state_dict"), src)
         # last: the checks above give more specific messages; this catches what they cannot see
         verify_checksum(payload, src)
@@ -414,7 +450,18 @@ def _is_column_list(label: Any) -> bool:
     return isinstance(label, str) and bool(re.fullmatch(r"[xu]\d+(,[xu]\d+)*", label))
 
 
-def _check_training_data(inputs: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+def _check_inducing(points: Tensor | None, input_dim: int) -> Tensor | None:
+    if points is None:
+        return None
+    points = torch.as_tensor(points, dtype=torch.float64)
+    if points.ndim != 2 or points.shape[1] != input_dim or points.shape[0] < 1:
+        raise GpmpcError(f"inducing points must have shape (M, {input_dim}), got {tuple(points.shape)}")
+    if not bool(torch.isfinite(points).all()):
+        raise GpmpcError("inducing points contain NaN or inf")
+    return points.detach().clone()
+
+
+def check_training_data(inputs: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
     inputs = torch.as_tensor(inputs, dtype=torch.float64)
     y = torch.as_tensor(y, dtype=torch.float64)
     if inputs.ndim != 2 or y.ndim != 2 or inputs.shape[0] != y.shape[0]:

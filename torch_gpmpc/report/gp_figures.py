@@ -76,3 +76,43 @@ def plot_gp_field(gp, wind: Callable[[Tensor], Tensor], inputs: Tensor, path: st
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=120)
+
+
+def plot_holdout_residuals(gp, inputs: Tensor, y: Tensor, residual: list[int], path: str | Path,
+                           max_points: int = 600) -> None:
+    """Held-out residuals over time: measured, predicted mean and its 95 % predictive band
+    (noise included), one panel per residual dimension.
+
+    Args:
+        gp: a fitted :class:`~torch_gpmpc.gp.model.ResidualGP`.
+        inputs: held-out GP inputs in log order, shape (m, Din).
+        y: the measured residuals, shape (m, D).
+        residual: the model's residual state indices (panel titles), length D.
+        path: PNG file to write.
+        max_points: plot the first this many held-out rows (a readable stretch of the log).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    inputs, y = inputs[:max_points], y[:max_points]
+    with torch.no_grad():
+        mean, var = gp.predict(inputs, include_noise=True)
+    half = 1.959963984540054 * var.sqrt()
+    t = range(y.shape[0])
+    fig = Figure(figsize=(8, 2.2 * y.shape[1]))
+    FigureCanvasAgg(fig)
+    for d in range(y.shape[1]):
+        ax = fig.add_subplot(y.shape[1], 1, d + 1)
+        ax.fill_between(t, (mean[:, d] - half[:, d]).numpy(), (mean[:, d] + half[:, d]).numpy(), color="C0",
+                        alpha=0.25, linewidth=0, label="95 % predictive band")
+        ax.plot(t, y[:, d].numpy(), color="k", linewidth=0.8, label="measured")
+        ax.plot(t, mean[:, d].numpy(), color="C0", linewidth=1.0, label="GP mean")
+        inside = float(((y[:, d] - mean[:, d]).abs() <= half[:, d]).double().mean())
+        ax.set_ylabel(f"x{residual[d]} residual")
+        ax.set_title(f"x{residual[d]}: {100 * inside:.0f} % of these rows inside the band", fontsize=9)
+        if d == 0:
+            ax.legend(fontsize=8, loc="upper right")
+    fig.axes[-1].set_xlabel("held-out row (log order)")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
