@@ -82,6 +82,14 @@ def test_fit_gp_report_sparse_model_and_run_with_it(collected, tmp_path, capsys)
     assert json.loads((run_out / "metrics.json").read_text())["steps"] == 2
 
 
+def test_fit_gp_without_out_only_evaluates(collected, tmp_path, capsys):
+    report = tmp_path / "r.json"
+    assert main(["fit-gp", "--transitions", str(collected), "--holdout", "0.25", "--report", str(report),
+                 "--iters", "3"]) == 0
+    assert "the model was not saved" in capsys.readouterr().out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.json"]
+
+
 def test_fit_gp_state_input_and_adam(collected, tmp_path):
     model = tmp_path / "gp.pt"
     assert main(["fit-gp", "--transitions", str(collected), "--out", str(model), "--inputs", "state_input",

@@ -41,7 +41,7 @@ def log_hyperparameters(tb: TBLogger, step: int, loss: float, hp: dict) -> None:
 
 def _validate_args(args) -> None:
     """Argument checks that need no data (raises GpmpcError before any work)."""
-    if Path(args.out).suffix.lower() != ".pt":
+    if args.out is not None and Path(args.out).suffix.lower() != ".pt":
         raise GpmpcError(f"--out {args.out!r}: the model file must end in .pt")
     if not 0.0 <= args.holdout < 1.0:
         raise GpmpcError(f"--holdout must be in [0, 1) (a fraction such as 0.2), got {args.holdout}")
@@ -152,9 +152,10 @@ def main(args) -> int:
             for name in ("rmse", "r2", "coverage95"):
                 for d, value in enumerate(metrics[name]):
                     tb.scalar(f"gp/holdout_{name}/d{d}", value, args.iters)
-    gp.save(args.out)
+    if args.out is not None:
+        gp.save(args.out)
     print(_summary(gp, train, metrics, last["loss"], seconds))
-    print(f"wrote {args.out}")
+    print(f"wrote {args.out}" if args.out is not None else "no --out: the model was not saved")
     if args.report is not None:
         write_json(args.report, report(train.num_samples, list(nominal.residual), metrics, seconds))
         print(f"wrote {args.report}")

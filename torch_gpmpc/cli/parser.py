@@ -47,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("fit-gp", help="fit one residual GP per state dimension")
     p.add_argument("--transitions", required=True, help="transitions file (.npz or .csv)")
-    p.add_argument("--out", required=True, help="model file to write (.pt)")
+    p.add_argument("--out", help="model file to write (.pt); without it the model is only evaluated")
     p.add_argument("--logdir", help="TensorBoard directory")
     p.add_argument("--holdout", type=float, default=0.0, help="fraction held out for RMSE/R^2/coverage")
     p.add_argument("--holdout-split", choices=("blocks", "random"), default="blocks",
