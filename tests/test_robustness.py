@@ -248,7 +248,8 @@ CLI_CASES = [
     ("npz-agent-negative", lambda t, a: fit(t, write_npz(t, **arrays(), agent=-np.ones(10, dtype=int))),
      "negative id"),
     ("npz-input-dim-differs", lambda t, a: fit(t, write_npz(t, **arrays(du=3))), "input dimension Du=3"),
-    ("npz-too-many-points", lambda t, a: fit(t, write_npz(t, **arrays(n=5001))), "at most 5000"),
+    ("npz-too-many-points-exact", lambda t, a: fit(t, write_npz(t, **arrays(n=5001)), "--gp-method", "exact"),
+     "at most 5000"),
     # ---- .csv transitions
     ("csv-empty", lambda t, a: fit(t, write(t, "t.csv", "")), "is empty"),
     ("csv-header-only", lambda t, a: fit(t, write(t, "t.csv", CSV_HEAD)), "only 0 transition"),
