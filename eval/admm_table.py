@@ -57,7 +57,7 @@ def run_case(scenario: dict, variant: dict | None) -> dict:
 def cell(m: dict, centralized: bool) -> str:
     arrival = m["arrival_step_max"] if m["arrival_step_max"] is not None else "never"
     its = "" if centralized else f", {m['admm_iterations_mean']:.1f} it/step"
-    return f"t = {arrival}{its}, min {m['min_pair_distance']:.3f}, {m['violations']} viol."
+    return f"t = {arrival}{its}, min {m['min_pair_distance']:.4f}, {m['violations']} viol."
 
 
 def main(argv: list[str]) -> int:
