@@ -745,7 +745,7 @@ class FaultyLayer(torch.nn.Module):
 
 @contextlib.contextmanager
 def patched_solver(local_mpc, mode: str, k: int, when: set[int]):
-    """Temporarily wrap ``local_mpc.layer`` (a shared, cached module) in a :class:`FaultyLayer`.
+    """Temporarily wrap ``local_mpc.layer`` (a controller's own solver) in a :class:`FaultyLayer`.
 
     (``monkeypatch.setattr`` cannot restore an ``nn.Module`` child: it lives in ``_modules``.)
     """
@@ -764,15 +764,25 @@ FAULT_CFG = dict(horizon=4, max_steps=6, admm_max_iter=4, method="nominal", nois
 
 @pytest.mark.parametrize("mode, kind", [("exception", "exception"), ("nan", "non-finite"),
                                         ("inaccurate", "inaccurate")])
-def test_solver_faults_fall_back_count_and_warn_once(mode, kind, caplog, tmp_path):
+def test_solver_faults_fall_back_count_and_warn_once(mode, kind, caplog, tmp_path, monkeypatch):
     from torch_gpmpc.sim.closed_loop import simulate
 
-    from torch_gpmpc.coordination.admm import ADMM
+    import torch_gpmpc.coordination.agent_step as agent_step
 
     cfg = Config(**FAULT_CFG)
-    layer = ADMM(cfg).local.solver(2)  # the cached layer simulate() will use (3 agents, 2 neighbours each)
-    with patched_solver(layer, mode, k=1, when={1, 2, 4, 6, 7}) as faulty, caplog.at_level(logging.WARNING):
+    real, made = agent_step.make_local_solver, []
+
+    def faulty_factory(*args, **kwargs):  # the controller's own solver, its layer wrapped
+        solver = real(*args, **kwargs)
+        solver.layer = FaultyLayer(solver.layer, mode, 1, {1, 2, 4, 6, 7})
+        made.append(solver.layer)
+        return solver
+
+    monkeypatch.setattr(agent_step, "make_local_solver", faulty_factory)
+    with caplog.at_level(logging.WARNING):
         rollout = simulate(cfg)
+    assert len(made) == 1  # one solver: 3 agents, 2 neighbours each
+    faulty = made[0]
     assert rollout.num_steps == cfg.max_steps  # the run went on
     n = faulty.injected
     assert n >= 3, n
@@ -805,7 +815,7 @@ def test_failed_agent_keeps_its_previous_shifted_plan():
     first = admm.solve_step(x0, scen.reference_window(0, cfg.horizon), graph)
     warm = first.state.shifted()
     x1 = first.plans[:, 1]
-    with patched_solver(admm.local.solver(graph.num_slots), "nan", k=1, when={1}):
+    with patched_solver(admm.agent_step.solver(graph.num_slots), "nan", k=1, when={1}):
         second = admm.solve_step(x1, scen.reference_window(1, cfg.horizon), graph, warm=warm)
     assert second.failed_solves == 1 and second.failed_by_kind["non-finite"] == 1
     torch.testing.assert_close(second.plans[1], warm.plans[1])

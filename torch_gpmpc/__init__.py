@@ -1,7 +1,13 @@
 """torch_gpmpc: cooperative Gaussian-process MPC for safe multi-agent navigation.
 
-Public API: ``Transitions``, ``ResidualGP``, ``fit_residual_gp``,
-``LocalMPC``, ``ADMM``, ``simulate``, ``Rollout``, ``compute_metrics``, ``Config``.
+Public API. Build a controller from tensors: ``ModelSpec`` (the agent model),
+``ResidualGP`` (``fit_residual_gp``, ``ResidualGP.from_gpytorch`` for your own GPyTorch models;
+the ``ResidualModel`` protocol), ``ControllerSettings``, ``Controller`` (``step``). Its parts:
+``LocalStep`` (the per-agent step), ``ADMM`` (``prepare``/``iterate``/``solve_step``),
+``make_local_solver`` with the ``LocalProblemData`` -> ``LocalSolution`` contract and the
+backends ``InteriorPointMPC`` (default, compiled) and ``CvxpyLayerMPC`` (reference; also
+``LocalMPC``). Runs: ``Config``, ``simulate``, ``Rollout``, ``compute_metrics``; data:
+``Transitions``.
 Imports are lazy so that ``gpmpc --help`` and light modules stay fast. Importing the
 package changes no global state: every tensor the package creates is float64 explicitly.
 """
@@ -21,7 +27,20 @@ _EXPORTS = {
     "ResidualGP": "gp.model",
     "fit_residual_gp": "gp.fit",
     "LocalMPC": "control.solvers.conic",
+    "CvxpyLayerMPC": "control.solvers.conic",
+    "InteriorPointMPC": "control.solvers.interior_point",
+    "make_local_solver": "control.solvers",
+    "LocalProblemData": "control.problem",
+    "LocalSolution": "control.problem",
     "ADMM": "coordination.admm",
+    "ADMMState": "coordination.state",
+    "StepResult": "coordination.state",
+    "LocalStep": "coordination.agent_step",
+    "Controller": "coordination.controller",
+    "ControllerSettings": "config.settings",
+    "ModelSpec": "config.model_spec",
+    "ResidualModel": "gp.protocol",
+    "GPyTorchResidual": "gp.gpytorch_models",
     "simulate": "sim.closed_loop",
     "Rollout": "sim.rollout",
     "compute_metrics": "sim.metrics",

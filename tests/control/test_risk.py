@@ -11,15 +11,23 @@ import torch
 
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.control.risk import (
-    chance_margins,
     chance_quantile,
     collision_normals,
+    pair_margins,
     pair_risks,
+    projected_variances,
     state_covariances,
 )
 
 
 NDTRI_095 = 1.6448536269514722
+
+
+def own_margin(n, sigma, eps):
+    """The production path's ``own`` margin ``Phi^-1(1 - eps_k) sqrt(n^T Sigma_k n)`` (eq. 24)."""
+    var = projected_variances(n, sigma)
+    eps = torch.as_tensor(eps, dtype=torch.float64).expand(var.shape[:2])
+    return pair_margins("own", var, var, eps, 0.1 - eps)
 
 
 def test_pair_risks_split_sums_to_total():
@@ -43,7 +51,7 @@ def test_margin_equals_quantile_times_sigma_tilde():
     a = torch.randn(2, 2, dtype=torch.float64)
     sigma = (a @ a.T + 0.1 * torch.eye(2, dtype=torch.float64)).reshape(1, 1, 2, 2)
     eps_low, _ = pair_risks(0.1, 0.5)
-    margin = chance_margins(n, sigma, eps_low.reshape(1, 1))
+    margin = own_margin(n, sigma, eps_low.reshape(1, 1))
     sigma_tilde = math.sqrt(float(rbar @ sigma[0, 0] @ rbar) / float(rbar @ rbar))
     assert (r_safe + margin).item() == pytest.approx(r_safe + NDTRI_095 * sigma_tilde, rel=1e-12)
 
@@ -52,7 +60,7 @@ def test_margin_zero_variance_has_finite_gradient():
     n = torch.tensor([1.0, 0.0], dtype=torch.float64).reshape(1, 1, 1, 2)
     sigma = torch.zeros(1, 1, 2, 2, requires_grad=True, dtype=torch.float64)
     eps = torch.tensor([[0.05]], requires_grad=True, dtype=torch.float64)
-    margin = chance_margins(n, sigma, eps)
+    margin = own_margin(n, sigma, eps)
     margin.sum().backward()
     assert margin.item() == 0.0
     assert torch.isfinite(sigma.grad).all() and torch.isfinite(eps.grad).all()
@@ -63,7 +71,7 @@ def test_margin_gradient_wrt_split_matches_closed_form():
     eps_low, _ = pair_risks(0.1, split)
     n = torch.tensor([0.6, 0.8], dtype=torch.float64).reshape(1, 1, 1, 2)
     sigma = torch.diag(torch.tensor([0.04, 0.09], dtype=torch.float64)).reshape(1, 1, 2, 2)
-    margin = chance_margins(n, sigma, eps_low.reshape(1, 1))
+    margin = own_margin(n, sigma, eps_low.reshape(1, 1))
     margin.sum().backward()
     s_tilde = math.sqrt(0.36 * 0.04 + 0.64 * 0.09)
     q = torch.special.ndtri(torch.tensor(1 - 0.03, dtype=torch.float64)).item()

@@ -115,7 +115,7 @@ def test_default_admm_stops_within_one_percent_of_the_centralized_optimum(paper_
     cfg, admm, results = paper_crossing
     xref, graph, res = results[step]
     assert res.converged and res.iterations < cfg.admm_max_iter
-    central = solve_centralized(res.problem, graph, admm.local.nominal, cfg.u_max, cfg.alpha, cfg.slack_penalty)
+    central = solve_centralized(res.problem, graph, admm.nominal, cfg.u_max, cfg.alpha, cfg.slack_penalty)
     cost = plan_cost(res.plans, res.inputs, xref, cfg.alpha)
     assert abs(cost / central.cost - 1.0) < 0.01, (cost, central.cost)
     # the consensus plans keep the collision rows up to the primal tolerance

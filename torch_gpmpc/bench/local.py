@@ -5,9 +5,9 @@ ADMM iteration of the paper scenario) and 64. Paths, all measured in the same ru
 same instances, forward and forward+backward (backward of ``X.sum() + Y.sum()`` with
 respect to rho, z and bounds):
 
-- ``fast``: the default, :class:`~torch_gpmpc.control.solvers.interior_point.FastLocalMPC` (compiled interior
+- ``fast``: the default, :class:`~torch_gpmpc.control.solvers.interior_point.InteriorPointMPC` (compiled interior
   point per problem, implicit-KKT backward, tol 1e-10);
-- ``cvxpylayers-default``: the :class:`~torch_gpmpc.control.solvers.conic.LocalMPC` CvxpyLayer called with
+- ``cvxpylayers-default``: the :class:`~torch_gpmpc.control.solvers.conic.CvxpyLayerMPC` CvxpyLayer called with
   no solver arguments, i.e. cvxpylayers' default solver (diffcp + SCS at SCS's default
   tolerances; plans ~1e-3 accurate) and diffcp's default backward;
 - ``reference``: ``solver=reference``, the same default solver tightened to eps 1e-9;
@@ -32,10 +32,10 @@ from typing import Callable
 import cvxpy as cp
 import torch
 
-from torch_gpmpc.control.solvers.interior_point import FastLocalMPC
+from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
 from torch_gpmpc.control.examples import crossing_instance
 from torch_gpmpc.control.problem import LocalProblemData
-from torch_gpmpc.control.solvers.conic import LocalMPC
+from torch_gpmpc.control.solvers.conic import CvxpyLayerMPC
 from torch_gpmpc.dynamics.systems import NominalModel
 
 logger = logging.getLogger(__name__)
@@ -76,7 +76,7 @@ BATCHES = (3, 64)
 TARGETS = {"forward": 20.0, "forward+backward": 10.0}
 
 
-def _solve_default(mpc: LocalMPC, data: LocalProblemData) -> tuple[torch.Tensor, torch.Tensor]:
+def _solve_default(mpc: CvxpyLayerMPC, data: LocalProblemData) -> tuple[torch.Tensor, torch.Tensor]:
     """cvxpylayers' default path: the layer called with no solver arguments; returns (X, Y)."""
     outputs = mpc.layer(*mpc.layer_parameters(data))
     return outputs[0], torch.stack(list(outputs[2:2 + NEIGHBORS]), dim=1)
@@ -107,7 +107,7 @@ def _time(solve, data: LocalProblemData, backward: bool, repeats: int) -> float:
     return best
 
 
-def _time_plain_cvxpy(mpc: LocalMPC, data: LocalProblemData, repeats: int) -> float:
+def _time_plain_cvxpy(mpc: CvxpyLayerMPC, data: LocalProblemData, repeats: int) -> float:
     """Best-of-``repeats`` seconds to solve the batch with plain cvxpy + Clarabel in a loop."""
     values = [p.detach().numpy() for p in mpc.layer_parameters(data)]
     best = float("inf")
@@ -156,8 +156,8 @@ def run(quick: bool = False, out: Path | str | None = None) -> dict:
 def _run(quick: bool) -> dict:
     fast_repeats, slow_repeats = (3, 1) if quick else (10, 2)
     nominal = NominalModel(DIM)
-    fast = FastLocalMPC(HORIZON, DIM, NEIGHBORS, nominal, U_MAX, ALPHA)
-    layers = {name: LocalMPC(HORIZON, DIM, NEIGHBORS, nominal, U_MAX, ALPHA, solver=name)
+    fast = InteriorPointMPC(HORIZON, DIM, NEIGHBORS, nominal, U_MAX, ALPHA)
+    layers = {name: CvxpyLayerMPC(HORIZON, DIM, NEIGHBORS, nominal, U_MAX, ALPHA, solver=name)
               for name in ("clarabel", "reference")}
     rows, checks = [], []
     for batch in BATCHES:

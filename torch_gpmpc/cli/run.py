@@ -57,6 +57,8 @@ def main(args) -> int:
     if gps is None and needs_gp(cfg.method):
         check_gp_inputs(cfg)
     out = output_dir(args.out)
+    if cfg.solver == "fast" and not distributed:  # agent processes compile their own
+        prepare_solver_kernel()
     tb = TBLogger(out / "tb")
     bar = tqdm(total=cfg.max_steps, desc=f"{cfg.method} seed {cfg.seed}", unit="step", leave=False)
 
@@ -91,6 +93,17 @@ def main(args) -> int:
         print(f"gpmpc run: warning: {report.summary()}", file=sys.stderr)
         return 3
     return 0
+
+
+def prepare_solver_kernel() -> None:
+    """Compile the interior-point kernel before the progress bar starts (so its ETA is honest
+    from step 1), saying so when it is not in numba's cache yet (the first run after install)."""
+    from torch_gpmpc.control.solvers import ipm_kernel
+
+    if not ipm_kernel.is_cached():
+        print("gpmpc: compiling the solver kernel (numba, once per installation; about 20-30 s) ...",
+              file=sys.stderr, flush=True)
+    ipm_kernel.warm_up()
 
 
 def _summary(m: dict, out: Path) -> str:

@@ -116,6 +116,7 @@ def _check_type(what: str, name: str, value: Any, typ: Any) -> None:
     allowed = typing.get_args(typ) or (typ,)
     if value is None and type(None) in allowed:
         return
-    base = [t for t in allowed if t is not type(None)][0]
-    if not _is(base, value):
-        raise GpmpcError(f"{what} '{name}': expected {base.__name__}, got {type(value).__name__} {value!r}")
+    bases = [t for t in allowed if t is not type(None)]
+    if not any(_is(base, value) for base in bases):
+        expected = " or ".join(base.__name__ for base in bases)
+        raise GpmpcError(f"{what} '{name}': expected {expected}, got {type(value).__name__} {value!r}")

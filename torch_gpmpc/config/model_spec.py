@@ -25,7 +25,6 @@ position, where the wind acts). Both bound the input by ``||u|| <= u_max`` of th
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,6 +84,44 @@ class ModelSpec:
         """P."""
         return len(self.position)
 
+    @classmethod
+    def single_integrator(cls, dim: int = 2, u_max: float = 2.0) -> "ModelSpec":
+        """The paper's model: ``A = I``, ``B = 0.1 I``, ``||u|| <= u_max`` in ``dim`` dimensions."""
+        return single_integrator(dim, u_max)
+
+    @classmethod
+    def double_integrator(cls, dim: int = 2, dt: float = 0.1, u_max: float = 2.0) -> "ModelSpec":
+        """State ``[p, v]`` (2 dim), input acceleration (dim), ``||u|| <= u_max``.
+
+        Example:
+            >>> from torch_gpmpc import ModelSpec
+            >>> m = ModelSpec.double_integrator(dim=3, dt=0.1, u_max=2.0)
+            >>> m.state_dim, m.input_dim, m.position, m.residual
+            (6, 3, (0, 1, 2), (3, 4, 5))
+        """
+        return double_integrator(dim, dt, u_max)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "ModelSpec":
+        """Read and validate a model file (TOML or JSON); see :func:`load_model_file`."""
+        return load_model_file(path)
+
+    @classmethod
+    def from_table(cls, table: dict[str, Any], where: str = "model") -> "ModelSpec":
+        """Validate a mapping with the model file's keys (see :func:`parse_model`)."""
+        return parse_model(table, where)
+
+    def to_table(self) -> dict[str, Any]:
+        """The model file's table (plain lists and numbers): ``from_table(to_table())`` is equal."""
+        table: dict[str, Any] = {
+            "name": self.name, "dt": self.dt, "A": [list(r) for r in self.A], "B": [list(r) for r in self.B],
+            "position": list(self.position), "residual": list(self.residual), "gp_inputs": list(self.gp_inputs),
+            "input_bound": {"norm": self.input_norm} if self.input_box is None else {"box": list(self.input_box)},
+        }
+        if self.state_bound_norm is not None:
+            table["state_bound"] = {"indices": list(self.state_bound_indices), "norm": self.state_bound_norm}
+        return table
+
 
 def single_integrator(dim: int, u_max: float, b: float = 0.1) -> ModelSpec:
     """The paper's model in ``dim`` dimensions: ``A = I``, ``B = b I``, ``||u|| <= u_max``."""
@@ -109,15 +146,28 @@ def double_integrator(dim: int, dt: float, u_max: float) -> ModelSpec:
                      residual=tuple(range(dim, n)), gp_inputs=tuple(f"x{i}" for i in range(dim)), input_norm=u_max)
 
 
-@functools.lru_cache(maxsize=64)
+#: Model files already read: path -> ((mtime_ns, size), spec); a changed file is read again.
+_READ: dict[str, tuple[tuple[int, int], ModelSpec]] = {}
+
+
 def resolve_model(model: str, dim: int, dt: float, u_max: float) -> ModelSpec:
     """The model named by the config key ``model``: a built-in name or a model file path
-    (read once per process)."""
+    (read again whenever the file's modification time or size changes)."""
     if model == "single-integrator":
         return single_integrator(dim, u_max)
     if model == "double-integrator":
         return double_integrator(dim, dt, u_max)
-    return load_model_file(model)
+    path = str(Path(model).resolve())
+    try:
+        st = Path(path).stat()
+        stamp = (st.st_mtime_ns, st.st_size)
+    except OSError:
+        return load_model_file(model)  # names the missing file
+    cached = _READ.get(path)
+    if cached is None or cached[0] != stamp:
+        cached = (stamp, load_model_file(model))
+        _READ[path] = cached
+    return cached[1]
 
 
 def check_model_name(model: str) -> None:

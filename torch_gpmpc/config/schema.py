@@ -15,17 +15,14 @@ from dataclasses import dataclass
 from typing import Any, Mapping
 
 from torch_gpmpc.config.fields import Rules, build, validate
-from torch_gpmpc.dynamics.methods import METHOD_NAMES
-from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, resolve_model
+from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, parse_model, resolve_model
+from torch_gpmpc.config.settings import (
+    CONTROLLER_CHOICES, CONTROLLER_RANGES, METHOD_NAMES, SOLVERS, UNCERTAINTY_MODES, ControllerSettings,
+    controller_keys, resolve_uncertainty,
+)
 from torch_gpmpc.errors import GpmpcError
 
 METHODS = METHOD_NAMES
-UNCERTAINTY_MODES = ("pointwise", "propagated", "feedback")
-MARGIN_VARIANCES = ("latent", "predictive")
-PAIR_MARGINS = ("own", "sum", "joint")
-RHO_UPDATES = ("fixed", "adaptive")
-ADMM_STOPS = ("primal", "primal-dual")
-SOLVERS = ("fast", "clarabel", "reference")
 REFERENCES = ("line", "target")
 SCENARIOS = ("paper", "circle", "random")
 
@@ -81,12 +78,18 @@ class Config:
         dim: position dimension (2 or 3) of the built-in models; the single integrator's state
             and input have this dimension, the double integrator's state has twice it.
         model: the agent model: ``single-integrator`` (the paper), ``double-integrator`` (state
-            ``[p, v]``, input acceleration) or a model file path (TOML/JSON, see
-            :mod:`~torch_gpmpc.config.model_spec`).
+            ``[p, v]``, input acceleration), a model file path (TOML/JSON, see
+            :mod:`~torch_gpmpc.config.model_spec`), a :class:`ModelSpec`, or a model table
+            (a mapping with the model file's keys). ``dim``, ``dt`` and ``u_max`` shape the
+            built-in models only: with a model file, table or ModelSpec they are ignored, and
+            setting them warns.
         dt: sampling time of the double integrator (s).
         reference: ``line`` (straight line over ``ref_points`` steps, then hold) or ``target``.
         ref_points: number of points of the straight-line reference.
-        circle_radius: radius of the start circle of ``paper``/``circle`` scenarios.
+        circle_radius: radius of the start circle of ``paper``/``circle`` scenarios (and the
+            half-width of ``random`` ones).
+        gp_box: half-width of the box the GP training states are drawn from (the paper's data
+            recipe); ``null``: ``circle_radius``, so the data cover the scenario.
         min_separation: minimum start (and target) separation of ``random`` scenarios.
         gp_samples: training transitions per agent (paper: 100).
         gp_inputs: ``state`` (paper) or ``state_input``.
@@ -125,11 +128,12 @@ class Config:
     solver: str = "fast"
     method: str = "gp-chance"
     dim: int = 2
-    model: str = "single-integrator"
+    model: str | ModelSpec = "single-integrator"
     dt: float = 0.1
     reference: str = "line"
     ref_points: int = 50
     circle_radius: float = 4.0
+    gp_box: float | None = None
     min_separation: float = 1.0
     gp_samples: int = 100
     gp_inputs: str = "state"
@@ -140,25 +144,32 @@ class Config:
     wind_scale: float = 0.1
 
     def __post_init__(self) -> None:
+        if isinstance(self.model, dict):  # an inline model table (a config file's [model])
+            object.__setattr__(self, "model", parse_model(self.model, "config key 'model'"))
         validate(self, RULES)
-        check_model_name(self.model)
+        if isinstance(self.model, str):
+            check_model_name(self.model)
         if self.scenario == "paper" and self.num_agents != 3:
             raise GpmpcError(
                 f"config key 'num_agents': the paper scenario has 3 agents, got {self.num_agents}; "
                 "use scenario=circle or scenario=random for other team sizes"
             )
+        warn_ignored_keys(self)
 
     def model_spec(self) -> ModelSpec:
-        """The agent model of this run (built-in or read from the model file)."""
+        """The agent model of this run (built-in, read from the model file, or given)."""
+        if isinstance(self.model, ModelSpec):
+            return self.model
         return resolve_model(self.model, self.dim, self.dt, self.u_max)
+
+    def controller_settings(self) -> ControllerSettings:
+        """The controller's settings (the keys of :class:`ControllerSettings`)."""
+        return ControllerSettings(**{key: getattr(self, key) for key in controller_keys()})
 
     @property
     def uncertainty_mode(self) -> str:
         """The covariance model in use: ``uncertainty`` with ``auto`` resolved (see above)."""
-        if self.uncertainty != "auto":
-            return self.uncertainty
-        spec = self.model_spec()
-        return "pointwise" if set(spec.position) <= set(spec.residual) else "propagated"
+        return resolve_uncertainty(self.uncertainty, self.model_spec())
 
     @property
     def state_dim(self) -> int:
@@ -180,19 +191,41 @@ class Config:
         return from_mapping({**self.to_dict(), **changes})
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain dict of all keys (JSON-serializable)."""
-        return dataclasses.asdict(self)
+        """Plain dict of all keys (JSON-serializable; a :class:`ModelSpec` becomes its model table)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        if isinstance(self.model, ModelSpec):
+            out["model"] = self.model.to_table()
+        return out
+
+
+#: Keys that shape only the built-in models, and their defaults.
+_BUILTIN_MODEL_KEYS = ("dim", "dt", "u_max")
+
+
+def warn_ignored_keys(cfg: Config) -> None:
+    """Warn, naming the key that overrides it, about every key set to a non-default value that
+    the current choices ignore."""
+    defaults = {f.name: f.default for f in dataclasses.fields(Config)}
+    ignored = []
+    if not (isinstance(cfg.model, str) and cfg.model in ("single-integrator", "double-integrator")):
+        ignored += [(key, "model", "the model defines its own state, sampling time and input bound")
+                    for key in _BUILTIN_MODEL_KEYS if getattr(cfg, key) != defaults[key]]
+    elif cfg.model == "single-integrator" and cfg.dt != defaults["dt"]:
+        ignored.append(("dt", "model", "the single integrator has the paper's B = 0.1 I"))
+    if cfg.admm_stop == "primal" and cfg.admm_rel_tol != defaults["admm_rel_tol"]:
+        ignored.append(("admm_rel_tol", "admm_stop", "the paper's primal rule has absolute tolerances only"))
+    for key, by, why in ignored:
+        warnings.warn(f"config key '{key}' is ignored under {by}={_show(getattr(cfg, by))}: {why}",
+                      UserWarning, stacklevel=4)
+
+
+def _show(value: Any) -> str:
+    return value.name if isinstance(value, ModelSpec) else str(value)
 
 
 _CHOICES = {
-    "uncertainty": ("auto", *UNCERTAINTY_MODES),
-    "margin_variance": MARGIN_VARIANCES,
-    "pair_margin": PAIR_MARGINS,
-    "rho_update": RHO_UPDATES,
-    "admm_stop": ADMM_STOPS,
+    **CONTROLLER_CHOICES,
     "scenario": SCENARIOS,
-    "solver": SOLVERS,
-    "method": METHODS,
     "reference": REFERENCES,
     "gp_inputs": ("state", "state_input"),
     "gp_optimizer": ("lbfgs", "adam"),
@@ -200,19 +233,9 @@ _CHOICES = {
 
 # (predicate, description of the allowed range); checked in __post_init__.
 _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
-    "horizon": (lambda v: 1 <= v <= 1000, "an integer in [1, 1000]"),
-    "rho": (lambda v: v > 0, "a number > 0"),
-    "r_safe": (lambda v: v >= 0, "a number >= 0"),
-    "eps": (lambda v: 0 < v < 1, "a number in (0, 1)"),
-    "risk_split": (lambda v: 0 < v < 1, "a number in (0, 1)"),
+    **CONTROLLER_RANGES,
     "u_max": (lambda v: v > 0, "a number > 0"),
-    "alpha": (lambda v: v >= 0, "a number >= 0"),
     "noise_std": (lambda v: v >= 0, "a number >= 0"),
-    "admm_tol": (lambda v: v > 0, "a number > 0"),
-    "admm_dual_tol": (lambda v: v is None or v > 0, "a number > 0 or null"),
-    "admm_rel_tol": (lambda v: 0 <= v < 1, "a number in [0, 1)"),
-    "admm_max_iter": (lambda v: 1 <= v <= 100_000, "an integer in [1, 100000]"),
-    "comm_radius": (lambda v: v is None or v > 0, "a number > 0 or null (all pairs)"),
     "goal_tol": (lambda v: v > 0, "a number > 0"),
     "max_steps": (lambda v: 1 <= v <= 1_000_000, "an integer in [1, 1000000]"),
     "num_agents": (lambda v: 1 <= v <= 1000, "an integer in [1, 1000]"),
@@ -221,11 +244,11 @@ _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "ref_points": (lambda v: v >= 2, "an integer >= 2"),
     # the same bound as scenario-file coordinates (scenarios.MAX_COORDINATE)
     "circle_radius": (lambda v: 0 < v <= 1e4, "a number in (0, 10000]"),
+    "gp_box": (lambda v: v is None or 0 < v <= 1e4, "a number in (0, 10000] or null (circle_radius)"),
     "min_separation": (lambda v: v >= 0, "a number >= 0"),
     # an exact GP costs O(N^3) time and O(N^2) memory per agent
     "gp_samples": (lambda v: 2 <= v <= 5000, "an integer in [2, 5000]"),
     "gp_iters": (lambda v: v >= 1, "an integer >= 1"),
-    "slack_penalty": (lambda v: v > 0, "a number > 0"),
     "wind_scale": (lambda v: v >= 0, "a number >= 0"),
     "dt": (lambda v: 0 < v <= 10, "a number in (0, 10]"),
 }

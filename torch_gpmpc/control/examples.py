@@ -4,7 +4,8 @@ Each agent starts on a circle and heads through its centre; its neighbours start
 further round the circle and head through the centre too, so every collision row
 matters. Linearization, covariances, normals and margins go through the library's own
 chain (:func:`~torch_gpmpc.control.linearize.linearize_plan` ->
-:func:`~torch_gpmpc.control.risk.state_covariances` -> ... -> :func:`~.problem.collision_rows`),
+:func:`~torch_gpmpc.control.risk.state_covariances` -> :func:`~torch_gpmpc.control.risk.projected_variances`
+-> :func:`~torch_gpmpc.control.risk.pair_margins`: the one margin path the controller runs),
 so gradients reach rho, the risk split and the consensus variables.
 """
 
@@ -17,8 +18,10 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.control.linearize import linearize_plan
-from torch_gpmpc.control.problem import LocalProblemData, collision_rows
-from torch_gpmpc.control.risk import chance_margins, collision_normals, pair_risks, state_covariances
+from torch_gpmpc.control.problem import LocalProblemData, mask_inactive_rows
+from torch_gpmpc.control.risk import (
+    collision_normals, pair_margins, pair_risks, projected_variances, state_covariances,
+)
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 
 
@@ -55,12 +58,15 @@ class CrossingInstance:
     def problem_data(self, rho: float | Tensor = 20.0, split: float | Tensor = 0.5, eps: float | Tensor = 0.1,
                      r_safe: float = 0.5, x0: Tensor | None = None, z_own: Tensor | None = None,
                      z_nbr: Tensor | None = None) -> LocalProblemData:
-        """The local problems, margins through ``pair_risks -> ndtri -> chance_margins``
-        (each agent takes the lower-indexed share ``eps * split``)."""
-        eps_low, _ = pair_risks(torch.as_tensor(eps, dtype=torch.float64), torch.as_tensor(split, dtype=torch.float64))
-        batch, num_nbr = self.active.shape
-        margins = chance_margins(self.normals, self.sigma, eps_low * torch.ones(batch, num_nbr, dtype=torch.float64))
-        normals, bounds = collision_rows(self.normals, margins, r_safe, self.active)
+        """The local problems, margins through ``pair_risks -> pair_margins("own")`` (each agent
+        takes the lower-indexed share ``eps * split``: the paper's eq. 24, as the controller
+        computes it with ``pair_margin = own``)."""
+        eps_low, eps_high = pair_risks(torch.as_tensor(eps, dtype=torch.float64),
+                                       torch.as_tensor(split, dtype=torch.float64))
+        ones = torch.ones(self.active.shape, dtype=torch.float64)
+        var = projected_variances(self.normals[:, :, 1:], self.sigma[:, 1:])
+        margins = pair_margins("own", var, var, eps_low * ones, eps_high * ones)
+        normals, bounds = mask_inactive_rows(self.normals[:, :, 1:], r_safe + margins, self.active)
         return LocalProblemData(
             x0=self.x0 if x0 is None else x0, xref=self.xref, dyn_A=self.dyn_A, dyn_c=self.dyn_c,
             normals=normals, bounds=bounds, active=self.active, rho=torch.as_tensor(rho, dtype=torch.float64),

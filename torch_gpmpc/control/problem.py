@@ -132,24 +132,6 @@ class LocalSolution:
     failure_detail: str | None = None
 
 
-def collision_rows(normals: Tensor, margins: Tensor, r_safe: float, active: Tensor) -> tuple[Tensor, Tensor]:
-    """Collision rows for :class:`LocalProblemData` from full-horizon normals and margins.
-
-    Drops step 0 (the measured state cannot move) and neutralises inactive slots
-    (normal 0, bound -1: the row is trivially satisfied).
-
-    Args:
-        normals: unit normals, shape (B, M, T+1, D).
-        margins: chance margins, shape (B, M, T+1) (zeros for deterministic rows).
-        r_safe: safety radius.
-        active: which slots hold a neighbour, shape (B, M), bool.
-
-    Returns:
-        ``(normals (B, M, T, D), bounds (B, M, T))``.
-    """
-    return mask_inactive_rows(normals[:, :, 1:], r_safe + margins[:, :, 1:], active)
-
-
 def mask_inactive_rows(normals: Tensor, bounds: Tensor, active: Tensor) -> tuple[Tensor, Tensor]:
     """Collision rows of inactive slots made trivially satisfied: normal 0, bound -1.
 

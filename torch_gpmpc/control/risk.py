@@ -7,9 +7,13 @@ Agent k keeps its linearized distance to neighbour j above a tightened radius
     n = rbar / ||rbar||,  rbar = xbar_k - xbar_j,
 
 where ``eps_k + eps_j = eps`` is the pair's risk budget (eq. 21) and ``Sigma_k`` is
-agent k's *own* state covariance (eq. 22: no covariance is exchanged). Every function
-here is plain torch, so gradients reach the total risk ``eps``, the risk split and the
-covariances.
+agent k's *own* state covariance (eq. 22). That is the paper's margin (``pair_margin = own``);
+it is not sound, because both agents deviate. The default (``sum``) adds the neighbour's
+margin, computed from the T projected variances ``n^T Sigma_j n`` the neighbour sends with
+its copy (:func:`pair_margins`); no covariance matrix leaves an agent. The controller computes
+every margin on one path: :func:`state_covariances` -> :func:`projected_variances` ->
+:func:`pair_margins`. Every function here is plain torch, so gradients reach the total risk
+``eps``, the risk split and the covariances.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torch_gpmpc.config.schema import UNCERTAINTY_MODES
+from torch_gpmpc.config.settings import UNCERTAINTY_MODES
 from torch_gpmpc.errors import GpmpcError
 
 #: Below this distance two linearization points count as coincident.
@@ -236,29 +240,3 @@ def pair_margins(mode: str, var_own: Tensor, var_nbr: Tensor, eps_own: Tensor, e
     if mode == "joint":
         return chance_quantile(eps_own + eps_nbr)[..., None] * safe_sqrt(var_own + var_nbr)
     raise GpmpcError(f"pair_margin: unknown formulation {mode!r}; choose from own, sum, joint")
-
-
-def chance_margins(normals: Tensor, sigma: Tensor, eps_self: Tensor | float) -> Tensor:
-    """Chance tightening ``Phi^{-1}(1 - eps_k) * sqrt(n^T Sigma_k n)`` (paper eqs. 22, 24).
-
-    Only the agent's own covariance enters (no covariance is exchanged). The square
-    root is taken of ``max(n^T Sigma n, 0)``; arguments below 1e-30 give a zero margin
-    with zero gradient (finite gradients everywhere).
-
-    Args:
-        normals: unit normals, shape (B, M, T+1, D) (any number of steps S in place of T+1).
-        sigma: the agent's own state covariances, shape (B, T+1, D, D).
-        eps_self: the agent's risk per neighbour, shape (B, M) (or broadcastable).
-
-    Returns:
-        Margins (to be added to ``r_safe``), shape (B, M, T+1).
-    """
-    quad = torch.einsum("bmtd,btde,bmte->bmt", normals, sigma, normals)
-    positive = quad > _VAR_FLOOR
-    std = torch.where(positive, torch.sqrt(torch.where(positive, quad, torch.ones_like(quad))),
-                      torch.zeros_like(quad))
-    eps_self = torch.as_tensor(eps_self, dtype=normals.dtype)
-    quantile = chance_quantile(eps_self)
-    if quantile.dim() >= 1:
-        quantile = quantile.reshape(quantile.shape + (1,))
-    return quantile * std

@@ -9,7 +9,7 @@ half and its copy of the neighbour's plan in the other. One iteration:
    iterate with ``relinearize = true`` (Algorithm 1, step 9; the moving convexification then
    keeps ADMM from settling: measured on the six-agent circle with admm_rel_tol = 0, 42.5
    instead of 28.4 iterations per step and 17 steps at the iteration cap);
-2. local solves: all K local problems (27) as **one batched** :class:`LocalMPC` call;
+2. local solves: all K local problems (27) as **one batched** local-solver call;
 3. consensus ``z_e = (y_{e,lo} + y_{e,hi}) / 2`` (eq. 28);
 4. duals ``lam_{e,k} += rho_e (y_{e,k} - z_e)`` (eq. 29);
 5. with ``rho_update = adaptive`` (default), each edge's ``rho_e`` by residual balancing.
@@ -21,48 +21,55 @@ Stopping (:mod:`~torch_gpmpc.coordination.penalty`): with ``admm_stop = primal-d
 dual one below ``admm_dual_tol`` if set); or ``admm_max_iter``. The primal-only rule at a
 fixed rho stops on a feasible consensus that is not yet optimal.
 
-Messages: per iteration agent k sends its copy ``y_{e,k}`` (``2 (T+1) D`` numbers)
-to each neighbour, i.e. ``2 (T+1) D |N_k|`` numbers. The paper counts
+Messages: per iteration agent k sends its copy ``y_{e,k}`` (``2 (T+1) n`` numbers, n the
+model's state size) and, with the ``sum``/``joint`` margins, its T projected variances to each
+neighbour. The paper counts
 ``2 D_x T |N_k|`` because its T indexes the T+1 points ``t..t+T`` as T vectors; we
 report ours.
 
 Everything is torch: with gradients enabled, an unrolled ADMM is differentiable in
-rho, the risk split and the problem data (used by ``gpmpc tune``).
+rho, the risk split and the problem data (used by ``gpmpc tune``). One iteration is
+:meth:`ADMM.iterate`; a control step (:meth:`ADMM.solve_step`) is that loop plus the stopping
+test and the safety check; the tuner's unroll is the same loop without stopping.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
+from dataclasses import dataclass
+from typing import Any
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
+from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.schema import Config
+from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.coordination.agent_step import (
-    LocalStep, edge_copies, edge_variances, fall_back_to_previous, message_size, obstacle_problem, pair_safety,
-    slot_risks,
+    LocalStep, edge_copies, edge_variances, fall_back_to_previous, obstacle_problem, pair_safety, slot_risks,
 )
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.penalty import balance_penalty, edge_residuals, should_stop, starting_penalties
-from torch_gpmpc.coordination.state import ADMMState, StepResult, adapt_state, initial_state
+from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult, adapt_state, initial_state
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 
-__all__ = ["ADMM", "ADMMState", "StepResult", "adapt_state", "consensus_update", "initial_state"]
+__all__ = ["ADMM", "ADMMState", "IterationStats", "StepContext", "StepResult", "adapt_state", "consensus_update",
+           "initial_state"]
 
 
 def consensus_update(copies: Tensor, z: Tensor, lam: Tensor, rho: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Consensus (eq. 28) and dual (eq. 29) updates of every edge.
 
     Args:
-        copies: (E, 2 [holder], 2 [half], T+1, D) both ends' copies ``y_{e,a}`` of ``z_e``.
-        z: (E, 2, T+1, D) previous consensus.
-        lam: (E, 2, 2, T+1, D) previous duals, ``lam[e, a]`` held by end ``a``.
+        copies: (E, 2 [holder], 2 [half], T+1, n) both ends' copies ``y_{e,a}`` of ``z_e``.
+        z: (E, 2, T+1, n) previous consensus.
+        lam: (E, 2, 2, T+1, n) previous duals, ``lam[e, a]`` held by end ``a``.
         rho: ADMM penalty: a scalar, or (E,) one per edge.
 
     Returns:
-        ``(z_new (E, 2, T+1, D), lam_new (E, 2, 2, T+1, D), primal (E, 2), dual (E,))`` with
+        ``(z_new (E, 2, T+1, n), lam_new (E, 2, 2, T+1, n), primal (E, 2), dual (E,))`` with
         ``primal[e, a] = ||y_{e,a} - z_new_e||`` and ``dual[e] = rho ||z_new_e - z_e||``.
     """
     z_new = copies.mean(dim=1)
@@ -72,6 +79,35 @@ def consensus_update(copies: Tensor, z: Tensor, lam: Tensor, rho: Tensor) -> tup
     primal = gap.flatten(2).norm(dim=2)
     dual = rho * (z_new - z).flatten(1).norm(dim=1)
     return z_new, lam_new, primal, dual
+
+
+@dataclass
+class StepContext:
+    """The data one control step's ADMM iterations share (built by :meth:`ADMM.prepare`).
+
+    Attributes:
+        x0: (K, n) measured states. xref: (K, T+1, n) reference windows.
+        graph: the communication graph of the step.
+        rho: the penalty, 0-d (with ``rho_update = adaptive``: the start of new edges).
+        eps_self: (K, M) each agent's own risk per slot.
+        lin_plans, lin_inputs: (K, T+1, n) and (K, T, m) linearization points (the warm start);
+            ``None`` with ``relinearize``, where every iterate is its own.
+        layer: the batched local solver for the graph's slot count.
+        tol: absolute primal tolerance of the stopping test.
+        linearization: the dynamics linearization at ``lin_plans`` once computed (reused by
+            every iteration of the step: it is most of an iteration's cost).
+    """
+
+    x0: Tensor
+    xref: Tensor
+    graph: Graph
+    rho: Tensor
+    eps_self: Tensor
+    lin_plans: Tensor | None
+    lin_inputs: Tensor | None
+    layer: nn.Module
+    tol: float
+    linearization: Any = None
 
 
 class ADMM:
@@ -98,32 +134,140 @@ class ADMM:
     iteration with ``relinearize`` (Algorithm 1, step 9).
 
     Args:
-        cfg: run configuration (horizon, rho, r_safe, eps, risk_split, tolerances, ...).
-        method: one of the six method names (default ``cfg.method``).
-        nominal: the known model f.
+        step: the per-agent step (:class:`~.agent_step.LocalStep`), which knows the model, the
+            method, the GPs and the settings. For existing code a run
+            :class:`~torch_gpmpc.config.schema.Config` (or :class:`ControllerSettings`) may be
+            passed instead, with ``method``, ``nominal``, ``wind`` and ``gps`` as below.
+        method: the method (default the settings').
+        nominal: the known model f (default the Config's model).
         wind: the known wind (needed by the ``nonlinear`` methods).
-        gps: one residual GP per agent (needed by ``gp*`` and ``*-chance`` methods).
+        gps: one residual model per agent (needed by ``gp*`` and ``*-chance`` methods).
+
+    Example:
+        >>> import torch
+        >>> from torch_gpmpc import ADMM, ControllerSettings, LocalStep, ModelSpec
+        >>> from torch_gpmpc.coordination.graph import communication_graph
+        >>> step = LocalStep(ControllerSettings(method="nominal", horizon=5), ModelSpec.single_integrator(2))
+        >>> admm = ADMM(step)
+        >>> x0 = torch.tensor([[-1.0, 0.0], [1.0, 0.0]], dtype=torch.float64)
+        >>> xref = x0.flip(0)[:, None].expand(2, 6, 2)              # swap places
+        >>> ctx, state = admm.prepare(x0, xref, communication_graph(x0, None))
+        >>> state, stats = admm.iterate(ctx, state)               # one pure iteration
+        >>> tuple(state.plans.shape), stats.primal.ndim
+        ((2, 6, 2), 0)
     """
 
     def __init__(
         self,
-        cfg: Config,
+        step: LocalStep | Config | ControllerSettings,
         method: str | Method | None = None,
-        nominal: NominalModel | None = None,
+        nominal: NominalModel | ModelSpec | None = None,
         wind: VortexWind | None = None,
         gps: list | None = None,
     ) -> None:
-        self.cfg = cfg
-        self.local = LocalStep(cfg, method or cfg.method, nominal or NominalModel(cfg.model_spec()), wind, gps)
+        #: the run configuration this ADMM was built from, if any (tuning reads it)
+        self.cfg = step if isinstance(step, Config) else None
+        if not isinstance(step, LocalStep):
+            if nominal is None:
+                if self.cfg is None:
+                    raise TypeError("ADMM(settings, ...) needs the agent model: pass nominal=ModelSpec/NominalModel")
+                nominal = self.cfg.model_spec()
+            step = LocalStep(step, nominal, method, wind, gps)
+        #: the per-agent step every iteration runs (its settings, model, method and GPs)
+        self.agent_step = step
+        self.settings = step.settings
+
+    @property
+    def nominal(self) -> NominalModel:
+        """The agents' known model."""
+        return self.agent_step.nominal
 
     @property
     def gps(self) -> list | None:
-        """The agents' residual GPs (indexed by agent id), or ``None``."""
-        return self.local.gps
+        """The agents' residual models (indexed by agent id), or ``None``."""
+        return self.agent_step.gps
 
     def with_config(self, cfg: Config) -> "ADMM":
         """The same agents' models (method, nominal model, wind, GPs) under another configuration."""
-        return ADMM(cfg, self.local.method, self.local.nominal, self.local.wind, self.local.gps)
+        step = self.agent_step
+        admm = ADMM(LocalStep(cfg, step.nominal, step.method, step.wind, step.gps))
+        admm.cfg = cfg
+        return admm
+
+    def with_settings(self, **changes: Any) -> "ADMM":
+        """The same agents under settings with ``changes`` applied (keys of :class:`ControllerSettings`)."""
+        step = self.agent_step
+        admm = ADMM(LocalStep(self.settings.replace(**changes), step.nominal, step.method, step.wind, step.gps))
+        admm.cfg = None if self.cfg is None else self.cfg.replace(**changes)
+        return admm
+
+    def prepare(self, x0: Tensor, xref: Tensor, graph: Graph, warm: ADMMState | None = None,
+                rho: float | Tensor | None = None, risk_split: float | Tensor | None = None,
+                tol: float | None = None) -> tuple[StepContext, ADMMState]:
+        """The step's shared data and its first iterate (warm or cold start).
+
+        Args:
+            x0: (K, n) measured states. xref: (K, T+1, n) reference windows.
+            graph: communication graph at this step.
+            warm: previous step's state, already shifted (cold start if ``None``).
+            rho: penalty (default ``settings.rho``); a tensor keeps gradients. With
+                ``rho_update = adaptive`` it is the start of every edge the warm state does not
+                carry a penalty for (edges carried over keep their adapted one).
+            risk_split: scalar or (K, K) split (default ``settings.risk_split``).
+            tol: absolute primal tolerance of the stopping test (default ``settings.admm_tol``).
+        """
+        s = self.settings
+        rho_t = torch.as_tensor(s.rho if rho is None else rho, dtype=x0.dtype)
+        eps_self = slot_risks(graph, s.eps, s.risk_split if risk_split is None else risk_split)
+        state = initial_state(x0, s.horizon, graph, self.nominal.input_dim) if warm is None \
+            else adapt_state(warm, graph)
+        if s.rho_update == "adaptive":
+            state = dataclasses.replace(state, rho=starting_penalties(state.rho, rho_t, graph.num_edges))
+        lin_plans, lin_inputs = (None, None) if s.relinearize else (state.plans, state.inputs)
+        ctx = StepContext(x0, xref, graph, rho_t, eps_self, lin_plans, lin_inputs,
+                          self.agent_step.solver(graph.num_slots), s.admm_tol if tol is None else tol)
+        return ctx, state
+
+    def iterate(self, ctx: StepContext, state: ADMMState) -> tuple[ADMMState, IterationStats]:
+        """One ADMM iteration: local solves (failed agents keep their previous plans), consensus,
+        duals, penalty update. Returns the next iterate and what the iteration measured."""
+        s, graph, step = self.settings, ctx.graph, self.agent_step
+        adaptive = s.rho_update == "adaptive"
+        lin_state = state if ctx.lin_plans is None else \
+            dataclasses.replace(state, plans=ctx.lin_plans, inputs=ctx.lin_inputs)
+        rho_now = state.rho if adaptive else ctx.rho
+        rho_slots = state.rho[graph.slot_edge] if adaptive and graph.num_edges else ctx.rho
+        assembled = step.assemble(ctx.x0, ctx.xref, lin_state, graph, rho_slots, ctx.eps_self,
+                                  linearization=ctx.linearization)
+        if ctx.lin_plans is not None:
+            ctx.linearization = assembled.linearization
+        data = assembled.data
+        t0 = time.perf_counter()
+        sol = step.solve(ctx.layer, data)
+        solve_time = time.perf_counter() - t0
+        stats = IterationStats(solution=sol, problem=data, primal=ctx.x0.new_zeros(()), dual=ctx.x0.new_zeros(()),
+                               max_margin=float(assembled.max_margin.detach()), solve_time_s=solve_time)
+        step.count_failures(sol, stats)
+        sol = fall_back_to_previous(sol, state, graph)
+        stats.solution = sol
+        stats.infeasible_solves = int((sol.slack_active | ~sol.ok).sum())
+        z_new, lam = state.z, state.lam
+        if graph.num_edges:
+            copies = edge_copies(sol, graph)
+            z_new, lam, gap_norms, dual_norms = consensus_update(copies, state.z, state.lam, rho_now)
+            lam_norm = lam[:, 0].flatten(1).norm(dim=1)
+            res = edge_residuals(copies, z_new, lam_norm, gap_norms, dual_norms, s)
+            stop = res if ctx.tol == s.admm_tol else edge_residuals(copies, z_new, lam_norm, gap_norms,
+                                                                   dual_norms, s, ctx.tol)
+            stats.primal, stats.dual = res.primal.max(), res.dual.max()
+            stats.primal_ratio = float(stop.primal_ratio.max().detach())
+            stats.dual_ratio = float(stop.dual_ratio.max().detach())
+            if adaptive:
+                rho_now = balance_penalty(rho_now, res)
+        pvar = state.pvar
+        if assembled.own_variance is not None:
+            pvar = edge_variances(assembled.own_variance, graph, state.pvar)
+        return ADMMState(sol.X, sol.U, graph.edges, z_new, lam, pvar, rho_now if adaptive else None), stats
 
     def solve_step(
         self,
@@ -137,88 +281,37 @@ class ADMM:
         tol: float | None = None,
         safety_fallback: bool = True,
     ) -> StepResult:
-        """Run ADMM for one time step.
+        """Run ADMM for one time step: :meth:`iterate` until the stopping test or the cap,
+        then the safety check.
 
         Args:
-            x0: (K, D) measured states.
-            xref: (K, T+1, D) reference window.
+            x0: (K, n) measured states.
+            xref: (K, T+1, n) reference window.
             graph: communication graph at this step.
             warm: previous step's state, already shifted (cold start if ``None``).
-            rho: penalty (defaults to ``cfg.rho``); a tensor keeps gradients. With
-                ``rho_update = adaptive`` it is the start of every edge the warm state does not
-                carry a penalty for (edges carried over keep their adapted one).
-            risk_split: scalar or (K, K) split (defaults to ``cfg.risk_split``).
-            max_iter: iteration cap (defaults to ``cfg.admm_max_iter``).
-            tol: absolute primal tolerance of the stopping rule (defaults to ``cfg.admm_tol``;
+            rho, risk_split: see :meth:`prepare` (tensors keep gradients).
+            max_iter: iteration cap (defaults to ``settings.admm_max_iter``).
+            tol: absolute primal tolerance of the stopping rule (defaults to ``settings.admm_tol``;
                 0 never stops early). Penalty balancing always uses the configured tolerances.
             safety_fallback: when ADMM stops unconverged, re-plan the agents of every pair whose
                 plans are unsafe at tau = 1 against their neighbours' latest plans as fixed
-                obstacles (:func:`~.agent_step.obstacle_problem`); the unrolled ADMM of
-                ``gpmpc tune`` turns it off (it stops after every iteration on purpose).
+                obstacles (:func:`~.agent_step.obstacle_problem`).
         """
-        cfg = self.cfg
-        rho_t = torch.as_tensor(cfg.rho if rho is None else rho, dtype=x0.dtype)
-        adaptive = cfg.rho_update == "adaptive"
-        eps_self = slot_risks(graph, cfg.eps, cfg.risk_split if risk_split is None else risk_split)
-        max_iter = cfg.admm_max_iter if max_iter is None else max_iter
-        tol = cfg.admm_tol if tol is None else tol
-        state = initial_state(x0, cfg.horizon, graph, self.local.nominal.input_dim) if warm is None \
-            else adapt_state(warm, graph)
-        if adaptive:
-            state = dataclasses.replace(state, rho=starting_penalties(state.rho, rho_t, graph.num_edges))
-        layer = self.local.solver(graph.num_slots)
+        s = self.settings
+        ctx, state = self.prepare(x0, xref, graph, warm, rho, risk_split, tol)
+        max_iter = s.admm_max_iter if max_iter is None else max_iter
         result = StepResult(plans=state.plans, inputs=state.inputs, state=state, iterations=0, converged=False)
-        frozen = dataclasses.replace(state)  # the linearization points unless relinearizing
-        linearization = None
-        for it in range(1, max_iter + 1):
-            lin_state = state if cfg.relinearize else \
-                dataclasses.replace(state, plans=frozen.plans, inputs=frozen.inputs)
-            rho_now = state.rho if adaptive else rho_t
-            rho_slots = state.rho[graph.slot_edge] if adaptive and graph.num_edges else rho_t
-            assembled = self.local.assemble(x0, xref, lin_state, graph, rho_slots, eps_self,
-                                            linearization=linearization)
-            if not cfg.relinearize:
-                linearization = assembled.linearization
-            data = assembled.data
-            t0 = time.perf_counter()
-            sol = self.local.solve(layer, data)
-            result.solve_time_s += time.perf_counter() - t0
-            self.local.count_failures(sol, result)
-            sol = fall_back_to_previous(sol, state, graph)
-            result.infeasible_solves += int((sol.slack_active | ~sol.ok).sum())
-            if graph.num_edges:
-                copies = edge_copies(sol, graph)
-                z_new, lam, gap_norms, dual_norms = consensus_update(copies, state.z, state.lam, rho_now)
-                lam_norm = lam[:, 0].flatten(1).norm(dim=1)
-                res = edge_residuals(copies, z_new, lam_norm, gap_norms, dual_norms, cfg)
-                stop_res = res if tol == cfg.admm_tol else edge_residuals(copies, z_new, lam_norm, gap_norms,
-                                                                        dual_norms, cfg, tol)
-                primal, dual = res.primal.max(), res.dual.max()
-                ratios = (float(stop_res.primal_ratio.max()), float(stop_res.dual_ratio.max()))
-                if adaptive:
-                    rho_now = balance_penalty(rho_now, res)
-            else:
-                z_new, lam = state.z, state.lam
-                primal = dual = x0.new_zeros(())
-                ratios = (0.0, 0.0)
-            pvar = state.pvar
-            if assembled.own_variance is not None:
-                pvar = edge_variances(assembled.own_variance, graph, state.pvar)
-            state = ADMMState(sol.X, sol.U, graph.edges, z_new, lam, pvar, rho_now if adaptive else None)
-            result.primal_residuals.append(float(primal.detach()))
-            result.dual_residuals.append(float(dual.detach()))
-            result.iterations = it
-            result.solution = sol
-            result.problem = data
-            result.max_margin = float(assembled.max_margin.detach())
-            if should_stop(*ratios, cfg):
+        for _ in range(max_iter):
+            state, stats = self.iterate(ctx, state)
+            result.record(stats)
+            if should_stop(stats.primal_ratio, stats.dual_ratio, s):
                 result.converged = True
                 break
         if graph.num_edges and result.iterations:
-            state = self._check_safety(state, data, graph, layer, result, safety_fallback)
+            state = self._check_safety(state, result.problem, graph, ctx.layer, result, safety_fallback)
         result.plans, result.inputs, result.state = state.plans, state.inputs, state
-        result.slack_max = float(result.solution.slack.max()) if result.solution.slack.numel() else 0.0
-        result.messages = message_size(cfg, self.local.method) * graph.degrees()
+        result.slack_max = float(result.solution.slack.detach().max()) if result.solution.slack.numel() else 0.0
+        result.messages = self.agent_step.message_size * graph.degrees()
         return result
 
     def _check_safety(self, state: ADMMState, data, graph: Graph, layer, result: StepResult,
@@ -226,18 +319,17 @@ class ADMM:
         """Judge the applied plans at tau = 1 (own plans, not copies); after an unconverged stop,
         re-plan the agents of unsafe pairs against their neighbours' latest plans."""
         bounds = data.bounds[:, :, 0].detach()
-        unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.cfg.admm_tol,
-                                       self.local.nominal.position)
+        position = self.nominal.position
+        unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.settings.admm_tol, position)
         if fallback and not result.converged and bool(unsafe.any()):
             with torch.no_grad():
-                sol = self.local.solve(layer, obstacle_problem(data, state.plans[graph.slot_nbr]))
+                sol = self.agent_step.solve(layer, obstacle_problem(data, state.plans[graph.slot_nbr]))
             use = unsafe & sol.ok
             if bool(use.any()):
                 state = dataclasses.replace(state, plans=torch.where(use[:, None, None], sol.X, state.plans),
                                             inputs=torch.where(use[:, None, None], sol.U, state.inputs))
                 result.fallback = True
-                unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.cfg.admm_tol,
-                                               self.local.nominal.position)
+                unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.settings.admm_tol, position)
         result.unsafe_plan = bool(unsafe.any())
         result.pair_separation, result.pair_required = sep, req
         return state

@@ -18,7 +18,9 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.schema import Config
+from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.control.linearize import linearize_plan
 from torch_gpmpc.control.problem import (
     FAIL_EXCEPTION, FAIL_INACCURATE, FAIL_NONFINITE, FAILURE_KINDS, LocalProblemData, LocalSolution,
@@ -28,7 +30,7 @@ from torch_gpmpc.control.risk import (
 )
 from torch_gpmpc.control.solvers import make_local_solver
 from torch_gpmpc.coordination.graph import Graph
-from torch_gpmpc.coordination.state import ADMMState, StepResult
+from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 from torch_gpmpc.errors import GpmpcError
@@ -92,16 +94,27 @@ class Assembled:
     linearization: Any = None
 
 
-def exchanges_variance(cfg: Config, method: str | Method | None = None) -> bool:
+def exchanges_variance(settings: ControllerSettings, method: str | Method | None = None) -> bool:
     """Whether the agents send their T projected variances with every copy (the ``sum`` and
-    ``joint`` pair margins of chance-constrained methods; ``method`` defaults to ``cfg.method``)."""
-    return Method.parse(method or cfg.method).chance and cfg.pair_margin != "own"
+    ``joint`` pair margins of chance-constrained methods; ``method`` defaults to ``settings.method``)."""
+    return Method.parse(method or settings.method).chance and settings.pair_margin != "own"
 
 
-def message_size(cfg: Config, method: str | Method | None = None) -> int:
+def message_size(settings: ControllerSettings, state_dim: int, method: str | Method | None = None) -> int:
     """Numbers one agent sends one neighbour per ADMM iteration: its copy ``y_{e,k}``
-    (``2 (T+1) D``, D the model's state dimension) and, when exchanged, its T projected variances."""
-    return 2 * (cfg.horizon + 1) * cfg.state_dim + (cfg.horizon if exchanges_variance(cfg, method) else 0)
+    (``2 (T+1) n``, n the model's state dimension) and, when exchanged, its T projected variances."""
+    T = settings.horizon
+    return 2 * (T + 1) * state_dim + (T if exchanges_variance(settings, method) else 0)
+
+
+def as_settings(settings: ControllerSettings | Config) -> ControllerSettings:
+    """The controller settings of a run configuration (settings pass through)."""
+    return settings.controller_settings() if isinstance(settings, Config) else settings
+
+
+def as_nominal(model: NominalModel | ModelSpec) -> NominalModel:
+    """The tensor form of an agent model (a :class:`NominalModel` passes through)."""
+    return model if isinstance(model, NominalModel) else NominalModel(model)
 
 
 def _reported_variances(state: ADMMState, slot_edge: Tensor, side: Tensor, own: Tensor) -> Tensor:
@@ -123,44 +136,69 @@ def edge_variances(own_variance: Tensor, graph: Graph, previous: Tensor | None) 
 
 
 class LocalStep:
-    """What each agent does at one ADMM iteration, for a batch of agents.
+    """What each agent does at one ADMM iteration, for a batch of agents: the per-agent step.
+
+    Everything model-dependent (state and input sizes, input bound, the ``auto`` uncertainty
+    mode, the message size) comes from ``model``; everything else from ``settings``. The
+    coordinator (:class:`~torch_gpmpc.coordination.admm.ADMM`, a distributed agent, tuning,
+    the centralized planner) is handed this object. Its solvers belong to it.
 
     Args:
-        cfg: run configuration.
-        method: the controller method (name or :class:`~torch_gpmpc.dynamics.methods.Method`).
-        nominal: the known model f.
+        settings: the controller settings (a run :class:`~torch_gpmpc.config.schema.Config` is
+            converted with ``controller_settings()``).
+        model: the known model f (a :class:`ModelSpec` is converted).
+        method: the controller method (name or :class:`~torch_gpmpc.dynamics.methods.Method`;
+            default ``settings.method``).
         wind: the known wind (``nonlinear`` methods), else ``None``.
-        gps: residual GPs indexed by agent id (``gp`` and chance methods), else ``None``;
+        gps: residual models indexed by agent id (``gp`` and chance methods), else ``None``;
             a distributed agent holds ``None`` for every agent but itself.
+
+    Example:
+        >>> import torch
+        >>> from torch_gpmpc import ControllerSettings, LocalStep, ModelSpec
+        >>> step = LocalStep(ControllerSettings(method="nominal"), ModelSpec.double_integrator(dim=3))
+        >>> step.message_size, step.uncertainty   # 2 (T+1) n numbers per neighbour and iteration
+        (168, 'propagated')
     """
 
-    def __init__(self, cfg: Config, method: str | Method, nominal: NominalModel,
-                 wind: VortexWind | None = None, gps: list | None = None) -> None:
-        self.cfg = cfg
-        self.method = Method.parse(method)
-        self.nominal = nominal
+    def __init__(self, settings: ControllerSettings | Config, model: NominalModel | ModelSpec,
+                 method: str | Method | None = None, wind: VortexWind | None = None,
+                 gps: list | None = None) -> None:
+        self.settings = as_settings(settings)
+        self.method = Method.parse(method or self.settings.method)
+        self.nominal = as_nominal(model)
         self.wind = wind
         self.gps = gps
+        #: the covariance model in use (``settings.uncertainty`` with ``auto`` resolved for the model)
+        self.uncertainty = self.settings.uncertainty_for(self.nominal.spec)
         #: B K of the ancillary LQR feedback (``uncertainty = feedback``), else None
         self.feedback = None
-        if cfg.uncertainty_mode == "feedback":
-            A, B = nominal.A(dtype=torch.float64), nominal.B(dtype=torch.float64)
-            self.feedback = B @ lqr_gain(A, B, 1.0, max(cfg.alpha, 1e-9))
+        if self.uncertainty == "feedback":
+            A, B = self.nominal.A(dtype=torch.float64), self.nominal.B(dtype=torch.float64)
+            self.feedback = B @ lqr_gain(A, B, 1.0, max(self.settings.alpha, 1e-9))
+        self._solvers: dict[int, nn.Module] = {}
         #: failure kinds already warned about (one warning per kind per run)
         self._warned: set[str] = set()
 
     def solver(self, num_slots: int) -> nn.Module:
-        """The shared batched local solver for ``num_slots`` neighbour slots (cached per size)."""
-        cfg = self.cfg
-        return make_local_solver(
-            horizon=cfg.horizon, dim=self.nominal.dim, num_neighbors=num_slots, nominal=self.nominal,
-            u_max=None, alpha=cfg.alpha, slack_penalty=cfg.slack_penalty, solver=cfg.solver,
-        )
+        """This step's batched local solver for ``num_slots`` neighbour slots (built once per size)."""
+        if num_slots not in self._solvers:
+            s = self.settings
+            self._solvers[num_slots] = make_local_solver(
+                horizon=s.horizon, dim=self.nominal.dim, num_neighbors=num_slots, nominal=self.nominal,
+                u_max=None, alpha=s.alpha, slack_penalty=s.slack_penalty, solver=s.solver,
+            )
+        return self._solvers[num_slots]
 
     @property
     def exchanges_variance(self) -> bool:
         """Whether neighbours exchange projected variances (T numbers per edge and iteration)."""
-        return exchanges_variance(self.cfg, self.method)
+        return exchanges_variance(self.settings, self.method)
+
+    @property
+    def message_size(self) -> int:
+        """Numbers one agent sends one neighbour per ADMM iteration (:func:`message_size`)."""
+        return message_size(self.settings, self.nominal.dim, self.method)
 
     def assemble(
         self, x0: Tensor, xref: Tensor, state: ADMMState, graph: Graph, rho: Tensor, eps_self: Tensor,
@@ -168,7 +206,7 @@ class LocalStep:
     ) -> Assembled:
         """Linearize around the current plans and assemble the local problems of agents ``rows``.
 
-        The collision rows carry the pair margins of ``cfg.pair_margin``; the neighbour's
+        The collision rows carry the pair margins of ``settings.pair_margin``; the neighbour's
         projected variance is the one it last reported (``state.pvar``), or the agent's own
         before the first report.
 
@@ -184,7 +222,7 @@ class LocalStep:
             linearization: a previous call's ``Assembled.linearization`` at the same plans and
                 inputs (the GP linearization dominates an iteration's cost); ``None``: compute it.
         """
-        cfg = self.cfg
+        cfg = self.settings
         xbar = state.plans[rows]
         lin = linearization
         if lin is None:
@@ -201,7 +239,7 @@ class LocalStep:
         normals[..., pos] = normals_p  # collision rows act on the position states only
         own_var = None
         if self.method.chance:
-            sigma = state_covariances(cfg.uncertainty_mode, lin.var, lin.dyn_A, self.feedback)[:, 1:]
+            sigma = state_covariances(self.uncertainty, lin.var, lin.dyn_A, self.feedback)[:, 1:]
             own_var = projected_variances(normals, sigma)
             nbr_var = _reported_variances(state, slot_edge, side, own_var)
             margins = pair_margins(cfg.pair_margin, own_var, nbr_var, eps_self, cfg.eps - eps_self)
@@ -232,17 +270,18 @@ class LocalStep:
             if interrupt is not None:  # Ctrl-C that C code turned into an error: stop, do not fall back
                 raise interrupt
             batch, T, D = data.xref.shape[0], data.xref.shape[1] - 1, data.xref.shape[2]
-            M = data.active.shape[1]
+            M, Du = data.active.shape[1], self.nominal.input_dim
             nan = data.xref.new_full((), float("nan"))
             return LocalSolution(
-                X=nan.expand(batch, T + 1, D).clone(), U=nan.expand(batch, T, D).clone(),
+                X=nan.expand(batch, T + 1, D).clone(), U=nan.expand(batch, T, Du).clone(),
                 Y=nan.expand(batch, M, T + 1, D).clone(), slack=nan.expand(batch, M, T).clone(),
                 slack_active=torch.zeros(batch, dtype=torch.bool), ok=torch.zeros(batch, dtype=torch.bool),
                 cost=nan.expand(batch).clone(), failure=torch.full((batch,), FAIL_EXCEPTION),
                 failure_detail=f"{type(exc).__name__}: {exc}")
 
-    def count_failures(self, sol: LocalSolution, result: StepResult) -> None:
-        """Add this iteration's failed solves to ``result`` and warn once per kind per run."""
+    def count_failures(self, sol: LocalSolution, result: StepResult | IterationStats) -> None:
+        """Add this iteration's failed solves to ``result`` (anything with ``failed_solves`` and
+        ``failed_by_kind``) and warn once per kind per run."""
         bad = ~sol.ok
         if not bool(bad.any()):
             return

@@ -26,7 +26,7 @@ from torch import Tensor
 
 from torch_gpmpc.control.problem import LocalProblemData
 from torch_gpmpc.coordination.admm import ADMM
-from torch_gpmpc.coordination.agent_step import edge_variances, slot_risks
+from torch_gpmpc.coordination.agent_step import LocalStep, edge_variances, slot_risks
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.state import ADMMState, StepResult, adapt_state, initial_state
 from torch_gpmpc.dynamics.systems import NominalModel
@@ -57,21 +57,22 @@ def plan_cost(plans: Tensor, inputs: Tensor, xref: Tensor, alpha: float) -> floa
     return float(((plans - xref) ** 2).sum() + alpha * (inputs ** 2).sum())
 
 
-def solve_centralized(data: LocalProblemData, graph: Graph, nominal: NominalModel, u_max: float,
-                      alpha: float, slack_penalty: float) -> CentralizedSolution:
+def solve_centralized(data: LocalProblemData, graph: Graph, nominal: NominalModel, u_max: float | None = None,
+                      alpha: float = 1e-3, slack_penalty: float = 1e4) -> CentralizedSolution:
     """Solve the joint problem (module docstring) with Clarabel.
 
     Args:
         data: the K agents' convexified local problems (the consensus fields are ignored).
         graph: the communication graph the slots refer to.
         nominal: the model (input bound, state bound, B where ``data.dyn_B`` is None).
-        u_max: input norm bound (ignored with a box bound).
+        u_max: input norm bound (``None``: the model's; ignored with a box bound).
         alpha, slack_penalty: the local problems' weights.
 
     Raises:
         GpmpcError: the solver did not find an optimum.
     """
     spec = nominal.spec
+    u_max = spec.input_norm if u_max is None else u_max
     K, T, n = data.xref.shape[0], data.xref.shape[1] - 1, data.xref.shape[2]
     m = nominal.input_dim
     npy = lambda t: t.detach().cpu().numpy()  # noqa: E731
@@ -119,19 +120,21 @@ class CentralizedPlanner:
     ``StepResult.iterations`` counts the centralized solves.
 
     Args:
-        admm: the agents' controller (its config, models and convexification are used).
+        step: the agents' per-agent step (its settings, model and convexification are used;
+            an :class:`~torch_gpmpc.coordination.admm.ADMM` passes its own).
         relinearizations: joint solves per control step.
     """
 
-    def __init__(self, admm: ADMM, relinearizations: int = 3) -> None:
+    def __init__(self, step: LocalStep | ADMM, relinearizations: int = 3) -> None:
         if relinearizations < 1:
             raise GpmpcError(f"relinearizations must be >= 1, got {relinearizations}")
-        self.admm, self.relinearizations = admm, int(relinearizations)
+        self.step = step.agent_step if isinstance(step, ADMM) else step
+        self.relinearizations = int(relinearizations)
         self.warm: ADMMState | None = None
 
     def plan(self, t: int, x: Tensor, xref: Tensor, graph: Graph) -> StepResult:
         """Solve step ``t`` centrally; keep the shifted plans as the next linearization point."""
-        cfg, local = self.admm.cfg, self.admm.local
+        cfg, local = self.step.settings, self.step
         state = initial_state(x, cfg.horizon, graph, local.nominal.input_dim) if self.warm is None \
             else adapt_state(self.warm, graph)
         eps_self = slot_risks(graph, cfg.eps, cfg.risk_split)
@@ -139,8 +142,7 @@ class CentralizedPlanner:
         with torch.no_grad():
             for _ in range(self.relinearizations):
                 assembled = local.assemble(x, xref, state, graph, rho, eps_self)
-                sol = solve_centralized(assembled.data, graph, local.nominal, cfg.u_max, cfg.alpha,
-                                        cfg.slack_penalty)
+                sol = solve_centralized(assembled.data, graph, local.nominal, None, cfg.alpha, cfg.slack_penalty)
                 pvar = state.pvar if assembled.own_variance is None else \
                     edge_variances(assembled.own_variance, graph, state.pvar)
                 z = sol.plans[graph.edges] if graph.num_edges else state.z

@@ -1,16 +1,154 @@
-"""The one place a controller is built from a configuration."""
+"""The cooperative controller: built once from a model, residual models and settings, then
+stepped (the public API); and the one place a controller is built from a run configuration."""
 
 from __future__ import annotations
 
+import dataclasses
+from pathlib import Path
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.schema import Config
+from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.coordination.admm import ADMM
+from torch_gpmpc.coordination.agent_step import LocalStep, as_nominal
+from torch_gpmpc.coordination.graph import Graph, communication_graph
+from torch_gpmpc.coordination.state import ADMMState, StepResult
 from torch_gpmpc.dynamics.methods import Method
-from torch_gpmpc.dynamics.systems import TrueSystem
+from torch_gpmpc.dynamics.systems import NominalModel, TrueSystem, VortexWind
+from torch_gpmpc.errors import GpmpcError
 
 
-def make_controller(cfg: Config, system: TrueSystem, gps: list | None = None,
-                    method: str | Method | None = None) -> ADMM:
-    """The consensus-ADMM controller of ``method`` (default ``cfg.method``).
+class Controller:
+    """Cooperative GP-MPC for a team of K agents of one model: consensus ADMM over the
+    neighbour graph, each agent solving its own chance-constrained local problem.
+
+    Build it once, then call :meth:`step` at every control step: it warm-starts from the last
+    step's plans (shifted by one step), as a receding-horizon controller does. Everything
+    model-dependent (state and input sizes, input bound, ``uncertainty = auto``, the message
+    size) comes from ``model``.
+
+    Args:
+        model: the agents' known linear model: a :class:`ModelSpec`
+            (``ModelSpec.double_integrator(...)``, ``ModelSpec.load(path)``), a
+            :class:`~torch_gpmpc.dynamics.systems.NominalModel`, or a model file path.
+        gps: one residual model per agent (the :class:`~torch_gpmpc.gp.protocol.ResidualModel`
+            protocol: a :class:`~torch_gpmpc.gp.model.ResidualGP`, or user GPyTorch models wrapped
+            by :meth:`ResidualGP.from_gpytorch`); needed by the ``gp*`` and ``*-chance`` methods.
+        settings: the controller settings (default :class:`ControllerSettings`: the paper's).
+        wind: the known wind, for the ``nonlinear`` baselines only.
+
+    Attributes:
+        agent_step: the per-agent step (:class:`~torch_gpmpc.coordination.agent_step.LocalStep`).
+        admm: the consensus ADMM (:class:`~torch_gpmpc.coordination.admm.ADMM`).
+        warm: the state the next :meth:`step` warm-starts from (``None``: cold start); save and
+            restore it to evaluate a step twice from the same point.
+
+    Example:
+        >>> import torch
+        >>> from torch_gpmpc import Controller, ControllerSettings, ModelSpec
+        >>> model = ModelSpec.double_integrator(dim=2, dt=0.1, u_max=2.0)
+        >>> ctrl = Controller(model, settings=ControllerSettings(method="nominal", horizon=8))
+        >>> x0 = torch.tensor([[-1.0, 0, 0, 0], [1.0, 0, 0, 0]], dtype=torch.float64)
+        >>> xref = x0.flip(0)[:, None].expand(2, 9, 4)      # swap places
+        >>> step = ctrl.step(x0, xref)
+        >>> tuple(step.plans.shape), tuple(step.inputs.shape), ctrl.message_size, ctrl.uncertainty
+        ((2, 9, 4), (2, 8, 2), 72, 'propagated')
+    """
+
+    def __init__(self, model: ModelSpec | NominalModel | str | Path, gps: Sequence | None = None,
+                 settings: ControllerSettings | None = None, wind: VortexWind | None = None) -> None:
+        if isinstance(model, (str, Path)):
+            model = ModelSpec.load(model)
+        if not isinstance(model, (ModelSpec, NominalModel)):
+            raise GpmpcError(f"Controller: model must be a ModelSpec, a NominalModel or a model file path, "
+                             f"got {type(model).__name__}")
+        settings = settings or ControllerSettings()
+        method = Method.parse(settings.method)
+        if method.needs_gp and gps is None:
+            raise GpmpcError(f"Controller: method {method.value!r} needs one residual model per agent (gps=[...]); "
+                             "use settings.method='nominal' for none")
+        self.agent_step = LocalStep(settings, as_nominal(model), method, wind,
+                                    None if gps is None else list(gps))
+        self.admm = ADMM(self.agent_step)
+        self.warm: ADMMState | None = None
+
+    @property
+    def settings(self) -> ControllerSettings:
+        """The controller settings."""
+        return self.agent_step.settings
+
+    @property
+    def model(self) -> NominalModel:
+        """The agents' known model (tensor form)."""
+        return self.agent_step.nominal
+
+    @property
+    def message_size(self) -> int:
+        """Numbers one agent sends one neighbour per ADMM iteration (its copy of the pair's
+        trajectories, ``2 (T+1) n``, plus T projected variances with the sum/joint margins)."""
+        return self.agent_step.message_size
+
+    @property
+    def uncertainty(self) -> str:
+        """The covariance model in use (``pointwise``, ``propagated`` or ``feedback``)."""
+        return self.agent_step.uncertainty
+
+    def reset(self) -> None:
+        """Forget the warm start: the next step starts cold (every agent planning to stay)."""
+        self.warm = None
+
+    def graph(self, x: Tensor) -> Graph:
+        """The communication graph of states ``x`` (K, n): pairs closer than ``comm_radius``."""
+        return communication_graph(self.model.positions(x.detach()), self.settings.comm_radius)
+
+    def step(self, x: Tensor, xref: Tensor, graph: Graph | None = None, rho: float | Tensor | None = None,
+             risk_split: float | Tensor | None = None) -> StepResult:
+        """Plan one control step for every agent.
+
+        Args:
+            x: (K, n) measured states.
+            xref: (K, T+1, n) reference windows (``model.reference_states`` turns position
+                paths (K, T+1, P) into state references).
+            graph: the communication graph (default: by ``settings.comm_radius``).
+            rho: ADMM penalty; a tensor with ``requires_grad`` gets gradients. Given, every edge
+                starts the step at it; ``None``: edges keep the penalty residual balancing adapted
+                at the last step (new edges start at ``settings.rho``).
+            risk_split: scalar or (K, K) share of each pair's risk taken by its lower-indexed
+                agent (default the settings'); a tensor gets gradients.
+
+        Returns:
+            The :class:`~torch_gpmpc.coordination.state.StepResult`: ``plans`` (K, T+1, n),
+            ``inputs`` (K, T, m) (apply ``inputs[:, 0]``), ``iterations``, ``converged``,
+            residual histories, failure counts. Gradients flow from ``plans``/``inputs`` to
+            ``rho``, ``risk_split`` and, where enabled, the GP hyperparameters, within this step
+            (the warm start carried to the next step is detached).
+        """
+        x = torch.as_tensor(x, dtype=torch.float64)
+        xref = torch.as_tensor(xref, dtype=torch.float64)
+        K, n, T = x.shape[0], self.model.dim, self.settings.horizon
+        if x.dim() != 2 or x.shape[1] != n:
+            raise GpmpcError(f"Controller.step: x must have shape (K, {n}), got {tuple(x.shape)}")
+        if tuple(xref.shape) != (K, T + 1, n):
+            raise GpmpcError(f"Controller.step: xref must have shape ({K}, {T + 1}, {n}) = (K, T+1, n), "
+                             f"got {tuple(xref.shape)}")
+        if self.agent_step.gps is not None and len(self.agent_step.gps) != K:
+            raise GpmpcError(f"Controller.step: {K} agents but {len(self.agent_step.gps)} residual models")
+        graph = self.graph(x) if graph is None else graph
+        warm = None if self.warm is None or self.warm.plans.shape[0] != K else self.warm.shifted()
+        if warm is not None and rho is not None:
+            warm = dataclasses.replace(warm, rho=None)  # the given rho starts every edge
+        result = self.admm.solve_step(x, xref, graph, warm=warm, rho=rho, risk_split=risk_split)
+        self.warm = result.state.detached()
+        return result
+
+
+def make_agent_step(cfg: Config, system: TrueSystem, gps: list | None = None,
+                    method: str | Method | None = None) -> LocalStep:
+    """The per-agent step of ``method`` (default ``cfg.method``) for a run configuration.
 
     The method decides what the agents know: the ``nonlinear`` baselines get the true
     wind of ``system``, the ``gp`` and chance methods their residual GPs; the nominal
@@ -24,4 +162,12 @@ def make_controller(cfg: Config, system: TrueSystem, gps: list | None = None,
     """
     method = Method.parse(method or cfg.method)
     wind = system.wind if method.needs_wind else None
-    return ADMM(cfg, method, system.nominal, wind, gps if method.needs_gp else None)
+    return LocalStep(cfg, system.nominal, method, wind, gps if method.needs_gp else None)
+
+
+def make_controller(cfg: Config, system: TrueSystem, gps: list | None = None,
+                    method: str | Method | None = None) -> ADMM:
+    """The consensus-ADMM controller of a run configuration (see :func:`make_agent_step`)."""
+    admm = ADMM(make_agent_step(cfg, system, gps, method))
+    admm.cfg = cfg
+    return admm

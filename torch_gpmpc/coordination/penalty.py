@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torch_gpmpc.config.schema import Config
+from torch_gpmpc.config.settings import ControllerSettings
 
 #: Change rho_e by RHO_FACTOR when one residual ratio exceeds RHO_BALANCE times the other
 #: (Boyd et al.'s mu = 10, tau = 2); keep it within RHO_BOUNDS.
@@ -62,13 +62,13 @@ class EdgeResiduals:
         return self.dual.detach() / self.eps_dual
 
 
-def checks_dual(cfg: Config) -> bool:
+def checks_dual(cfg: ControllerSettings) -> bool:
     """Whether the stopping rule tests the dual residual: always for ``primal-dual``; for the
     paper's ``primal`` rule only when ``admm_dual_tol`` is set."""
     return cfg.admm_stop == "primal-dual" or cfg.admm_dual_tol is not None
 
 
-def edge_residuals(copies: Tensor, z_new: Tensor, lam_norm: Tensor, primal: Tensor, dual: Tensor, cfg: Config,
+def edge_residuals(copies: Tensor, z_new: Tensor, lam_norm: Tensor, primal: Tensor, dual: Tensor, cfg: ControllerSettings,
                    tol: float | None = None) -> EdgeResiduals:
     """Residuals with their tolerances (module docstring).
 
@@ -96,7 +96,7 @@ def edge_residuals(copies: Tensor, z_new: Tensor, lam_norm: Tensor, primal: Tens
     return EdgeResiduals(primal.amax(dim=1), dual, eps_primal, eps_dual)
 
 
-def should_stop(primal_ratio: float, dual_ratio: float, cfg: Config) -> bool:
+def should_stop(primal_ratio: float, dual_ratio: float, cfg: ControllerSettings) -> bool:
     """Stop when the largest primal residual ratio (residual / tolerance) is below 1 and, if
     the rule tests it (:func:`checks_dual`), the largest dual one too."""
     return primal_ratio < 1.0 and (dual_ratio < 1.0 or not checks_dual(cfg))

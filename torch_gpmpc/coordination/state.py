@@ -1,7 +1,8 @@
 """The ADMM iterate of one control step and what a step returns.
 
 :class:`ADMMState` is what is warm-started from step to step (plans, consensus ``z`` and
-duals ``lam`` per edge); :class:`StepResult` is the outcome of one step's ADMM.
+duals ``lam`` per edge); :class:`IterationStats` is what one ADMM iteration reports;
+:class:`StepResult` is the outcome of one step's ADMM (n states, m inputs per agent).
 """
 
 from __future__ import annotations
@@ -20,11 +21,11 @@ class ADMMState:
     """Warm-startable iterate of one time step.
 
     Attributes:
-        plans: (K, T+1, D) each agent's own planned states (also the linearization points).
-        inputs: (K, T, D) each agent's planned inputs.
+        plans: (K, T+1, n) each agent's own planned states (also the linearization points).
+        inputs: (K, T, m) each agent's planned inputs.
         edges: (E, 2) the edges ``z`` and ``lam`` belong to.
-        z: (E, 2, T+1, D) consensus trajectories ``[X_lo; X_hi]`` per edge.
-        lam: (E, 2, 2, T+1, D) duals; ``lam[e, a]`` is held by the edge's end ``a``
+        z: (E, 2, T+1, n) consensus trajectories ``[X_lo; X_hi]`` per edge.
+        lam: (E, 2, 2, T+1, n) duals; ``lam[e, a]`` is held by the edge's end ``a``
             (0 = lo, 1 = hi) and has the shape of ``z_e``.
         pvar: (E, 2, T) each end's variance along the edge's collision normal at tau = 1..T,
             as that end last reported it (what the ``sum`` and ``joint`` pair margins exchange);
@@ -40,6 +41,12 @@ class ADMMState:
     lam: Tensor
     pvar: Tensor | None = None
     rho: Tensor | None = None
+
+    def detached(self) -> "ADMMState":
+        """The same iterate with every tensor detached from the autograd graph."""
+        return ADMMState(self.plans.detach(), self.inputs.detach(), self.edges, self.z.detach(), self.lam.detach(),
+                         None if self.pvar is None else self.pvar.detach(),
+                         None if self.rho is None else self.rho.detach())
 
     def shifted(self) -> "ADMMState":
         """Shift everything one step forward in time (drop the first point, hold the last)."""
@@ -59,8 +66,8 @@ class StepResult:
     """Outcome of ADMM at one time step.
 
     Attributes:
-        plans: (K, T+1, D) final planned states.
-        inputs: (K, T, D) final planned inputs (apply ``inputs[:, 0]``).
+        plans: (K, T+1, n) final planned states.
+        inputs: (K, T, m) final planned inputs (apply ``inputs[:, 0]``).
         state: the final :class:`ADMMState` (shift it to warm-start the next step).
         iterations: ADMM iterations run.
         converged: whether the stopping criterion was met.
@@ -108,6 +115,47 @@ class StepResult:
     pair_required: Tensor | None = None
     problem: LocalProblemData | None = None
 
+    def record(self, stats: IterationStats) -> None:
+        """Add one iteration's report (counts, residual history, last solution and problem)."""
+        self.iterations += 1
+        self.primal_residuals.append(float(stats.primal.detach()))
+        self.dual_residuals.append(float(stats.dual.detach()))
+        self.solve_time_s += stats.solve_time_s
+        self.failed_solves += stats.failed_solves
+        for kind, count in stats.failed_by_kind.items():
+            self.failed_by_kind[kind] += count
+        self.infeasible_solves += stats.infeasible_solves
+        self.solution, self.problem, self.max_margin = stats.solution, stats.problem, stats.max_margin
+
+
+@dataclass
+class IterationStats:
+    """What one ADMM iteration reports (:meth:`~torch_gpmpc.coordination.admm.ADMM.iterate`).
+
+    Attributes:
+        solution: the agents' local solutions (failed agents replaced by their previous plans).
+        problem: the local problems solved.
+        primal: largest per-edge primal residual ``||y_{e,k} - z_e||``, 0-d (keeps gradients).
+        dual: largest per-edge dual residual ``rho_e ||z_e - z_e_prev||``, 0-d (keeps gradients).
+        primal_ratio, dual_ratio: the largest residual over its stopping tolerance (< 1: met).
+        max_margin: largest chance margin of an active row.
+        solve_time_s: seconds in the local solves.
+        failed_solves, failed_by_kind: failed local solves, split by kind.
+        infeasible_solves: solves with an active slack or a failure.
+    """
+
+    solution: LocalSolution
+    problem: LocalProblemData
+    primal: Tensor
+    dual: Tensor
+    primal_ratio: float = 0.0
+    dual_ratio: float = 0.0
+    max_margin: float = 0.0
+    solve_time_s: float = 0.0
+    failed_solves: int = 0
+    failed_by_kind: dict[str, int] = field(default_factory=lambda: dict.fromkeys(FAILURE_KINDS, 0))
+    infeasible_solves: int = 0
+
 
 def shift_in_time(x: Tensor, dim: int) -> Tensor:
     """Drop index 0 along ``dim`` and repeat the last entry: a plan one step later, holding its
@@ -122,10 +170,10 @@ def initial_state(x0: Tensor, horizon: int, graph: Graph, input_dim: int | None 
     """Cold start: every agent plans to stay where it is; z from those plans, lam = 0.
 
     Args:
-        x0: (K, D) current states.
+        x0: (K, n) current states.
         horizon: T.
         graph: the communication graph.
-        input_dim: Du (default D).
+        input_dim: m (default n).
     """
     plans = x0.unsqueeze(1).expand(-1, horizon + 1, -1).clone()
     inputs = x0.new_zeros(x0.shape[0], horizon, x0.shape[1] if input_dim is None else input_dim)

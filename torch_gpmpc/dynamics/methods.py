@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import enum
 
+from torch_gpmpc.config.settings import METHOD_NAMES
 from torch_gpmpc.errors import GpmpcError
 
 
@@ -67,5 +68,5 @@ class Method(enum.Enum):
         return self.dynamics is Dynamics.NONLINEAR
 
 
-#: The method names, in Table 1's order (the values ``--method`` accepts).
-METHOD_NAMES: tuple[str, ...] = tuple(m.value for m in Method)
+# the configuration layer lists the names (it imports no later layer); the enum must agree
+assert tuple(m.value for m in Method) == METHOD_NAMES, "Method and config.settings.METHOD_NAMES disagree"

@@ -16,11 +16,13 @@ prior mean is the empirical mean of ``y`` and whose hyperparameters are the raw-
 values reported by :attr:`ResidualGP.lengthscales`, :attr:`ResidualGP.outputscales`
 and :attr:`ResidualGP.noise`. Users pass raw units and get raw units back.
 
-After fitting, :meth:`ResidualGP.refresh` caches (:mod:`~torch_gpmpc.gp.cache`) the Cholesky factor of
-``K_d + s_d^2 I`` and ``alpha_d = (K_d + s_d^2 I)^{-1} Y_d``; :meth:`ResidualGP.linearize`
-then evaluates mean, Jacobian and variance for a batch of points with a few batched
-torch ops (no GPyTorch predictive machinery), because the controller calls it every
-ADMM iteration. With ``inducing_points`` the same model is the sparse (SGPR) posterior of
+The model caches (:mod:`~torch_gpmpc.gp.cache`) the Cholesky factor of ``K_d + s_d^2 I``
+and ``alpha_d = (K_d + s_d^2 I)^{-1} Y_d``, rebuilt whenever a hyperparameter changes (every
+prediction compares them with the cached ones, as GPyTorch clears its prediction strategy);
+:meth:`ResidualGP.linearize` then evaluates mean, Jacobian and variance for a batch of points
+with a few batched torch ops (no GPyTorch predictive machinery), because the controller calls
+it every control step. Gradients to the hyperparameters are opt-in
+(:meth:`ResidualGP.enable_hyperparameter_gradients`). With ``inducing_points`` the same model is the sparse (SGPR) posterior of
 :mod:`~torch_gpmpc.gp.sparse`, served by the same code with the inducing points as the
 support points.
 """
@@ -31,7 +33,7 @@ import logging
 import math
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import gpytorch
 import torch
@@ -39,6 +41,7 @@ from torch import Tensor
 
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.gp.cache import PredictionCache, safe_cholesky, squared_distances
+from torch_gpmpc.gp.gpytorch_models import GPyTorchResidual
 from torch_gpmpc.gp.io import FORMAT, VERSION, read_payload, verify_checksum, write_payload
 from torch_gpmpc.gp.normalization import Standardization
 from torch_gpmpc.gp.sparse import sparse_posterior
@@ -81,7 +84,21 @@ class ResidualGP(torch.nn.Module):
 
     Build it with :func:`fit_residual_gp`; evaluate with :meth:`predict`,
     :meth:`mean_jacobian` or (fastest, all at once) :meth:`linearize`. Each agent of
-    the multi-agent controller owns one instance.
+    the multi-agent controller owns one instance (the
+    :class:`~torch_gpmpc.gp.protocol.ResidualModel` protocol). Bring your own GPyTorch
+    models with :meth:`from_gpytorch`.
+
+    Example:
+        >>> import torch
+        >>> from torch_gpmpc import ResidualGP
+        >>> x = torch.linspace(-3, 3, 30, dtype=torch.float64)[:, None]
+        >>> gp = ResidualGP(x, torch.sin(x))          # hyperparameters at their initial values
+        >>> mean, jac, var = gp.linearize(torch.zeros(1, 1, dtype=torch.float64))
+        >>> round(float(mean), 3), round(float(jac), 3), round(float(var), 4)
+        (0.0, 0.99, 0.0063)
+        >>> gp.model.covar_module.base_kernel.lengthscale = 0.2   # the cache follows
+        >>> round(float(gp.linearize(torch.zeros(1, 1, dtype=torch.float64))[2]), 4)
+        0.0251
 
     Args:
         inputs: raw training inputs, shape (N, Din).
@@ -120,6 +137,20 @@ class ResidualGP(torch.nn.Module):
         self.model.covar_module.outputscale = _INIT["outputscale"]
         self.likelihood.noise = _INIT["noise"]
         self._cache: PredictionCache | None = None
+        self._cache_key: Tensor | None = None
+        #: whether predictions carry gradients to the hyperparameters (opt in with
+        #: :meth:`enable_hyperparameter_gradients`)
+        self.hyperparameter_gradients = False
+
+    @classmethod
+    def from_gpytorch(cls, models: Sequence[Any], likelihoods: Sequence[Any]) -> GPyTorchResidual:
+        """Wrap a user's own GPyTorch exact GPs, one model and one ``GaussianLikelihood`` per
+        residual row (any mean and kernel), as an agent's residual model for the controller.
+
+        Returns a :class:`~torch_gpmpc.gp.gpytorch_models.GPyTorchResidual` (the
+        :class:`~torch_gpmpc.gp.protocol.ResidualModel` protocol; see its example).
+        """
+        return GPyTorchResidual(models, likelihoods)
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -156,8 +187,12 @@ class ResidualGP(torch.nn.Module):
 
     @property
     def noise(self) -> Tensor:
-        """Observation-noise variances s_d^2 in raw output units squared, shape (D,)."""
-        return self.likelihood.noise.detach().reshape(self.output_dim) * self.y_std ** 2
+        """Observation-noise variances s_d^2 in raw output units squared, shape (D,) (with
+        gradients to the noise hyperparameter when they are opted in)."""
+        noise = self.likelihood.noise.reshape(self.output_dim)
+        if not self.hyperparameter_gradients:
+            noise = noise.detach()
+        return noise * self.y_std ** 2
 
     def hyperparameters(self) -> dict[str, Any]:
         """Raw-unit hyperparameters as plain floats/lists (for logging and summaries)."""
@@ -177,8 +212,8 @@ class ResidualGP(torch.nn.Module):
     def refresh(self) -> "ResidualGP":
         """Recompute the prediction cache from the current hyperparameters.
 
-        Called by :func:`fit_residual_gp` and :meth:`load`; call it yourself after
-        changing hyperparameters by hand. Also resets GPyTorch's own caches.
+        Not needed after changing hyperparameters: every prediction checks them and rebuilds
+        the cache when they changed. Also resets GPyTorch's own caches.
 
         Raises:
             GpmpcError: if ``K + s^2 I`` is not positive definite even with jitter.
@@ -187,30 +222,49 @@ class ResidualGP(torch.nn.Module):
         self.likelihood.eval()
         self.model.prediction_strategy = None
         with torch.no_grad():
-            D, Din = self.output_dim, self.input_dim
-            ls = self.model.covar_module.base_kernel.lengthscale.detach().reshape(D, 1, Din)
-            outputscale = self.model.covar_module.outputscale.detach().reshape(D)
-            noise = self.likelihood.noise.detach().reshape(D)
-            S_f = ((self.train_inputs_raw - self.x_mean) / self.x_std) / ls
-            ys = ((self.train_y_raw - self.y_mean) / self.y_std).T
-            chol_add = None
-            if self.inducing_points is None:
-                S = S_f
-                K = outputscale[:, None, None] * torch.exp(-0.5 * squared_distances(S, S))
-                K = K + noise[:, None, None] * torch.eye(self.num_data, dtype=K.dtype)
-                chol = safe_cholesky(K, outputscale)
-                alpha = torch.cholesky_solve(ys.unsqueeze(-1), chol).squeeze(-1)
-            else:
-                S = ((self.inducing_points - self.x_mean) / self.x_std) / ls
-                post = sparse_posterior(S, S_f, ys, outputscale, noise)
-                chol, chol_add, alpha = post.chol_uu, post.chol_sigma, post.alpha
-        S_cols = tuple(S[:, None, :, i].contiguous() for i in range(Din))
-        self._cache = PredictionCache(self.x_mean, self.x_std, ls, self.x_std * ls, S, S_cols, outputscale, chol, alpha,
-                             self.y_mean, self.y_std, noise * self.y_std ** 2, chol_add)
+            self._cache = self._build_cache()
+        self._cache_key = self._hyperparameter_values()
         return self
 
+    def enable_hyperparameter_gradients(self, enabled: bool = True) -> "ResidualGP":
+        """Opt in (or out) of gradients from :meth:`predict` / :meth:`linearize` to the
+        hyperparameters (lengthscales, outputscales, noise). While enabled and autograd is on,
+        each call rebuilds the factorization inside the graph (an O(N^3) Cholesky per call)."""
+        self.hyperparameter_gradients = bool(enabled)
+        return self
+
+    def _hyperparameter_values(self) -> Tensor:
+        return torch.cat([p.detach().reshape(-1) for p in self.model.parameters()]).clone()
+
+    def _build_cache(self) -> PredictionCache:
+        """The cache at the current hyperparameters (inside the autograd graph when enabled)."""
+        D, Din = self.output_dim, self.input_dim
+        ls = self.model.covar_module.base_kernel.lengthscale.reshape(D, 1, Din)
+        outputscale = self.model.covar_module.outputscale.reshape(D)
+        noise = self.likelihood.noise.reshape(D)
+        S_f = ((self.train_inputs_raw - self.x_mean) / self.x_std) / ls
+        ys = ((self.train_y_raw - self.y_mean) / self.y_std).T
+        chol_add = None
+        if self.inducing_points is None:
+            S = S_f
+            K = outputscale[:, None, None] * torch.exp(-0.5 * squared_distances(S, S))
+            K = K + noise[:, None, None] * torch.eye(self.num_data, dtype=K.dtype)
+            chol = safe_cholesky(K, outputscale.detach())
+            alpha = torch.cholesky_solve(ys.unsqueeze(-1), chol).squeeze(-1)
+        else:
+            S = ((self.inducing_points - self.x_mean) / self.x_std) / ls
+            post = sparse_posterior(S, S_f, ys, outputscale, noise)
+            chol, chol_add, alpha = post.chol_uu, post.chol_sigma, post.alpha
+        S_cols = tuple(S[:, None, :, i].contiguous() for i in range(Din))
+        return PredictionCache(self.x_mean, self.x_std, ls, self.x_std * ls, S, S_cols, outputscale, chol, alpha,
+                               self.y_mean, self.y_std, noise * self.y_std ** 2, chol_add)
+
     def _get_cache(self) -> PredictionCache:
-        if self._cache is None:
+        """The prediction cache, rebuilt when a hyperparameter changed since it was built (the
+        check compares a few numbers); built in the autograd graph with gradients opted in."""
+        if getattr(self, "hyperparameter_gradients", False) and torch.is_grad_enabled():
+            return self._build_cache()
+        if self._cache is None or not torch.equal(self._cache_key, self._hyperparameter_values()):
             self.refresh()
         return self._cache
 

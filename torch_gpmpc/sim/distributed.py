@@ -184,7 +184,7 @@ class RemotePlanner:
         self._send_sensing(t, x, graph)
         res = self._decide_iterations(t)
         self._collect(t, res)
-        res.messages = message_size(self.cfg) * graph.degrees()
+        res.messages = message_size(self.cfg.controller_settings(), self.cfg.state_dim) * graph.degrees()
         res.lost_agents = sorted(self.lost)
         return res
 

@@ -87,9 +87,13 @@ def execute(task: Task) -> str:
     """Run ``task`` unless its rollout is cached; return the rollout path (worker entry point)."""
     from torch_gpmpc.sim.closed_loop import simulate
 
-    torch.set_num_threads(1)
     if not task.path.exists():
-        simulate(task.cfg).save(task.path)
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)  # small problems: extra threads only add overhead
+        try:
+            simulate(task.cfg).save(task.path)
+        finally:
+            torch.set_num_threads(threads)  # the caller's setting, unchanged (workers=1 runs here)
     return str(task.path)
 
 

@@ -15,7 +15,6 @@ from torch_gpmpc.coordination.graph import communication_graph
 from torch_gpmpc.dynamics.systems import NominalModel
 from torch_gpmpc.sim.scenarios import Scenario, make_scenario
 from torch_gpmpc.config.tune_settings import TuneSettings
-from torch_gpmpc.tuning.unroll import detached_state
 
 log = logging.getLogger(__name__)
 
@@ -122,9 +121,8 @@ def with_warm_starts(admm: ADMM, instances: Sequence[TuneInstance], rho: float =
     Returns:
         New instances with ``warm`` set.
     """
-    cfg = admm.cfg.replace(admm_tol=tol, admm_dual_tol=tol, admm_max_iter=max_iter)
-    solver = admm.with_config(cfg)
-    nominal = admm.local.nominal
+    solver = admm.with_settings(admm_tol=tol, admm_dual_tol=tol, admm_max_iter=max_iter)
+    cfg, nominal = solver.settings, admm.nominal
     out = []
     with torch.no_grad():
         for inst in instances:
@@ -139,7 +137,7 @@ def with_warm_starts(admm: ADMM, instances: Sequence[TuneInstance], rho: float =
                 log.warning("warm start of %s did not converge in %d iterations (primal %.2e, dual %.2e)",
                             inst.name, max_iter, res.primal_residuals[-1], res.dual_residuals[-1])
             warm = res.state.shifted() if inst.t0 > 0 else res.state
-            out.append(TuneInstance(inst.x0, inst.scenario, inst.t0, inst.noise, inst.name, detached_state(warm)))
+            out.append(TuneInstance(inst.x0, inst.scenario, inst.t0, inst.noise, inst.name, warm.detached()))
     return out
 
 

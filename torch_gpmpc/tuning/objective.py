@@ -70,14 +70,16 @@ class TuningObjective:
             if inst.noise.shape[0] < mpc_steps - 1:
                 raise GpmpcError(f"instance {inst.name}: noise for {inst.noise.shape[0]} steps, "
                                  f"mpc_steps={mpc_steps} needs {mpc_steps - 1}")
+        if system is None and admm.cfg is None:
+            raise GpmpcError("TuningObjective: pass the true system (system=...) for an ADMM built from settings")
         self.admm = admm
-        self.cfg = admm.cfg
+        self.cfg = admm.settings
         self.instances = list(instances)
         self.weights = weights or ObjectiveWeights()
         self.admm_iters = int(admm_iters)
         self.mpc_steps = int(mpc_steps)
         self.warmup_iters = int(warmup_iters)
-        self.system = system or system_from_config(self.cfg)
+        self.system = system or system_from_config(admm.cfg)
         self.evaluations = 0
 
     def __call__(self, params: TuningParameters | None = None, rho: Tensor | None = None,
@@ -95,7 +97,7 @@ class TuningObjective:
         w = self.weights
         sums = {name: rho.new_zeros(()) for name in PARTS}
         count = 0
-        nominal = self.admm.local.nominal
+        nominal = self.admm.nominal
         for inst in self.instances:
             x, warm = inst.x0, inst.warm
             for step in range(self.mpc_steps):

@@ -201,7 +201,8 @@ def test_reference_solver_agrees_with_clarabel(layers):
 
 
 def test_cache_and_input_errors(layers):
-    assert make_local_solver(T, D, 1, NOMINAL, U_MAX, ALPHA, PENALTY, "clarabel") is layers[1]
+    # every call builds a module owned by its caller (no shared, mutable solver)
+    assert make_local_solver(T, D, 1, NOMINAL, U_MAX, ALPHA, PENALTY, "clarabel") is not layers[1]
     data = problem_data(crossing_instance(2, 1))
     with pytest.raises(GpmpcError, match="normals"):
         layers[3](data)

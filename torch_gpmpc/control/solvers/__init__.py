@@ -2,20 +2,18 @@
 to :class:`~torch_gpmpc.control.problem.LocalSolution` for a batch of agents.
 
 :func:`make_local_solver` is the only place that names the backends: ``fast`` (the
-structure-exploiting interior point, :mod:`.interior_point`) and ``clarabel`` /
-``reference`` (cvxpylayers, :mod:`.conic`, imported only when asked for).
+structure-exploiting interior point :class:`~.interior_point.InteriorPointMPC`, compiled with
+numba) and ``clarabel`` / ``reference`` (the cvxpylayers reference path
+:class:`~.conic.CvxpyLayerMPC`, imported only when asked for).
 """
 
 from __future__ import annotations
-
-import functools
 
 from torch import nn
 
 from torch_gpmpc.dynamics.systems import NominalModel
 
 
-@functools.lru_cache(maxsize=32)
 def make_local_solver(
     horizon: int,
     dim: int,
@@ -24,24 +22,36 @@ def make_local_solver(
     u_max: float | None,
     alpha: float,
     slack_penalty: float = 1e4,
-    solver: str = "clarabel",
+    solver: str = "fast",
 ) -> nn.Module:
-    """A shared local-problem module per (T, D, M, model, constants, solver) (building one is slow).
+    """A new batched local-problem module for (T, n, M, model, constants, backend).
 
     ``u_max`` overrides the model's norm input bound (``None``: the model's bound).
 
-    ``solver='fast'`` gives :class:`~torch_gpmpc.control.solvers.interior_point.FastLocalMPC`;
-    ``clarabel`` and ``reference`` give the cvxpylayers
-    :class:`~torch_gpmpc.control.solvers.conic.LocalMPC` (same problem, same inputs and
-    outputs). The returned module is shared between callers: do not modify it.
+    ``solver='fast'`` (the default, as in the run configuration) gives the compiled interior
+    point :class:`~torch_gpmpc.control.solvers.interior_point.InteriorPointMPC`; ``clarabel`` and
+    ``reference`` give the cvxpylayers reference path
+    :class:`~torch_gpmpc.control.solvers.conic.CvxpyLayerMPC` (same problem, inputs and outputs;
+    building one takes about a second, so keep it). Each call builds a new module, owned by the
+    caller (a :class:`~torch_gpmpc.coordination.agent_step.LocalStep` keeps one per slot count).
+
+    Example:
+        >>> import torch
+        >>> from torch_gpmpc import make_local_solver, NominalModel
+        >>> from torch_gpmpc.control.examples import crossing_instance
+        >>> solver = make_local_solver(horizon=13, dim=2, num_neighbors=2, nominal=NominalModel(2),
+        ...                            u_max=2.0, alpha=1e-3)
+        >>> sol = solver(crossing_instance(batch=3, num_neighbors=2, method="nominal").problem_data())
+        >>> tuple(sol.X.shape), tuple(sol.U.shape), bool(sol.ok.all())
+        ((3, 14, 2), (3, 13, 2), True)
     """
     if solver == "fast":
-        from torch_gpmpc.control.solvers.interior_point import FastLocalMPC
+        from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
 
-        return FastLocalMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max), float(alpha),
+        return InteriorPointMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max), float(alpha),
                             float(slack_penalty))
     # cvxpy and cvxpylayers are imported only when a cvxpylayers path is asked for
-    from torch_gpmpc.control.solvers.conic import LocalMPC
+    from torch_gpmpc.control.solvers.conic import CvxpyLayerMPC
 
-    return LocalMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max), float(alpha),
+    return CvxpyLayerMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max), float(alpha),
                     float(slack_penalty), solver)

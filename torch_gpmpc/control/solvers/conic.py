@@ -50,7 +50,7 @@ BACKWARD_ARGS: dict[str, Any] = {"n_jobs_backward": 1, "mode": "dense"}
 _BACKWARD_ONLY_KEYS = frozenset({"n_jobs_backward", "mode", "derivative_kwargs"})
 
 
-class LocalMPC(nn.Module):
+class CvxpyLayerMPC(nn.Module):
     r"""Agent-local augmented-Lagrangian MPC problem (paper eqs. 26-27), batched over agents.
 
     For one agent with horizon T, state dimension D, input dimension Du and M neighbour slots::
@@ -116,10 +116,10 @@ class LocalMPC(nn.Module):
         if solver not in SOLVER_ARGS:
             raise GpmpcError(f"solver: {solver!r} is not a cvxpylayers path; choose from {', '.join(SOLVER_ARGS)}")
         if horizon < 1 or dim < 1 or num_neighbors < 0:
-            raise GpmpcError(f"LocalMPC needs horizon >= 1, dim >= 1, num_neighbors >= 0; got "
+            raise GpmpcError(f"CvxpyLayerMPC needs horizon >= 1, dim >= 1, num_neighbors >= 0; got "
                              f"{horizon}, {dim}, {num_neighbors}")
         if nominal.dim != dim:
-            raise GpmpcError(f"nominal model has dim {nominal.dim}, LocalMPC dim is {dim}")
+            raise GpmpcError(f"nominal model has dim {nominal.dim}, CvxpyLayerMPC dim is {dim}")
         u_max = nominal.spec.input_norm if u_max is None else u_max
         if nominal.spec.input_box is not None:
             u_max = max(nominal.spec.input_box)
@@ -177,7 +177,7 @@ class LocalMPC(nn.Module):
             variables += [*Ys, S]
         problem = cp.Problem(cp.Minimize(objective), constraints)
         if not problem.is_dpp():  # pragma: no cover - guarded by tests
-            raise RuntimeError("LocalMPC problem is not DPP")
+            raise RuntimeError("CvxpyLayerMPC problem is not DPP")
         return problem, parameters, variables
 
     # ---------------------------------------------------------------- forward
@@ -231,7 +231,7 @@ class LocalMPC(nn.Module):
             outputs = self.layer(*params, solver_args=args)
             failed = torch.zeros(batch, dtype=torch.bool)
         except Exception as exc:  # noqa: BLE001 - any solver failure is reported, not raised
-            logger.debug("LocalMPC: batched solve of %d problems failed (%s); retrying one by one",
+            logger.debug("CvxpyLayerMPC: batched solve of %d problems failed (%s); retrying one by one",
                          batch, exc)
             outputs, failed, detail = self._solve_one_by_one(params, args)
         return self._solution(data, outputs, failed, detail)
@@ -249,7 +249,7 @@ class LocalMPC(nn.Module):
             try:
                 rows.append(self.layer(*[p[b:b + 1] for p in params], solver_args=args))
             except Exception as exc:  # noqa: BLE001
-                logger.debug("LocalMPC: problem %d of %d failed: %s", b, batch, exc)
+                logger.debug("CvxpyLayerMPC: problem %d of %d failed: %s", b, batch, exc)
                 detail = detail or f"{type(exc).__name__}: {exc}"
                 failed[b] = True
                 rows.append(None)
@@ -282,7 +282,7 @@ class LocalMPC(nn.Module):
         failure = torch.where(failed, torch.full_like(failure, FAIL_EXCEPTION), failure)
         ok = failure == FAIL_NONE
         if not bool(ok.all()):
-            logger.debug("LocalMPC: %d of %d local problems returned no valid solution (kinds %s)",
+            logger.debug("CvxpyLayerMPC: %d of %d local problems returned no valid solution (kinds %s)",
                          int((~ok).sum()), batch, failure.tolist())
         cost = ((X - data.xref) ** 2).sum(dim=(1, 2)) + self.alpha * (U ** 2).sum(dim=(1, 2))
         return LocalSolution(X=X, U=U, Y=Y, slack=slack, slack_active=slack_active & ok, ok=ok, cost=cost,
@@ -294,3 +294,5 @@ class LocalMPC(nn.Module):
                                    None if self.nominal.spec.input_box is not None else self.u_max)
 
 
+#: The name this backend had before; kept for existing code.
+LocalMPC = CvxpyLayerMPC

@@ -1,6 +1,6 @@
 """A fast batched, differentiable interior-point solver for the agent-local MPC problem.
 
-:class:`FastLocalMPC` solves exactly the problem of :class:`torch_gpmpc.control.solvers.conic.LocalMPC`
+:class:`InteriorPointMPC` solves exactly the problem of :class:`torch_gpmpc.control.solvers.conic.CvxpyLayerMPC`
 (same :class:`~torch_gpmpc.control.solvers.conic.LocalProblemData` in, same
 :class:`~torch_gpmpc.control.solvers.conic.LocalSolution` out) with a primal-dual interior-point method
 and differentiates it implicitly through its KKT conditions (a ``torch.autograd.Function``).
@@ -111,7 +111,7 @@ def canonicalize(data: LocalProblemData, B: Tensor) -> CanonicalData:
     """Map :class:`LocalProblemData` to :class:`CanonicalData` (differentiable).
 
     Inactive slots get ``rho = 1``, ``w = 0`` (so ``Y_j = 0``), normal 0 and bound -1,
-    and contribute nothing to the state cost (as in :class:`~torch_gpmpc.control.solvers.conic.LocalMPC`).
+    and contribute nothing to the state cost (as in :class:`~torch_gpmpc.control.solvers.conic.CvxpyLayerMPC`).
     ``B`` (D, Du) is the nominal input matrix, used when ``data.dyn_B`` is ``None``.
     """
     terms = ConsensusTerms.of(data)
@@ -241,11 +241,11 @@ class _LocalQpFunction(torch.autograd.Function):
 
 
 # ------------------------------------------------------------------------------ the layer
-class FastLocalMPC(nn.Module):
+class InteriorPointMPC(nn.Module):
     r"""Agent-local MPC problem (paper eqs. 26-27) by a batched differentiable interior-point method.
 
     Solves, for each of B agents with horizon T, dimension D and M neighbour slots, the
-    same problem as :class:`torch_gpmpc.control.solvers.conic.LocalMPC`::
+    same problem as :class:`torch_gpmpc.control.solvers.conic.CvxpyLayerMPC`::
 
         minimize    ||X - Xref||_F^2 + alpha ||U||_F^2 + slack_penalty * sum(s)
                     + sum_{active j} [ lam_own_j . X + lam_nbr_j . Y_j
@@ -290,7 +290,7 @@ class FastLocalMPC(nn.Module):
     ``max_iter`` (or have non-finite data) get ``ok = False`` and finite outputs.
 
     Only a norm input bound and no state bound (use the cvxpylayers path,
-    :class:`~torch_gpmpc.control.solvers.conic.LocalMPC`, for box input bounds and state bounds).
+    :class:`~torch_gpmpc.control.solvers.conic.CvxpyLayerMPC`, for box input bounds and state bounds).
 
     Args:
         horizon: T.
@@ -308,10 +308,10 @@ class FastLocalMPC(nn.Module):
                  alpha: float, slack_penalty: float = 1e4, tol: float = 1e-10, max_iter: int = 50) -> None:
         super().__init__()
         if horizon < 1 or dim < 1 or num_neighbors < 0:
-            raise GpmpcError(f"FastLocalMPC needs horizon >= 1, dim >= 1, num_neighbors >= 0; got "
+            raise GpmpcError(f"InteriorPointMPC needs horizon >= 1, dim >= 1, num_neighbors >= 0; got "
                              f"{horizon}, {dim}, {num_neighbors}")
         if nominal.dim != dim:
-            raise GpmpcError(f"nominal model has dim {nominal.dim}, FastLocalMPC dim is {dim}")
+            raise GpmpcError(f"nominal model has dim {nominal.dim}, InteriorPointMPC dim is {dim}")
         spec = nominal.spec
         if spec.input_box is not None or spec.state_bound_norm is not None:
             raise GpmpcError(f"solver 'fast' supports a norm input bound and no state bound; model {spec.name!r} has "
@@ -367,7 +367,7 @@ class FastLocalMPC(nn.Module):
         else:
             slack_active = torch.zeros(batch, dtype=torch.bool)
         if not bool(ok.all()):  # ADMM counts and warns (once per kind); keep the details here
-            logger.debug("FastLocalMPC: %d of %d local problems rejected (tol %g, %d iterations)",
+            logger.debug("InteriorPointMPC: %d of %d local problems rejected (tol %g, %d iterations)",
                          int((~ok).sum()), batch, self.tol, self.max_iter)
         xref = torch.where(valid[:, None, None], data.xref, torch.zeros_like(data.xref))
         cost = ((X - xref) ** 2).sum(dim=(1, 2)) + self.alpha * (U ** 2).sum(dim=(1, 2))
@@ -399,3 +399,7 @@ def _sanitize(canon: CanonicalData) -> tuple[CanonicalData, Tensor]:
                          l_x=keep(canon.l_x, 0.0), rho_y=keep(canon.rho_y, 1.0), w_y=keep(canon.w_y, 0.0),
                          y0=keep(canon.y0, 0.0), normals=keep(canon.normals, 0.0),
                          bounds=keep(canon.bounds, -1.0)), valid
+
+
+#: The name this backend had before; kept for existing code.
+FastLocalMPC = InteriorPointMPC

@@ -1,4 +1,4 @@
-"""The interior-point kernel of :class:`~torch_gpmpc.control.solvers.interior_point.FastLocalMPC`, compiled by numba.
+"""The interior-point kernel of :class:`~torch_gpmpc.control.solvers.interior_point.InteriorPointMPC`, compiled by numba.
 
 One local problem (paper eq. 27) after condensing the dynamics, in the variables
 ``u = vec(U)`` (n = T Du), the neighbour copies ``y`` (R = M T rows of D; R counts collision rows) and the
@@ -538,3 +538,15 @@ def warm_up() -> None:
     solve_batch(*canonical, 1e-3, 1.0, 1e4, 1e-8, 30, u, y, w, z, False, flags, counts, errors)
     adjoint_batch(*canonical, 1e-3, u, w, z, np.ones((B, n)), np.ones((B, R, D)), np.ones((B, R)),
                   np.empty((B, n)), np.empty((B, R, D)), np.empty((B, R)), flags)
+
+
+def is_cached() -> bool:
+    """Whether numba's on-disk cache next to this module holds every compiled function, newer
+    than this source (if not, the first solve compiles them: about 20-30 s, once)."""
+    from pathlib import Path
+
+    source = Path(__file__)
+    index = list((source.parent / "__pycache__").glob(f"{source.stem}.*.nbi"))
+    cached = {p.name.split(".")[1].rsplit("-", 1)[0] for p in index}
+    compiled = {name for name, obj in globals().items() if hasattr(obj, "py_func")}
+    return bool(index) and compiled <= cached and min(p.stat().st_mtime for p in index) >= source.stat().st_mtime

@@ -28,9 +28,9 @@ from torch_gpmpc.control.problem import FAILURE_KINDS, LocalSolution
 from torch_gpmpc.coordination.admm import consensus_update
 from torch_gpmpc.coordination.penalty import balance_penalty, edge_residuals, starting_penalties
 from torch_gpmpc.coordination.agent_step import (
-    edge_copies, fall_back_to_previous, message_size, obstacle_problem, pair_safety, slot_risks,
+    edge_copies, fall_back_to_previous, obstacle_problem, pair_safety, slot_risks,
 )
-from torch_gpmpc.coordination.controller import make_controller
+from torch_gpmpc.coordination.controller import make_agent_step
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
 from torch_gpmpc.coordination.graph import graph_from_edges
 from torch_gpmpc.coordination.state import ADMMState, StepResult, adapt_state, initial_state
@@ -109,7 +109,8 @@ class AgentController:
         system = system_from_config(cfg)
         # indexed by agent id; this process holds only its own GP
         gps = None if gp is None else [gp if j == k else None for j in range(self.num_agents)]
-        self.local = make_controller(cfg, system, gps).local
+        #: this agent's per-agent step (the same object the in-process ADMM iterates)
+        self.local = make_agent_step(cfg, system, gps)
         self.rho = torch.as_tensor(cfg.rho, dtype=DTYPE)
         self.state: ADMMState | None = None
         self.known = torch.zeros(num_agents, dtype=torch.bool)
@@ -187,7 +188,7 @@ class AgentController:
     def message_size(self) -> int:
         """Numbers of one copy message: ``y_{kj,k}`` (2 (T+1) D) and, for the ``sum``/``joint``
         margins, the T projected variances along the edge's normal."""
-        return message_size(self.cfg, self.local.method)
+        return self.local.message_size
 
     def solve(self) -> dict[int, Tensor]:
         """Local solve (27) and fallback; returns the message per neighbour: the own copy

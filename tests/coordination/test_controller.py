@@ -1,0 +1,155 @@
+"""The public step API (Controller), the per-agent step, one ADMM iteration, the centralized
+planner and the distributed agent, all built from a model object.
+
+Independent answers: the message-size formula 2 (T+1) n (+ T), the centralized cvxpy solve of
+the same convexified step, central finite differences for the gradients.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from tests.helpers import ConstantVarianceGP
+from torch_gpmpc import ADMM, Controller, ControllerSettings, LocalStep, ModelSpec
+from torch_gpmpc.config import Config
+from torch_gpmpc.coordination.centralized import CentralizedPlanner, plan_cost, solve_centralized
+from torch_gpmpc.coordination.distributed.agent import AgentController
+from torch_gpmpc.coordination.graph import communication_graph
+from torch_gpmpc.errors import GpmpcError
+
+F64 = torch.float64
+
+
+def swap(model: ModelSpec, horizon: int, gap: float = 1.0):
+    """Two agents swapping places on the x axis, slightly off-line (K, n) and (K, T+1, n)."""
+    from torch_gpmpc.dynamics.systems import NominalModel
+
+    nominal = NominalModel(model)
+    p0 = torch.tensor([[-gap, 0.05], [gap, -0.05]], dtype=F64)
+    s = torch.linspace(0, 1, horizon + 1, dtype=F64)[None, :, None]
+    path = p0[:, None] + s * (-2 * p0[:, None])
+    return nominal.states_at(p0), nominal.reference_states(path)
+
+
+def test_double_integrator_from_a_model_spec_reports_its_own_message_size_and_uncertainty():
+    model = ModelSpec.double_integrator(dim=2, dt=0.1, u_max=2.0)
+    ctrl = Controller(model, settings=ControllerSettings(method="nominal", horizon=5))
+    assert ctrl.message_size == 48 == 2 * (5 + 1) * 4
+    assert ctrl.uncertainty == "propagated"
+    chance = Controller(model, gps=[ConstantVarianceGP(0.01)] * 2, settings=ControllerSettings(horizon=5))
+    assert chance.message_size == 48 + 5  # the T projected variances of the sum margin
+    assert Controller(ModelSpec.single_integrator(2), settings=ControllerSettings(
+        method="nominal", horizon=5)).uncertainty == "pointwise"
+    # the same model through a default Config: the model decides, not the config's model string
+    admm = ADMM(Config(horizon=5, method="nominal"), nominal=model)
+    assert admm.agent_step.message_size == 48 and admm.agent_step.uncertainty == "propagated"
+
+
+def test_controller_step_is_the_admm_step_and_reaches_the_centralized_optimum():
+    model = ModelSpec.double_integrator(dim=2)
+    settings = ControllerSettings(method="nominal", horizon=8, admm_max_iter=300, admm_tol=1e-5,
+                                  admm_rel_tol=0.0)
+    x0, xref = swap(model, 8)
+    ctrl = Controller(model, settings=settings)
+    step = ctrl.step(x0, xref)
+    admm = ADMM(LocalStep(settings, model))
+    again = admm.solve_step(x0, xref, communication_graph(x0[:, :2], None))
+    torch.testing.assert_close(step.plans, again.plans, rtol=0, atol=0)
+    assert step.converged and tuple(step.inputs.shape) == (2, 8, 2)
+    central = solve_centralized(step.problem, communication_graph(x0[:, :2], None), ctrl.model)
+    admm_cost = plan_cost(step.plans, step.inputs, xref, settings.alpha)
+    assert admm_cost == pytest.approx(plan_cost(central.plans, central.inputs, xref, settings.alpha), rel=1e-3)
+    # the warm start is kept, detached, for the next step
+    assert ctrl.warm is not None and not ctrl.warm.plans.requires_grad
+    ctrl.reset()
+    assert ctrl.warm is None
+
+
+def test_iterate_is_pure_and_the_step_is_its_loop():
+    model = ModelSpec.single_integrator(2)
+    settings = ControllerSettings(method="nominal", horizon=6, admm_max_iter=7, admm_tol=1e-9)
+    admm = ADMM(LocalStep(settings, model))
+    x0, xref = swap(model, 6)
+    graph = communication_graph(x0, None)
+    ctx, state = admm.prepare(x0, xref, graph)
+    before = dataclasses.replace(state, plans=state.plans.clone(), z=state.z.clone(), lam=state.lam.clone())
+    first, stats_a = admm.iterate(ctx, state)
+    again, stats_b = admm.iterate(ctx, state)
+    assert torch.equal(first.plans, again.plans) and torch.equal(first.lam, again.lam)
+    assert float(stats_a.primal) == float(stats_b.primal)
+    assert torch.equal(state.plans, before.plans) and torch.equal(state.lam, before.lam)  # not mutated
+    for _ in range(6):
+        first, _ = admm.iterate(ctx, first)
+    step = admm.solve_step(x0, xref, graph)
+    assert step.iterations == 7 and not step.converged
+    torch.testing.assert_close(step.state.z, first.z, rtol=0, atol=0)
+
+
+def test_step_gradients_to_rho_and_split_match_finite_differences():
+    model = ModelSpec.single_integrator(2)
+    settings = ControllerSettings(method="nominal-chance", horizon=6, admm_max_iter=8, admm_tol=1e-12,
+                                  admm_dual_tol=1e-12, r_safe=0.5)
+    ctrl = Controller(model, gps=[ConstantVarianceGP(0.02), ConstantVarianceGP(0.05)], settings=settings)
+    x0, xref = swap(model, 6, gap=0.6)
+
+    def cost(rho, split):
+        ctrl.reset()
+        step = ctrl.step(x0, xref, rho=rho, risk_split=split)
+        return ((step.plans - xref) ** 2).sum()
+
+    rho = torch.tensor(5.0, dtype=F64, requires_grad=True)
+    split = torch.tensor(0.3, dtype=F64, requires_grad=True)
+    cost(rho, split).backward()
+    with torch.no_grad():
+        fd_rho = (cost(5.0 + 1e-5, 0.3) - cost(5.0 - 1e-5, 0.3)) / 2e-5
+        fd_split = (cost(5.0, 0.3 + 1e-6) - cost(5.0, 0.3 - 1e-6)) / 2e-6
+    assert abs(float(split.grad)) > 1e-3  # the collision rows bind
+    assert float(rho.grad) == pytest.approx(float(fd_rho), rel=1e-4)
+    assert float(split.grad) == pytest.approx(float(fd_split), rel=1e-4)
+
+
+def test_controller_refuses_bad_input_naming_the_field():
+    model = ModelSpec.double_integrator(dim=2)
+    with pytest.raises(GpmpcError, match="needs one residual model per agent"):
+        Controller(model)  # gp-chance without GPs
+    ctrl = Controller(model, settings=ControllerSettings(method="nominal", horizon=4))
+    x0, xref = swap(model, 4)
+    with pytest.raises(GpmpcError, match=r"xref must have shape \(2, 5, 4\)"):
+        ctrl.step(x0, xref[:, :3])
+    with pytest.raises(GpmpcError, match=r"x must have shape \(K, 4\)"):
+        ctrl.step(x0[:, :2], xref)
+    with pytest.raises(GpmpcError, match="controller setting 'horizon'"):
+        ControllerSettings(horizon=0)
+    with pytest.raises(GpmpcError, match="did you mean 'admm_tol'"):
+        ControllerSettings().replace(admm_tl=1e-3)
+
+
+def test_controllers_own_their_solvers():
+    model = ModelSpec.single_integrator(2)
+    a = Controller(model, settings=ControllerSettings(method="nominal"))
+    b = Controller(model, settings=ControllerSettings(method="nominal"))
+    assert a.agent_step.solver(1) is a.agent_step.solver(1)
+    assert a.agent_step.solver(1) is not b.agent_step.solver(1)
+
+
+def test_centralized_planner_takes_the_per_agent_step():
+    model = ModelSpec.double_integrator(dim=2)
+    step = LocalStep(ControllerSettings(method="nominal", horizon=6), model)
+    planner = CentralizedPlanner(step, relinearizations=2)
+    x0, xref = swap(model, 6)
+    graph = communication_graph(x0[:, :2], None)
+    res = planner.plan(0, x0, xref, graph)
+    assert res.converged and res.iterations == 2 and tuple(res.inputs.shape) == (2, 6, 2)
+    again = solve_centralized(res.problem, graph, step.nominal)
+    torch.testing.assert_close(res.plans, again.plans, rtol=0, atol=1e-7)
+    assert planner.warm is not None  # the shifted plans linearize the next step
+
+
+def test_distributed_agent_builds_only_its_per_agent_step():
+    cfg = Config(model="double-integrator", horizon=5, method="nominal", scenario="circle", num_agents=3)
+    agent = AgentController(0, 3, cfg, torch.zeros(10, 2, dtype=F64))
+    assert isinstance(agent.local, LocalStep)
+    assert agent.message_size == 2 * 6 * 4 and agent.local.uncertainty == "propagated"

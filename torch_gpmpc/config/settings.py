@@ -1,0 +1,135 @@
+"""The controller's settings: what a consensus-ADMM GP-MPC controller reads, and nothing else.
+
+:class:`ControllerSettings` is the small frozen object the controller layers take
+(:class:`~torch_gpmpc.coordination.controller.Controller`, the ADMM, the per-agent step, the
+distributed agent, tuning); :meth:`~torch_gpmpc.config.schema.Config.controller_settings`
+builds it from the flat run configuration, whose keys have the same names. Anything that
+depends on the agent model (state size, input bound, the ``auto`` uncertainty mode) comes
+from the model, never from here: see :func:`resolve_uncertainty`.
+
+The choice lists of the settings (methods, uncertainty modes, ...) live here too, so the
+configuration layer never imports a later layer.
+"""
+
+from __future__ import annotations
+
+import typing
+from dataclasses import dataclass
+
+from torch_gpmpc.config.fields import Rules, build, validate
+from torch_gpmpc.config.model_spec import ModelSpec
+
+#: The controller methods of the paper's Table 1 (``--method``), in its order;
+#: :class:`~torch_gpmpc.dynamics.methods.Method` is the typed form.
+METHOD_NAMES: tuple[str, ...] = ("nominal", "nominal-chance", "nonlinear", "nonlinear-chance", "gp", "gp-chance")
+UNCERTAINTY_MODES = ("pointwise", "propagated", "feedback")
+MARGIN_VARIANCES = ("latent", "predictive")
+PAIR_MARGINS = ("own", "sum", "joint")
+RHO_UPDATES = ("fixed", "adaptive")
+ADMM_STOPS = ("primal", "primal-dual")
+SOLVERS = ("fast", "clarabel", "reference")
+
+CONTROLLER_CHOICES: dict[str, tuple] = {
+    "uncertainty": ("auto", *UNCERTAINTY_MODES),
+    "margin_variance": MARGIN_VARIANCES,
+    "pair_margin": PAIR_MARGINS,
+    "rho_update": RHO_UPDATES,
+    "admm_stop": ADMM_STOPS,
+    "solver": SOLVERS,
+    "method": METHOD_NAMES,
+}
+
+CONTROLLER_RANGES: dict[str, tuple[typing.Callable[[typing.Any], bool], str]] = {
+    "horizon": (lambda v: 1 <= v <= 1000, "an integer in [1, 1000]"),
+    "rho": (lambda v: v > 0, "a number > 0"),
+    "r_safe": (lambda v: v >= 0, "a number >= 0"),
+    "eps": (lambda v: 0 < v < 1, "a number in (0, 1)"),
+    "risk_split": (lambda v: 0 < v < 1, "a number in (0, 1)"),
+    "alpha": (lambda v: v >= 0, "a number >= 0"),
+    "admm_tol": (lambda v: v > 0, "a number > 0"),
+    "admm_dual_tol": (lambda v: v is None or v > 0, "a number > 0 or null"),
+    "admm_rel_tol": (lambda v: 0 <= v < 1, "a number in [0, 1)"),
+    "admm_max_iter": (lambda v: 1 <= v <= 100_000, "an integer in [1, 100000]"),
+    "comm_radius": (lambda v: v is None or v > 0, "a number > 0 or null (all pairs)"),
+    "slack_penalty": (lambda v: v > 0, "a number > 0"),
+}
+
+
+@dataclass(frozen=True)
+class ControllerSettings:
+    """Settings of the cooperative controller (defaults: the paper scenario, sound margins).
+
+    The names and meanings are those of the run configuration's keys
+    (:class:`~torch_gpmpc.config.schema.Config` documents each); the model-dependent ones
+    (input bound, state size, ``uncertainty = auto``) are resolved from the agent model.
+
+    Attributes:
+        method: the controller method (one of :data:`METHOD_NAMES`).
+        horizon: MPC horizon T.
+        alpha: control-effort weight. slack_penalty: exact-penalty weight on slacks.
+        solver: ``fast`` (compiled interior point), ``clarabel`` or ``reference`` (cvxpylayers).
+        r_safe, eps, risk_split: safety radius, pair risk, lower-indexed agent's share.
+        pair_margin, margin_variance, uncertainty: how chance margins are built.
+        rho, rho_update: ADMM penalty (start) and its update rule.
+        admm_tol, admm_dual_tol, admm_rel_tol, admm_stop, admm_max_iter: ADMM stopping.
+        relinearize: re-linearize at every ADMM iterate (Algorithm 1, step 9).
+        comm_radius: agents closer than this communicate (``None``: all pairs).
+
+    Example:
+        >>> from torch_gpmpc import ControllerSettings
+        >>> s = ControllerSettings(horizon=10, eps=0.05)
+        >>> s.horizon, s.pair_margin, s.solver
+        (10, 'sum', 'fast')
+        >>> s.replace(rho=5.0).rho
+        5.0
+    """
+
+    method: str = "gp-chance"
+    horizon: int = 13
+    alpha: float = 1e-3
+    slack_penalty: float = 1e4
+    solver: str = "fast"
+    r_safe: float = 0.5
+    eps: float = 0.1
+    risk_split: float = 0.5
+    pair_margin: str = "sum"
+    margin_variance: str = "predictive"
+    uncertainty: str = "auto"
+    rho: float = 20.0
+    rho_update: str = "adaptive"
+    admm_tol: float = 1e-3
+    admm_dual_tol: float | None = None
+    admm_rel_tol: float = 1e-4
+    admm_stop: str = "primal-dual"
+    admm_max_iter: int = 100
+    relinearize: bool = False
+    comm_radius: float | None = None
+
+    def __post_init__(self) -> None:
+        validate(self, RULES)
+
+    def replace(self, **changes: typing.Any) -> "ControllerSettings":
+        """A copy with ``changes`` applied (same checks; unknown keys name the nearest one)."""
+        return build(ControllerSettings, {**self.__dict__, **changes}, RULES)
+
+    def uncertainty_for(self, spec: ModelSpec) -> str:
+        """The covariance model used for agents of model ``spec`` (``auto`` resolved)."""
+        return resolve_uncertainty(self.uncertainty, spec)
+
+
+RULES = Rules("controller setting", "", CONTROLLER_CHOICES, CONTROLLER_RANGES)
+
+
+def resolve_uncertainty(uncertainty: str, spec: ModelSpec) -> str:
+    """``uncertainty`` with ``auto`` resolved for a model: ``pointwise`` when the residual rows
+    cover the position (the paper's single integrator: the GP variance is the position's),
+    ``propagated`` otherwise (e.g. a double integrator, whose velocity residual reaches the
+    position only through the dynamics)."""
+    if uncertainty != "auto":
+        return uncertainty
+    return "pointwise" if set(spec.position) <= set(spec.residual) else "propagated"
+
+
+def controller_keys() -> tuple[str, ...]:
+    """The names of the controller settings (also keys of the run configuration)."""
+    return tuple(ControllerSettings.__dataclass_fields__)
