@@ -11,4 +11,12 @@ class GpmpcError(ValueError):
     """Bad input from a user: a file, a config value, a command-line argument.
 
     The message names the field and says how to fix it.
+
+    Example:
+        >>> from torch_gpmpc import Config, GpmpcError
+        >>> try:
+        ...     Config().replace(horizn=10)
+        ... except GpmpcError as err:
+        ...     print(err)
+        unknown config key 'horizn'; did you mean 'horizon'?
     """

@@ -55,6 +55,13 @@ class ModelSpec:
         input_box: ``|u_j| <= input_box[j]`` (length m), or ``None`` with a norm.
         state_bound_indices: state indices of an optional bound ``||x[idx]|| <= state_bound_norm``.
         state_bound_norm: that bound, or ``None``.
+
+    Example:
+        >>> from torch_gpmpc import ModelSpec
+        >>> m = ModelSpec.from_table({"A": [[1.0, 0.1], [0.0, 1.0]], "B": [[0.005], [0.1]],
+        ...                           "position": [0], "residual": [1], "input_bound": {"box": [2.0]}})
+        >>> m.state_dim, m.input_dim, m.input_box, m.gp_inputs
+        (2, 1, (2.0,), ('x0', 'x1'))
     """
 
     name: str

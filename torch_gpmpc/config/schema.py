@@ -100,6 +100,14 @@ class Config:
             false (default): linearize once per control step around the warm start, so ADMM
             converges on one convex problem (the paper's per-iterate rule keeps it moving).
         wind_scale: amplitude of the vortex wind g (paper: 0.1).
+
+    Example:
+        >>> from torch_gpmpc import Config
+        >>> cfg = Config(model="double-integrator", dim=3, scenario="circle", num_agents=6)
+        >>> cfg.state_dim, cfg.input_dim, cfg.uncertainty_mode
+        (6, 3, 'propagated')
+        >>> cfg.controller_settings().horizon
+        13
     """
 
     horizon: int = 13

@@ -54,6 +54,12 @@ class LocalProblemData:
             plans become fixed obstacles (the safety fallback).
         dyn_B: linearized input matrices ``B + J_u`` (GPs that read the input), shape
             (B, T, D, Du); ``None`` = the nominal B at every step.
+
+    Example:
+        >>> from torch_gpmpc.control.examples import crossing_instance
+        >>> data = crossing_instance(batch=3, num_neighbors=2, method="nominal").problem_data()
+        >>> tuple(data.x0.shape), tuple(data.normals.shape), tuple(data.bounds.shape)
+        ((3, 2), (3, 2, 13, 2), (3, 2, 13))
     """
 
     x0: Tensor
@@ -119,6 +125,14 @@ class LocalSolution:
         failure: why a row was rejected, int64 shape (B,): 0 if ``ok``, else ``1 + i`` for
             ``FAILURE_KINDS[i]`` (exception, non-finite, inaccurate); ``None`` if unknown.
         failure_detail: the first solver exception message of the batch, if any.
+
+    Example:
+        >>> from torch_gpmpc import NominalModel, make_local_solver
+        >>> from torch_gpmpc.control.examples import crossing_instance
+        >>> data = crossing_instance(batch=2, num_neighbors=1, method="nominal").problem_data()
+        >>> sol = make_local_solver(13, 2, 1, NominalModel(2), 2.0, 1e-3)(data)
+        >>> tuple(sol.X.shape), tuple(sol.U.shape), tuple(sol.Y.shape), sol.ok.tolist()
+        ((2, 14, 2), (2, 13, 2), (2, 1, 14, 2), [True, True])
     """
 
     X: Tensor

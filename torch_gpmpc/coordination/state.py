@@ -32,6 +32,17 @@ class ADMMState:
             NaN or ``None`` where not known yet.
         rho: (E,) each edge's ADMM penalty (adapted by residual balancing); ``None``: the
             step's starting rho on every edge.
+
+    Example:
+        >>> import torch
+        >>> from torch_gpmpc.coordination.graph import communication_graph
+        >>> from torch_gpmpc.coordination.state import initial_state
+        >>> x0 = torch.tensor([[0.0, 0.0], [1.0, 0.0]], dtype=torch.float64)
+        >>> state = initial_state(x0, horizon=4, graph=communication_graph(x0, None))
+        >>> tuple(state.plans.shape), tuple(state.z.shape), tuple(state.lam.shape)
+        ((2, 5, 2), (1, 2, 5, 2), (1, 2, 2, 5, 2))
+        >>> tuple(state.shifted().plans.shape)      # the next step's warm start
+        (2, 5, 2)
     """
 
     plans: Tensor
@@ -91,6 +102,15 @@ class StepResult:
         pair_required: (K, K) the larger of the pair's two tau = 1 row bounds (NaN off edges).
         problem: the agents' local problems of the last iteration (its convexification; what
             :func:`~torch_gpmpc.coordination.centralized.solve_centralized` solves jointly).
+
+    Example:
+        >>> import torch
+        >>> from torch_gpmpc import Controller, ControllerSettings, ModelSpec
+        >>> ctrl = Controller(ModelSpec.single_integrator(2), settings=ControllerSettings(method="nominal"))
+        >>> x0 = torch.tensor([[-1.0, 0.0], [1.0, 0.0]], dtype=torch.float64)
+        >>> result = ctrl.step(x0, x0.flip(0)[:, None].expand(2, 14, 2))
+        >>> tuple(result.inputs.shape), result.converged, result.failed_solves
+        ((2, 13, 2), True, 0)
     """
 
     plans: Tensor

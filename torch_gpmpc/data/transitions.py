@@ -62,6 +62,16 @@ class Transitions:
         x_next: next states, shape (N, D), float64.
         agent: agent ids, shape (N,), int64, or ``None``.
         source: where the data came from (used in error messages).
+
+    Example:
+        >>> import torch
+        >>> from torch_gpmpc import NominalModel, Transitions
+        >>> x = torch.tensor([[0.0, 0.0], [1.0, 0.5]], dtype=torch.float64)
+        >>> u = torch.ones(2, 2, dtype=torch.float64)
+        >>> data = Transitions(x, u, x + 0.1 * u + 0.01)
+        >>> inputs, y = data.residuals(NominalModel(2))       # y = x' - (A x + B u)
+        >>> tuple(inputs.shape), [round(v, 3) for v in y[0].tolist()]
+        ((2, 2), [0.01, 0.01])
     """
 
     x: Tensor

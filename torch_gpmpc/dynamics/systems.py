@@ -32,6 +32,16 @@ class NominalModel:
         spec: the model description, or an int ``dim`` for the paper's model in ``dim`` dimensions.
         dim, a, b: the single integrator ``A = a I``, ``B = b I`` in ``dim`` dimensions (when
             ``spec`` is not given; the paper: a = 1, b = 0.1).
+
+    Example:
+        >>> import torch
+        >>> from torch_gpmpc import ModelSpec, NominalModel
+        >>> f = NominalModel(ModelSpec.double_integrator(dim=2, dt=0.1))
+        >>> x = torch.tensor([0.0, 0.0, 1.0, 0.0], dtype=torch.float64)   # at the origin, moving along x
+        >>> f(x, torch.zeros(2, dtype=torch.float64)).tolist()
+        [0.1, 0.0, 1.0, 0.0]
+        >>> f.position, f.residual
+        ([0, 1], [2, 3])
     """
 
     def __init__(self, spec: ModelSpec | int | None = None, dim: int | None = None, a: float = 1.0,
@@ -157,6 +167,12 @@ class VortexWind:
 
     Attributes:
         scale: amplitude (paper: 0.1).
+
+    Example:
+        >>> import torch
+        >>> from torch_gpmpc import VortexWind
+        >>> VortexWind(0.1)(torch.zeros(1, 2, dtype=torch.float64)).tolist()   # [0.1 sin(0), 0.1 cos(0)]
+        [[0.0, 0.1]]
     """
 
     scale: float = 0.1
@@ -213,6 +229,14 @@ class TrueSystem:
         nominal: the known model f.
         wind: the unknown residual g.
         noise_std: standard deviation of each noise component (on the residual rows).
+
+    Example:
+        >>> import torch
+        >>> from torch_gpmpc import NominalModel, TrueSystem, VortexWind
+        >>> plant = TrueSystem(NominalModel(2), VortexWind(0.1), noise_std=0.0)
+        >>> x = torch.zeros(1, 2, dtype=torch.float64)
+        >>> plant.step(x, torch.ones(1, 2, dtype=torch.float64)).tolist()   # x + 0.1 u + g(x)
+        [[0.1, 0.2]]
     """
 
     nominal: NominalModel

@@ -55,6 +55,12 @@ class Rollout:
             plus the pair margin), shape (S, P), NaN for pairs not in contact.
         (The last four are ``None`` in files written before they existed.)
         position: the state indices of the position (P of them); ``None``: every state.
+
+    Example:
+        >>> from torch_gpmpc import Config, compute_metrics, simulate
+        >>> rollout = simulate(Config(method="nominal", max_steps=2))
+        >>> rollout.states.shape, compute_metrics(rollout)["steps"]
+        ((3, 3, 2), 2)
     """
 
     states: np.ndarray

@@ -99,6 +99,14 @@ class CvxpyLayerMPC(nn.Module):
         slack_penalty: exact-penalty weight of the collision slacks.
         solver: ``clarabel`` (diffcp with Clarabel) or ``reference`` (cvxpylayers'
             default diffcp + SCS with tolerances 1e-9).
+
+    Example:
+        >>> from torch_gpmpc import CvxpyLayerMPC, NominalModel
+        >>> from torch_gpmpc.control.examples import crossing_instance
+        >>> layer = CvxpyLayerMPC(13, 2, 1, NominalModel(2), 2.0, 1e-3, solver="clarabel")
+        >>> sol = layer(crossing_instance(batch=1, num_neighbors=1, method="nominal").problem_data())
+        >>> tuple(sol.X.shape), bool(sol.ok.all())
+        ((1, 14, 2), True)
     """
 
     def __init__(

@@ -302,6 +302,14 @@ class InteriorPointMPC(nn.Module):
         slack_penalty: exact-penalty weight of the collision slacks.
         tol: stopping tolerance on the KKT error.
         max_iter: iteration limit.
+
+    Example:
+        >>> from torch_gpmpc import InteriorPointMPC, NominalModel
+        >>> from torch_gpmpc.control.examples import crossing_instance
+        >>> layer = InteriorPointMPC(13, 2, 2, NominalModel(2), 2.0, 1e-3)
+        >>> sol = layer(crossing_instance(batch=3, num_neighbors=2, method="nominal").problem_data())
+        >>> tuple(sol.X.shape), bool(sol.ok.all())
+        ((3, 14, 2), True)
     """
 
     def __init__(self, horizon: int, dim: int, num_neighbors: int, nominal: NominalModel, u_max: float | None,
