@@ -37,7 +37,7 @@ from torch_gpmpc.tuning import (
 
 
 # a small crossing: 3 agents on a circle of radius 2, started ~1 unit from the centre
-SMALL = dict(horizon=6, method="nominal-chance", circle_radius=2.0, ref_points=25, pair_margin="own")
+SMALL = dict(horizon=6, method="nominal-chance", circle_radius=2.0, ref_points=25)
 
 
 def _small_objective(seeds, settings: TuneSettings, variances=(0.01, 0.02, 0.04), **overrides) -> TuningObjective:
@@ -47,11 +47,13 @@ def _small_objective(seeds, settings: TuneSettings, variances=(0.01, 0.02, 0.04)
     return TuningObjective(admm, instances, ObjectiveWeights.from_settings(settings), settings.admm_iters, settings.mpc_steps)
 
 
-@pytest.mark.parametrize("mpc_steps", [1, 2])
-def test_gradient_matches_finite_differences(mpc_steps):
-    """d objective / d (log rho, theta_lo,hi) against central differences (fixed 4 ADMM iterations)."""
+@pytest.mark.parametrize("rho_update", ["adaptive", "fixed"])
+@pytest.mark.parametrize("mpc_steps", [1, 2, 3])
+def test_gradient_matches_finite_differences(mpc_steps, rho_update):
+    """d objective / d (log rho, theta_lo,hi) against central differences (fixed 4 ADMM iterations),
+    with the default ``sum`` pair margins (each row also carries the neighbour's reported margin)."""
     settings = TuneSettings(admm_iters=4, mpc_steps=mpc_steps)
-    objective = _small_objective([0], settings)
+    objective = _small_objective([0], settings, pair_margin="sum", rho_update=rho_update)
     params = TuningParameters(3, rho=5.0)
     with torch.no_grad():  # a generic point: three different splits
         params.theta[0, 1], params.theta[0, 2], params.theta[1, 2] = 0.3, -0.2, 0.1
@@ -75,7 +77,7 @@ def test_gradient_matches_finite_differences(mpc_steps):
     fd = [(4 * central(c, 1e-3) - central(c, 2e-3)) / 3 for c in range(4)]
     assert all(abs(g) > 1e-4 for g in grad), grad  # every parameter really matters here
     for g, d in zip(grad, fd, strict=True):
-        assert abs(g - d) <= 1e-3 * abs(d), (grad, fd)
+        assert abs(g - d) <= 1e-4 * abs(d), (grad, fd)
 
 
 def test_tuned_parameters_beat_defaults_on_heldout_seeds():
@@ -97,7 +99,8 @@ def test_tuned_parameters_beat_defaults_on_heldout_seeds():
     with torch.no_grad():
         grid_heldout = float(heldout(rho=torch.tensor(grid["best_rho"], dtype=torch.float64), split=0.5).loss)
     assert tuner.history[-1].loss < tuner.history[0].loss
-    assert tuned < 0.75 * default, (tuned, default)
+    # measured with the default (sum) margins: 0.777 of the default's loss (0.75 with the paper's own margins)
+    assert tuned < 0.8 * default, (tuned, default)
     assert tuned < 1.1 * grid_heldout, (tuned, grid_heldout)
     assert grid["evaluations"] == 8 and train.evaluations == 6 + 8
     assert grid_heldout < default

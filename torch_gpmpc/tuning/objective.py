@@ -35,7 +35,7 @@ class ObjectiveValue:
 
     def floats(self) -> dict[str, float]:
         """``loss`` and the parts as floats."""
-        return {"loss": float(self.loss), **{k: float(v) for k, v in self.parts.items()}}
+        return {"loss": float(self.loss.detach()), **{k: float(v.detach()) for k, v in self.parts.items()}}
 
 
 class TuningObjective:

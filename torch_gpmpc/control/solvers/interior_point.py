@@ -183,7 +183,19 @@ class _LocalQpFunction(torch.autograd.Function):
         converged, iterations, kkt_error = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
         ipm.solve_batch(*arrays, alpha, u_max, penalty, tol, max_iter, point.u, point.y, point.w, point.z, False,
                         converged, iterations, kkt_error)
-        stats["iterations"] = int(iterations.max(initial=0))
+        # Return (and differentiate at) the polished point: the backward differentiates the exact
+        # KKT conditions, and the returned point must be the one they hold at, else a nearly
+        # degenerate row (active, multiplier ~1e-3) makes the returned map's derivative differ
+        # from the gradient by O(tol / multiplier^2) (measured: 1.6e-4 relative at tol 1e-10).
+        polished = point.copy()
+        p_conv, p_iter, p_err = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
+        ipm.solve_batch(*arrays, alpha, u_max, penalty, POLISH_FACTOR * tol, POLISH_ITERATIONS,
+                        polished.u, polished.y, polished.w, polished.z, True, p_conv, p_iter, p_err)
+        better = converged & (p_conv | (p_err <= kkt_error))
+        point = _Iterate(*(np.where(better.reshape(-1, *[1] * (a.ndim - 1)), a, b) for a, b in
+                           zip((polished.u, polished.y, polished.w, polished.z), (point.u, point.y, point.w, point.z))))
+        kkt_error = np.where(better, p_err, kkt_error)
+        stats["iterations"] = int((iterations + np.where(better, p_iter, 0)).max(initial=0))
         ctx.point, ctx.converged, ctx.kkt_error = point, converged, kkt_error
         ctx.settings = (alpha, u_max, penalty, tol)
         ctx.save_for_backward(G, h, c_x, l_x, rho_y, w_y, normals, bounds)
