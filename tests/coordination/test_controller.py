@@ -153,3 +153,46 @@ def test_distributed_agent_builds_only_its_per_agent_step():
     agent = AgentController(0, 3, cfg, torch.zeros(10, 2, dtype=F64))
     assert isinstance(agent.local, LocalStep)
     assert agent.message_size == 2 * 6 * 4 and agent.local.uncertainty == "propagated"
+
+
+def test_per_agent_step_bounds_are_r_safe_plus_both_margins_in_closed_form():
+    """Pointwise variance v in every direction: each row carries 2 Phi^-1(1 - eps/2) sqrt(v) (sum margin,
+    the neighbour's variance reported as the agent's own before the first exchange)."""
+    from torch_gpmpc.coordination.agent_step import slot_risks
+    from torch_gpmpc.coordination.state import initial_state
+
+    settings = ControllerSettings(horizon=4, margin_variance="latent")
+    step = LocalStep(settings, ModelSpec.single_integrator(2), gps=[ConstantVarianceGP(0.04)] * 3)
+    x0 = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], dtype=F64)
+    graph = communication_graph(x0, None)
+    state = initial_state(x0, 4, graph)
+    assembled = step.assemble(x0, x0[:, None].expand(3, 5, 2), state, graph, torch.tensor(20.0, dtype=F64),
+                              slot_risks(graph, 0.1, 0.5))
+    q = float(torch.special.ndtri(torch.tensor(1 - 0.05, dtype=F64)))
+    expected = 0.5 + 2 * q * 0.2
+    torch.testing.assert_close(assembled.data.bounds, torch.full_like(assembled.data.bounds, expected))
+    assert tuple(assembled.own_variance.shape) == (3, 2, 4)
+    torch.testing.assert_close(assembled.own_variance, torch.full((3, 2, 4), 0.04, dtype=F64))
+
+
+def test_admm_state_carries_kept_edges_and_starts_new_ones_from_the_plans():
+    from torch_gpmpc.coordination.graph import graph_from_edges
+    from torch_gpmpc.coordination.state import adapt_state, initial_state
+
+    x0 = torch.tensor([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]], dtype=F64)
+    old = graph_from_edges(3, [(0, 1)])
+    state = initial_state(x0, 3, old)
+    state = dataclasses.replace(state, lam=state.lam + 1.0, rho=torch.tensor([7.0], dtype=F64),
+                                pvar=torch.ones(1, 2, 3, dtype=F64))
+    new = graph_from_edges(3, [(0, 1), (1, 2)])
+    moved = adapt_state(state, new)
+    assert torch.equal(moved.edges, new.edges)
+    e01 = new.edges.tolist().index([0, 1])
+    e12 = new.edges.tolist().index([1, 2])
+    assert torch.all(moved.lam[e01] == 1.0) and torch.all(moved.lam[e12] == 0.0)
+    assert float(moved.rho[e01]) == 7.0 and torch.isnan(moved.rho[e12])
+    torch.testing.assert_close(moved.z[e12], moved.plans[[1, 2]])
+    assert torch.isnan(moved.pvar[e12]).all() and torch.all(moved.pvar[e01] == 1.0)
+    shifted = state.shifted()
+    torch.testing.assert_close(shifted.plans[:, :-1], state.plans[:, 1:])
+    assert not state.detached().lam.requires_grad

@@ -52,7 +52,7 @@ def _fig1(cfg, path: Path) -> None:
 
     system = system_from_config(cfg)
     gp = fit_agent_gps(cfg, system, 1)[0]
-    plot_gp_field(gp, system.wind, gp.train_inputs_raw, path, box=cfg.circle_radius,
+    plot_gp_field(gp, system.wind, gp.train_inputs_raw, path, box=cfg.gp_fit_settings().box,
                   title=f"wind g vs GP mean (agent 0, seed {cfg.seed}, N = {cfg.gp_samples})")
 
 

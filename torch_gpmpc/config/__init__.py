@@ -3,8 +3,9 @@
 
 from torch_gpmpc.config.load import load_config, load_settings, read_mapping
 from torch_gpmpc.config.reader import parse_overrides, parse_value, read_table
-from torch_gpmpc.config.schema import METHODS, REFERENCES, SCENARIOS, SOLVERS, UNCERTAINTY_MODES, Config, from_mapping
+from torch_gpmpc.config.schema import METHODS, REFERENCES, SCENARIOS, Config, from_mapping
+from torch_gpmpc.config.settings import SOLVERS, UNCERTAINTY_MODES, ControllerSettings
 from torch_gpmpc.config.tune_settings import TuneSettings
 
-__all__ = ["METHODS", "REFERENCES", "SCENARIOS", "SOLVERS", "UNCERTAINTY_MODES", "Config", "TuneSettings",
+__all__ = ["METHODS", "REFERENCES", "SCENARIOS", "SOLVERS", "UNCERTAINTY_MODES", "Config", "ControllerSettings", "TuneSettings",
            "from_mapping", "load_config", "load_settings", "parse_overrides", "parse_value", "read_mapping", "read_table"]

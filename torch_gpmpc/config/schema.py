@@ -17,7 +17,7 @@ from typing import Any, Mapping
 from torch_gpmpc.config.fields import Rules, build, validate
 from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, parse_model, resolve_model
 from torch_gpmpc.config.settings import (
-    CONTROLLER_CHOICES, CONTROLLER_RANGES, METHOD_NAMES, SOLVERS, UNCERTAINTY_MODES, ControllerSettings,
+    CONTROLLER_CHOICES, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings,
     controller_keys, resolve_uncertainty,
 )
 from torch_gpmpc.errors import GpmpcError
@@ -173,6 +173,12 @@ class Config:
     def controller_settings(self) -> ControllerSettings:
         """The controller's settings (the keys of :class:`ControllerSettings`)."""
         return ControllerSettings(**{key: getattr(self, key) for key in controller_keys()})
+
+    def gp_fit_settings(self) -> GPFitSettings:
+        """How the agents' GPs are fitted (``gp_samples``, ``gp_iters``, ``gp_optimizer``, the
+        data box ``gp_box`` (default ``circle_radius``), ``seed``)."""
+        box = self.circle_radius if self.gp_box is None else self.gp_box
+        return GPFitSettings(self.gp_samples, self.gp_iters, self.gp_optimizer, box, self.seed)
 
     @property
     def uncertainty_mode(self) -> str:

@@ -130,6 +130,42 @@ def resolve_uncertainty(uncertainty: str, spec: ModelSpec) -> str:
     return "pointwise" if set(spec.position) <= set(spec.residual) else "propagated"
 
 
+@dataclass(frozen=True)
+class GPFitSettings:
+    """How each agent's residual GP is fitted by the paper's data recipe
+    (:func:`~torch_gpmpc.gp.fit.fit_agent_gps`); built by ``Config.gp_fit_settings()``.
+
+    Attributes:
+        samples: training transitions per agent (``gp_samples``).
+        iters: optimizer iterations (``gp_iters``). optimizer: ``lbfgs`` or ``adam`` (``gp_optimizer``).
+        box: half-width of the box the training positions are drawn from (``gp_box``, by default
+            the scenario's ``circle_radius``).
+        seed: the run seed (data stream ``2 seed + 1``, fit of agent k ``seed + k``).
+
+    Example:
+        >>> from torch_gpmpc.config import Config
+        >>> Config(circle_radius=6.0).gp_fit_settings().box
+        6.0
+    """
+
+    samples: int = 100
+    iters: int = 50
+    optimizer: str = "lbfgs"
+    box: float = 4.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        validate(self, GP_FIT_RULES)
+
+
+GP_FIT_RULES = Rules("GP fit setting", "", {"optimizer": ("lbfgs", "adam")}, {
+    "samples": (lambda v: 2 <= v <= 5000, "an integer in [2, 5000]"),
+    "iters": (lambda v: v >= 1, "an integer >= 1"),
+    "box": (lambda v: v > 0, "a number > 0"),
+    "seed": (lambda v: v >= 0, "an integer >= 0"),
+})
+
+
 def controller_keys() -> tuple[str, ...]:
     """The names of the controller settings (also keys of the run configuration)."""
     return tuple(ControllerSettings.__dataclass_fields__)

@@ -16,6 +16,7 @@ from linear_operator.utils.errors import NanError, NotPSDError
 from torch import Tensor
 
 from torch_gpmpc.config.schema import Config
+from torch_gpmpc.config.settings import GPFitSettings
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.gp.model import MAX_CHOLESKY_SIZE, ResidualGP, check_training_data
 from torch_gpmpc.gp.normalization import Standardization
@@ -271,43 +272,51 @@ def load_model_gp(path: str, spec) -> ResidualGP:
     return ResidualGP.load(path, expected_dim=len(spec.residual), expected_input_dim=len(spec.gp_inputs))
 
 
-def fit_agent_gp(cfg: Config, system, k: int) -> ResidualGP:
+def fit_agent_gp(settings: GPFitSettings | Config, system, k: int) -> ResidualGP:
     """Agent k's residual GP by the paper's data recipe, from agent k's data alone.
 
     The data set is :func:`~torch_gpmpc.data.collect.collect_transitions` with seed
-    ``2 cfg.seed + 1`` (``cfg.gp_samples`` transitions per agent, states uniform in the
-    box of half-width ``cfg.circle_radius``, inputs uniform in the disc of radius
-    ``cfg.u_max``); the fit uses seed ``cfg.seed + k``. That recipe draws every agent's
-    samples from one generator in agent order, so collecting ``k + 1`` agents and keeping
-    row block k gives exactly agent k's rows of the whole team's data set: an agent in
-    its own process replays the draws of agents ``0..k-1`` and never sees their models.
+    ``2 seed + 1`` (``samples`` transitions per agent, positions uniform in the box of
+    half-width ``box``, inputs uniform in the model's input bound); the fit uses seed
+    ``seed + k``. That recipe draws every agent's samples from one generator in agent order,
+    so collecting ``k + 1`` agents and keeping row block k gives exactly agent k's rows of the
+    whole team's data set: an agent in its own process replays the draws of agents ``0..k-1``
+    and never sees their models.
 
     Args:
-        cfg: run configuration.
+        settings: the fit settings (a run :class:`Config` is checked and converted with
+            ``gp_fit_settings()``).
         system: the :class:`~torch_gpmpc.dynamics.systems.TrueSystem` that generates the data.
         k: agent id.
     """
-    check_gp_inputs(cfg)
-    return _fit_rows(cfg, system, _recipe_data(cfg, system, k + 1), k)
+    settings = _fit_settings(settings)
+    return _fit_rows(settings, system, _recipe_data(settings, system, k + 1), k)
 
 
-def fit_agent_gps(cfg: Config, system, agents: int) -> list[ResidualGP]:
+def fit_agent_gps(settings: GPFitSettings | Config, system, agents: int) -> list[ResidualGP]:
     """Every agent's residual GP (:func:`fit_agent_gp` for ``k = 0..agents-1``, one data draw)."""
-    check_gp_inputs(cfg)
-    data = _recipe_data(cfg, system, agents)
-    return [_fit_rows(cfg, system, data, k) for k in range(agents)]
+    settings = _fit_settings(settings)
+    data = _recipe_data(settings, system, agents)
+    return [_fit_rows(settings, system, data, k) for k in range(agents)]
 
 
-def _recipe_data(cfg: Config, system, agents: int):
+def _fit_settings(settings: GPFitSettings | Config) -> GPFitSettings:
+    if isinstance(settings, Config):
+        check_gp_inputs(settings)
+        return settings.gp_fit_settings()
+    return settings
+
+
+def _recipe_data(settings: GPFitSettings, system, agents: int):
     from torch_gpmpc.data.collect import collect_transitions
 
-    return collect_transitions(system, num_agents=agents, samples=cfg.gp_samples,
-                               seed=2 * cfg.seed + 1, box=cfg.circle_radius)
+    return collect_transitions(system, num_agents=agents, samples=settings.samples,
+                               seed=2 * settings.seed + 1, box=settings.box)
 
 
-def _fit_rows(cfg: Config, system, data, k: int) -> ResidualGP:
+def _fit_rows(settings: GPFitSettings, system, data, k: int) -> ResidualGP:
     inputs, y = data.for_agent(k).residuals(system.nominal)
-    return fit_residual_gp(inputs, y, optimizer=cfg.gp_optimizer, iters=cfg.gp_iters, seed=cfg.seed + k,
+    return fit_residual_gp(inputs, y, optimizer=settings.optimizer, iters=settings.iters, seed=settings.seed + k,
                            gp_inputs=gp_input_label(system.nominal))
 
 
