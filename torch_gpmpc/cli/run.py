@@ -57,8 +57,14 @@ def main(args) -> int:
     if gps is None and needs_gp(cfg.method):
         check_gp_inputs(cfg)
     out = output_dir(args.out)
-    if cfg.solver == "fast" and not distributed:  # agent processes compile their own
-        prepare_solver_kernel()
+    if not distributed:  # agent processes compile and fit their own
+        if cfg.solver == "fast":
+            prepare_solver_kernel()
+        if gps is None and needs_gp(cfg.method):  # before the progress bar: its rate is the loop's
+            from torch_gpmpc.dynamics.systems import system_from_config
+            from torch_gpmpc.gp import fit_agent_gps
+
+            gps = fit_agent_gps(cfg, system_from_config(cfg), scenario.num_agents)
     tb = TBLogger(out / "tb")
     bar = tqdm(total=cfg.max_steps, desc=f"{cfg.method} seed {cfg.seed}", unit="step", leave=False)
 
