@@ -93,11 +93,6 @@ def unroll_admm(
     return UnrolledStep(result=result, primal=torch.stack(primal), dual=torch.stack(dual))
 
 
-def detached_state(s: ADMMState) -> ADMMState:
-    """``s`` detached from the autograd graph (:meth:`ADMMState.detached`)."""
-    return s.detached()
-
-
 def distance_penalty(plans: Tensor, r_safe: float, width: float) -> Tensor:
     """Smooth penalty on planned pair distances below ``r_safe``.
 
