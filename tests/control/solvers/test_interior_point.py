@@ -272,3 +272,33 @@ def test_fast_path_matches_reference_paths_every_method_and_mode(method, mode):
         np.testing.assert_allclose(fast.X[b].numpy(), X, atol=1e-6)
         np.testing.assert_allclose(fast.U[b].numpy(), U, atol=1e-5)
     np.testing.assert_allclose(fast.X.numpy(), ref.X.numpy(), atol=1e-5)
+
+
+def test_condensed_dynamics_are_reused_only_for_the_same_unmodified_inputs():
+    """Within a control step ADMM hands the solver the same dynamics tensors every iteration: the
+    condensed map is computed once, and recomputed when an input object, its contents or the
+    autograd mode change; a reused map still carries gradients."""
+    from torch_gpmpc.control.examples import crossing_instance
+    from torch_gpmpc.control.solvers.interior_point import CondensedCache, condense_dynamics
+
+    data = crossing_instance(2, 1, method="nominal").problem_data()
+    B = torch.full((2, 2), 0.0, dtype=torch.float64).fill_diagonal_(0.1)
+    dyn_A = data.dyn_A.clone().requires_grad_(True)
+    cache = CondensedCache()
+    first = cache(data.x0, dyn_A, data.dyn_c, B)
+    assert cache(data.x0, dyn_A, data.dyn_c, B) is first  # same objects: reused
+    fresh = condense_dynamics(data.x0, dyn_A, data.dyn_c, B)
+    torch.testing.assert_close(first[0], fresh[0], rtol=0, atol=0)
+    (first[0].sum() + cache(data.x0, dyn_A, data.dyn_c, B)[1].sum()).backward()  # gradients through reuse
+    expected = torch.autograd.grad(fresh[0].sum() + fresh[1].sum(), dyn_A)[0]
+    torch.testing.assert_close(dyn_A.grad, expected)
+    x0 = data.x0.clone()
+    again = cache(x0, dyn_A, data.dyn_c, B)
+    assert again is not first  # another object
+    with torch.no_grad():
+        x0 += 0.5  # in place: the version changes
+    moved = cache(x0, dyn_A, data.dyn_c, B)
+    assert moved is not again
+    torch.testing.assert_close(moved[1], condense_dynamics(x0, dyn_A, data.dyn_c, B)[1])
+    with torch.no_grad():
+        assert cache(x0, dyn_A, data.dyn_c, B) is not moved  # autograd mode changed

@@ -107,16 +107,38 @@ class CanonicalData:
     bounds: Tensor
 
 
-def canonicalize(data: LocalProblemData, B: Tensor) -> CanonicalData:
+class CondensedCache:
+    """The last :func:`condense_dynamics` result, reused while its inputs are the same tensor
+    objects, unmodified, under the same autograd mode: within one control step ADMM solves the
+    same dynamics at every iteration (only the consensus terms change), and condensing them was
+    a quarter of a 3D double-integrator iteration."""
+
+    def __init__(self) -> None:
+        self._key: tuple | None = None
+        self._value: tuple[Tensor, Tensor] | None = None
+
+    def __call__(self, x0: Tensor, dyn_A: Tensor, dyn_c: Tensor, dyn_B: Tensor) -> tuple[Tensor, Tensor]:
+        """``condense_dynamics(x0, dyn_A, dyn_c, dyn_B)``, from the cache when it is the same input."""
+        inputs = (x0, dyn_A, dyn_c, dyn_B)
+        key = (torch.is_grad_enabled(), tuple(t._version for t in inputs))
+        if self._key is not None and self._key[0] == key and all(a is b for a, b in zip(self._key[1], inputs)):
+            return self._value
+        self._value = condense_dynamics(*inputs)
+        self._key = (key, inputs)  # holding the inputs keeps their identity unique
+        return self._value
+
+
+def canonicalize(data: LocalProblemData, B: Tensor, condense=condense_dynamics) -> CanonicalData:
     """Map :class:`LocalProblemData` to :class:`CanonicalData` (differentiable).
 
     Inactive slots get ``rho = 1``, ``w = 0`` (so ``Y_j = 0``), normal 0 and bound -1,
     and contribute nothing to the state cost (as in :class:`~torch_gpmpc.control.solvers.conic.CvxpyLayerMPC`).
-    ``B`` (D, Du) is the nominal input matrix, used when ``data.dyn_B`` is ``None``.
+    ``B`` (D, Du) is the nominal input matrix, used when ``data.dyn_B`` is ``None``; ``condense``
+    is :func:`condense_dynamics` or a :class:`CondensedCache`.
     """
     terms = ConsensusTerms.of(data)
     l_x = (2.0 * data.xref[:, 1:] + terms.w_own[:, :, 1:].sum(dim=1)).flatten(1)
-    G, h = condense_dynamics(data.x0, data.dyn_A, data.dyn_c, B if data.dyn_B is None else data.dyn_B)
+    G, h = condense(data.x0, data.dyn_A, data.dyn_c, B if data.dyn_B is None else data.dyn_B)
     y0 = terms.w_nbr[:, :, 0] / terms.rho_y[:, :, None]
     return CanonicalData(G=G, h=h, c_x=terms.c_x, l_x=l_x, rho_y=terms.rho_y, w_y=terms.w_nbr[:, :, 1:], y0=y0,
                          normals=terms.normals, bounds=terms.bounds)
@@ -347,6 +369,8 @@ class InteriorPointMPC(nn.Module):
         self.tol, self.max_iter = float(tol), int(max_iter)
         #: Iterations used by the last call (for benchmarks and logging).
         self.last_iterations = 0
+        self._condensed = CondensedCache()
+        self._B: Tensor | None = None
 
     def forward(self, data: LocalProblemData) -> LocalSolution:
         """Solve the B local problems.
@@ -364,7 +388,9 @@ class InteriorPointMPC(nn.Module):
         """
         batch = data.validate(self.horizon, self.dim, self.num_neighbors, self.input_dim)
         T, D, M = self.horizon, self.dim, self.num_neighbors
-        canon = canonicalize(data, self.nominal.B(data.x0.dtype, data.x0.device))
+        if self._B is None or self._B.dtype != data.x0.dtype or self._B.device != data.x0.device:
+            self._B = self.nominal.B(data.x0.dtype, data.x0.device)  # one object: the cache keys on it
+        canon = canonicalize(data, self._B, self._condensed)
         canon, valid = _sanitize(canon)
         stats: dict = {}
         settings = (self.alpha, self.u_max, self.slack_penalty, self.tol, self.max_iter, stats)
