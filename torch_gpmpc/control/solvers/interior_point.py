@@ -27,8 +27,8 @@ from torch_gpmpc.dynamics.systems import NominalModel
 
 logger = logging.getLogger(__name__)
 
-#: The backward pass differentiates at a point polished to ``POLISH_FACTOR * tol``
-#: (at most ``POLISH_ITERATIONS`` extra iterations).
+#: The forward pass returns, and the backward pass differentiates at, a point polished to
+#: ``POLISH_FACTOR * tol`` (at most ``POLISH_ITERATIONS`` extra iterations; :func:`_polish`).
 POLISH_FACTOR = 1e-2
 POLISH_ITERATIONS = 6
 
@@ -187,6 +187,30 @@ class _Iterate:
         return _Iterate(self.u.copy(), self.y.copy(), self.w.copy(), self.z.copy())
 
 
+def _where_rows(rows: np.ndarray, a: _Iterate, b: _Iterate) -> _Iterate:
+    """Per batch row (B,), ``a`` where ``rows`` else ``b``."""
+    return _Iterate(*(np.where(rows.reshape(-1, *[1] * (x.ndim - 1)), x, y)
+                      for x, y in zip((a.u, a.y, a.w, a.z), (b.u, b.y, b.w, b.z))))
+
+
+def _polish(arrays: list[np.ndarray], point: _Iterate, kkt_error: np.ndarray, alpha: float, u_max: float,
+            penalty: float, tol: float) -> tuple[_Iterate, np.ndarray, np.ndarray, np.ndarray]:
+    """Continue from ``point`` to ``POLISH_FACTOR * tol`` (at most ``POLISH_ITERATIONS`` more
+    iterations): gradients are more sensitive than solutions to the barrier perturbation (a
+    nearly degenerate row counts as half active).
+
+    Returns:
+        ``(polished, improved (B,), iterations (B,), kkt_error (B,))``; ``improved``: the polish
+        reached its tolerance or did not make the KKT error worse.
+    """
+    B = point.u.shape[0]
+    polished = point.copy()
+    p_conv, p_iter, p_err = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
+    ipm.solve_batch(*arrays, alpha, u_max, penalty, POLISH_FACTOR * tol, POLISH_ITERATIONS,
+                    polished.u, polished.y, polished.w, polished.z, True, p_conv, p_iter, p_err)
+    return polished, p_conv | (p_err <= kkt_error), p_iter, p_err
+
+
 class _LocalQpFunction(torch.autograd.Function):
     """Batched interior-point solve with implicit differentiation of its KKT conditions.
 
@@ -209,17 +233,15 @@ class _LocalQpFunction(torch.autograd.Function):
         # KKT conditions, and the returned point must be the one they hold at, else a nearly
         # degenerate row (active, multiplier ~1e-3) makes the returned map's derivative differ
         # from the gradient by O(tol / multiplier^2) (measured: 1.6e-4 relative at tol 1e-10).
-        polished = point.copy()
-        p_conv, p_iter, p_err = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
-        ipm.solve_batch(*arrays, alpha, u_max, penalty, POLISH_FACTOR * tol, POLISH_ITERATIONS,
-                        polished.u, polished.y, polished.w, polished.z, True, p_conv, p_iter, p_err)
-        better = converged & (p_conv | (p_err <= kkt_error))
-        point = _Iterate(*(np.where(better.reshape(-1, *[1] * (a.ndim - 1)), a, b) for a, b in
-                           zip((polished.u, polished.y, polished.w, polished.z), (point.u, point.y, point.w, point.z))))
+        polished, improved, p_iter, p_err = _polish(arrays, point, kkt_error, alpha, u_max, penalty, tol)
+        better = converged & improved
+        # an unconverged row (flagged as failed) is returned as solved but differentiated polished
+        at = _where_rows(~converged | improved, polished, point)
+        point = _where_rows(better, polished, point)
         kkt_error = np.where(better, p_err, kkt_error)
         stats["iterations"] = int((iterations + np.where(better, p_iter, 0)).max(initial=0))
-        ctx.point, ctx.converged, ctx.kkt_error = point, converged, kkt_error
-        ctx.settings = (alpha, u_max, penalty, tol)
+        ctx.at = at
+        ctx.alpha = alpha
         ctx.save_for_backward(G, h, c_x, l_x, rho_y, w_y, normals, bounds)
 
         def out(a: np.ndarray, *shape: int) -> Tensor:
@@ -231,12 +253,12 @@ class _LocalQpFunction(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_u, g_y, g_s, _g_conv):  # noqa: D102
-        point = ctx.point
-        alpha, u_max, penalty, tol = ctx.settings
+        at = ctx.at  # the polished point (forward)
+        alpha = ctx.alpha
         inputs = ctx.saved_tensors  # (autograd checks these were not modified in place)
         arrays = _kernel_arrays(inputs)
-        B, R, D = point.y.shape
-        n = point.u.shape[1]
+        B, R, D = at.y.shape
+        n = at.u.shape[1]
         ref = inputs[1]
 
         def arr(g: Tensor | None, *shape: int) -> np.ndarray:
@@ -247,16 +269,6 @@ class _LocalQpFunction(torch.autograd.Function):
         def ten(a: np.ndarray) -> Tensor:
             return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=ref.dtype, device=ref.device)
 
-        # Gradients are more sensitive than solutions to the barrier perturbation (a
-        # nearly degenerate row counts as half active): continue from the returned point
-        # to a tighter tolerance before differentiating (usually one or two iterations).
-        polished = point.copy()
-        p_conv, p_iter, p_err = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
-        ipm.solve_batch(*arrays, alpha, u_max, penalty, POLISH_FACTOR * tol, POLISH_ITERATIONS,
-                        polished.u, polished.y, polished.w, polished.z, True, p_conv, p_iter, p_err)
-        keep = ~ctx.converged | p_conv | (p_err <= ctx.kkt_error)
-        at = _Iterate(*(np.where(keep.reshape(-1, *[1] * (a.ndim - 1)), a, b) for a, b in
-                        zip((polished.u, polished.y, polished.w, polished.z), (point.u, point.y, point.w, point.z))))
         a_u, a_y, xi, failed = np.empty((B, n)), np.empty((B, R, D)), np.empty((B, R)), np.empty(B, dtype=np.bool_)
         ipm.adjoint_batch(*arrays, alpha, at.u, at.w, at.z, arr(g_u, B, n), arr(g_y, B, R, D), arr(g_s, B, R),
                           a_u, a_y, xi, failed)
