@@ -42,6 +42,12 @@ class PredictionCache:
     chol_add: Tensor | None = None  # (D, N, N) sparse GP: lower factor of Sigma^-1 (gp.sparse)
 
 
+def parameter_values(module: torch.nn.Module) -> Tensor:
+    """A snapshot of a module's parameter values, flattened (a new tensor): what a prediction
+    cache is keyed on, so that in-place optimizer steps and setter assignments are both seen."""
+    return torch.cat([p.detach().reshape(-1) for p in module.parameters()])
+
+
 def squared_distances(a: Tensor, b: Tensor) -> Tensor:
     """Squared Euclidean distances, shape (..., n, m), computed without the mm trick."""
     return torch.cdist(a, b, compute_mode="donot_use_mm_for_euclid_dist").square()

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.gp.cache import parameter_values
 
 
 class GPyTorchResidual(torch.nn.Module):
@@ -126,10 +127,10 @@ class GPyTorchResidual(torch.nn.Module):
         model.eval()
         lik.eval()
         hyper = self.hyperparameter_gradients and torch.is_grad_enabled()
-        key = torch.cat([p.detach().reshape(-1) for p in model.parameters()])
+        key = parameter_values(model)
         if hyper or self._keys[r] is None or not torch.equal(self._keys[r], key):
             model.prediction_strategy = None  # GPyTorch rebuilds it from the current hyperparameters
-            self._keys[r] = key.clone()
+            self._keys[r] = key
         dtype = model.train_inputs[0].dtype
         graph = torch.is_grad_enabled() and (x.requires_grad or hyper)
         with torch.enable_grad(), gpytorch.settings.detach_test_caches(not hyper):

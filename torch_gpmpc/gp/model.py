@@ -40,7 +40,7 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.gp.cache import PredictionCache, safe_cholesky, squared_distances
+from torch_gpmpc.gp.cache import PredictionCache, parameter_values, safe_cholesky, squared_distances
 from torch_gpmpc.gp.gpytorch_models import GPyTorchResidual
 from torch_gpmpc.gp.io import FORMAT, VERSION, read_payload, verify_checksum, write_payload
 from torch_gpmpc.gp.normalization import Standardization
@@ -223,7 +223,7 @@ class ResidualGP(torch.nn.Module):
         self.model.prediction_strategy = None
         with torch.no_grad():
             self._cache = self._build_cache()
-        self._cache_key = self._hyperparameter_values()
+        self._cache_key = parameter_values(self.model)
         return self
 
     def enable_hyperparameter_gradients(self, enabled: bool = True) -> "ResidualGP":
@@ -232,9 +232,6 @@ class ResidualGP(torch.nn.Module):
         each call rebuilds the factorization inside the graph (an O(N^3) Cholesky per call)."""
         self.hyperparameter_gradients = bool(enabled)
         return self
-
-    def _hyperparameter_values(self) -> Tensor:
-        return torch.cat([p.detach().reshape(-1) for p in self.model.parameters()]).clone()
 
     def _build_cache(self) -> PredictionCache:
         """The cache at the current hyperparameters (inside the autograd graph when enabled)."""
@@ -264,7 +261,7 @@ class ResidualGP(torch.nn.Module):
         check compares a few numbers); built in the autograd graph with gradients opted in."""
         if getattr(self, "hyperparameter_gradients", False) and torch.is_grad_enabled():
             return self._build_cache()
-        if self._cache is None or not torch.equal(self._cache_key, self._hyperparameter_values()):
+        if self._cache is None or not torch.equal(self._cache_key, parameter_values(self.model)):
             self.refresh()
         return self._cache
 
