@@ -48,7 +48,15 @@ def test_a_model_file_round_trips_through_toml_and_json(tmp_path):
     ({"A": [[1, 0, float("nan"), 0], [0, 1, 0, 0.1], [0, 0, 1, 0], [0, 0, 0, 1]]}, "A\\[0\\]\\[2\\] must be finite"),
     ({"gp_inputs": ["x2", "v0"]}, "gp_inputs column 'v0' does not exist"),
     ({"gp_inputs": ["u2"]}, "inputs u0..u1"),
-    ({"input_bound": {"norm": 1.0, "box": [1, 1]}}, "exactly one of norm or box"),
+    ({"input_bound": {}}, "input_bound needs norm, box or both"),
+    ({"state_box": {"indices": [2, 3], "lower": [-1, -1]}}, "state_box needs indices, lower and upper"),
+    ({"state_box": {"indices": [2, 3], "lower": [-1], "upper": [1, 1]}}, "state_box.lower must list 2 numbers"),
+    ({"state_box": {"indices": [2, 3], "lower": [1, -1], "upper": [1, 1]}}, "lower\\[0\\] = 1.0 must be <"),
+    ({"state_box": {"indices": [2, 9], "lower": [-1, -1], "upper": [1, 1]}}, "state_box.indices index 9"),
+    ({"state_box": {"indices": [2], "lower": [-1], "uper": [1]}}, "did you mean 'upper'"),
+    ({"state_rows": {"G": [[1, 0, 0]], "h": [1]}}, "state_rows.G must have n = 4 columns"),
+    ({"state_rows": {"G": [[1, 0, 0, 0]], "h": [1, 2]}}, "one number per row of G"),
+    ({"state_rows": {"G": [[1, 0, 0, 0]]}}, "state_rows must be a table with G"),
     ({"input_bound": {"box": [1.0]}}, "must list m = 2 bounds"),
     ({"input_bound": {"nrm": 1.0}}, "did you mean 'norm'"),
     ({"state_bound": {"indices": [2, 3]}}, "state_bound needs indices and norm"),
@@ -118,3 +126,48 @@ def test_gp_columns_select_states_and_inputs():
     assert nominal.gp_input(x, u).tolist() == [[2.0, 3.0, 10.0, 20.0]]
     Sx, Su = nominal.gp_selectors()
     assert torch.equal(Sx @ x[0] + Su @ u[0], nominal.gp_input(x, u)[0])
+
+
+def test_new_constraint_blocks_parse_round_trip_and_become_soft_rows():
+    from torch_gpmpc.config.workspace import Workspace
+    from torch_gpmpc.control.constraints import LocalConstraints
+
+    table = {**GOOD, "input_bound": {"norm": 2.0, "box": [1.5, 1.0]},
+             "state_box": {"indices": [2, 3], "lower": [-1.0, float("-inf")], "upper": [1.0, 0.5]},
+             "state_rows": {"G": [[0, 0, 1, 1]], "h": [1.2]}}
+    spec = parse_model(table, "m")
+    assert spec.input_norm == 2.0 and spec.input_box == (1.5, 1.0)
+    assert parse_model(spec.to_table(), "m") == spec
+    c = LocalConstraints.of(spec, workspace=Workspace((-3.0, -2.0), (3.0, 2.0)))
+    # box: v_x >= -1, -v_x >= -1, -v_y >= -0.5 (no lower row for -inf); row: -(v_x + v_y) >= -1.2; workspace 4
+    assert c.num_rows == 3 + 1 + 4
+    assert c.row_normals[2] == (0.0, 0.0, 0.0, -1.0) and c.row_bounds[2] == -0.5
+    assert c.row_normals[3] == (0.0, 0.0, -1.0, -1.0) and c.row_bounds[3] == -1.2
+    X = torch.zeros(1, 3, 4, dtype=F64)
+    X[0, 1] = torch.tensor([3.5, 0.0, 0.0, 0.0], dtype=F64)  # 0.5 outside the workspace at tau = 1
+    X[0, 2] = torch.tensor([0.0, 0.0, 1.0, 0.6], dtype=F64)  # v_y 0.1 over, row 0.4 over at tau = 2
+    assert torch.allclose(c.state_violation(X), torch.tensor([[0.5, 0.4]], dtype=F64))
+    U = torch.tensor([[[1.6, 0.0], [1.2, 1.0]]], dtype=F64)  # box 0.1 over; norm 1.56 < 2
+    assert float(c.input_violation(U)) == pytest.approx(0.1)
+
+
+def test_workspace_is_validated_in_config_and_scenario_files(tmp_path):
+    from torch_gpmpc.sim.scenarios import make_scenario, with_scenario_workspace
+
+    cfg = Config(workspace={"min": [-5, -5], "max": [5, 5]})
+    assert cfg.workspace.upper == (5.0, 5.0) and cfg.controller_settings().workspace == cfg.workspace
+    assert Config.replace(cfg, seed=1).workspace == cfg.workspace  # survives to_dict / from_mapping
+    for bad, message in (({"min": [-5], "max": [5]}, "has 1 coordinates but positions have 2"),
+                         ({"min": [5, -5], "max": [5, 5]}, "min must be < max"),
+                         ({"lo": [0, 0]}, "give the workspace as")):
+        with pytest.raises(GpmpcError, match=message):
+            Config(workspace=bad)
+    path = tmp_path / "s.json"
+    path.write_text(json.dumps({"starts": [[-3, 0], [3, 0]], "targets": [[3, 0], [-3, 0]],
+                                "workspace": {"min": [-4, -1], "max": [4, 1]}}))
+    scenario = make_scenario(Config(), path)
+    assert scenario.workspace.lower == (-4.0, -1.0)
+    assert with_scenario_workspace(Config(), scenario).workspace == scenario.workspace
+    path.write_text(json.dumps({"starts": [[-3, 0]], "targets": [[3, 0]], "workspace": {"min": [-4], "max": [4]}}))
+    with pytest.raises(GpmpcError, match="scenario file .*workspace has 1 coordinates"):
+        make_scenario(Config(), path)

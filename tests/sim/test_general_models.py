@@ -90,3 +90,55 @@ def test_tuning_objective_on_a_double_integrator_has_finite_gradients():
     value = TuningObjective(admm, instances, admm_iters=3, mpc_steps=2)(rho=rho)
     value.loss.backward()
     assert torch.isfinite(value.loss) and torch.isfinite(rho.grad) and rho.grad != 0
+
+
+BOX_AND_SPEED = """name = "box-bounded double integrator"
+dt = 0.1
+A = [[1, 0, 0, 0.1, 0, 0], [0, 1, 0, 0, 0.1, 0], [0, 0, 1, 0, 0, 0.1], [0, 0, 0, 1, 0, 0], [0, 0, 0, 0, 1, 0],
+     [0, 0, 0, 0, 0, 1]]
+B = [[0.005, 0, 0], [0, 0.005, 0], [0, 0, 0.005], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]]
+position = [0, 1, 2]
+residual = [3, 4, 5]
+gp_inputs = ["x0", "x1"]
+[input_bound]
+box = [1.5, 1.5, 1.0]
+[state_box]
+indices = [3, 4, 5]
+lower = [-1.2, -1.2, -0.5]
+upper = [1.2, 1.2, 0.5]
+"""
+
+
+@pytest.mark.parametrize("distributed", [False, True])
+def test_an_acceleration_box_and_a_workspace_run_on_the_fast_solver(tmp_path, distributed):
+    """The random-transition benchmark's constraints (per-axis acceleration box, a workspace box,
+    here also per-axis speed limits) on ``solver=fast``, in process and one process per agent: four
+    3D double integrators cross a flat workspace whose floor and ceiling bind on the straight paths."""
+    model = tmp_path / "box.toml"
+    model.write_text(BOX_AND_SPEED)
+    scenario = tmp_path / "cross.json"
+    scenario.write_text(json.dumps({
+        "starts": [[-2, 0, 0.0], [2, 0, 0.0], [0, -2, 0.3], [0, 2, -0.3]],
+        "targets": [[2, 0, 0.6], [-2, 0, -0.6], [0, 2, -0.3], [0, -2, 0.3]],
+        "workspace": {"min": [-3, -3, -0.4], "max": [3, 3, 0.4]}}))
+    out = tmp_path / "run"
+    sets = {"model": str(model), "solver": "fast", "method": "nominal", "noise_std": 0.0, "wind_scale": 0.0,
+            "max_steps": 25 if distributed else 60, "admm_max_iter": 40}
+    args = ["run", "--scenario", str(scenario), "--out", str(out), *[a for k, v in sets.items() for a in
+                                                                      ("--set", f"{k}={v}")]]
+    if distributed:
+        args += ["--backend", "distributed"]
+    assert main(args) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    with np.load(out / "rollout.npz") as r:
+        states, inputs = r["states"], r["inputs"]
+    assert metrics["failed_local_solves"] == 0
+    assert np.abs(inputs).max(axis=(0, 1)) == pytest.approx([1.5, 1.5, 1.0], abs=1e-6) or \
+        (np.abs(inputs) <= np.array([1.5, 1.5, 1.0]) + 1e-9).all()
+    assert (np.abs(states[..., 2]) <= 0.4 + 1e-3).all()  # the workspace's floor and ceiling hold
+    assert (np.abs(states[..., 3:5]) <= 1.2 + 1e-3).all() and (np.abs(states[..., 5]) <= 0.5 + 1e-3).all()
+    assert metrics["state_slack_max"] is not None and metrics["state_slack_max"] < 1e-3
+    assert metrics["min_pair_distance"] >= 0.5 - 1e-3
+    if not distributed:  # across in the plane; agents 0 and 1 end on the ceiling and the floor
+        assert np.abs(states[-1, :, :2] - np.array([[2, 0], [-2, 0], [0, 2], [0, -2]])).max() < 0.1
+        assert states[-1, 0, 2] == pytest.approx(0.4, abs=0.02) and states[-1, 1, 2] == pytest.approx(-0.4, abs=0.02)

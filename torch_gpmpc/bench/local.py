@@ -15,6 +15,10 @@ respect to rho, z and bounds):
 - ``cvxpy+clarabel``: the same DPP problem solved by plain cvxpy with Clarabel, one
   problem after another (forward only, not differentiable).
 
+``families``: every constraint family of the local problem (input norm, input box, both, state
+box, state norm, state rows, workspace, half-spaces, all at once) on a 3D double integrator,
+``fast`` against cvxpylayers' default solver on the same problems (:func:`run_families`).
+
 ``speedup_vs_default`` = cvxpylayers-default time / path time (the issue's ratio: at
 least 20x forward and 10x forward+backward for ``fast`` at batch 64);
 ``speedup_vs_reference`` = reference time / path time. ``checks`` compares the fast
@@ -148,9 +152,11 @@ def run(quick: bool = False, out: Path | str | None = None) -> dict:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        return _run(quick)
+        result = _run(quick)
     finally:
         torch.set_num_threads(threads)
+    result["families"] = run_families(quick)
+    return result
 
 
 def _run(quick: bool) -> dict:
@@ -206,3 +212,118 @@ def _targets(rows: list[dict]) -> dict:
         result[f"fast_batch{batch}_{pass_name}"] = {"speedup_vs_default": row["speedup_vs_default"],
                                                     "target": target, "met": row["speedup_vs_default"] >= target}
     return result
+
+
+# ------------------------------------------------------------------ constraint families
+#: The constraint families of the local problem, timed one by one (and all together) on a 3D
+#: double integrator (the random-transition benchmark's body): fast vs cvxpylayers' default.
+FAMILIES = ("input-norm", "input-box", "input-norm-and-box", "state-box", "state-norm", "state-rows",
+            "workspace", "halfspaces", "all")
+FAMILY_TARGET = 20.0
+_HALFSPACES = 2
+
+
+def family_problem(family: str, batch: int, seed: int = 0):
+    """``(nominal, constraints, data)``: B 3D double integrators crossing the origin past two
+    neighbours, climbing from height 0 (references at speed 1.2 across, 0.4-0.6 up), with the
+    family's bounds set where they bind but every start inside them (acceleration box, speed
+    1.1, per-axis speed 0.9, a workspace with a ceiling at 0.2, a face across the path and a
+    ceiling at 0.15)."""
+    from torch_gpmpc.config.model_spec import double_integrator, parse_model
+    from torch_gpmpc.config.workspace import Workspace
+    from torch_gpmpc.control.constraints import LocalConstraints
+
+    T, n = HORIZON, 6
+    g = torch.Generator().manual_seed(seed)
+    table = double_integrator(3, 0.1, 2.0).to_table()
+    fams = FAMILIES[1:-1] if family == "all" else (family,)
+    if "input-box" in fams or "input-norm-and-box" in fams:
+        table["input_bound"] = {"box": [1.5, 1.5, 1.0]}
+        if "input-norm-and-box" in fams:
+            table["input_bound"]["norm"] = 2.0
+    if "state-box" in fams:
+        table["state_box"] = {"indices": [3, 4, 5], "lower": [-0.9, -0.9, -0.5], "upper": [0.9, 0.9, 0.5]}
+    if "state-norm" in fams:
+        table["state_bound"] = {"indices": [3, 4, 5], "norm": 1.1}
+    if "state-rows" in fams:
+        table["state_rows"] = {"G": [[0.0, 0.0, 0.0, 1.0, 1.0, 0.0]], "h": [1.2]}
+    spec = parse_model(table, f"bench-{family}")
+    workspace = Workspace((-1.25, -1.25, -0.3), (1.25, 1.25, 0.2)) if "workspace" in fams else None
+    nominal = NominalModel(spec)
+    angle = 2 * torch.pi * torch.rand(batch, generator=g, dtype=torch.float64)
+    climb = 0.4 + 0.2 * torch.rand(batch, generator=g, dtype=torch.float64)
+    heading = torch.stack([torch.cos(angle), torch.sin(angle), climb], 1)
+    start = -1.2 * heading * torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64)  # at height 0, climbing
+    steps = torch.arange(T + 1, dtype=torch.float64)[None, :, None] * 0.1
+    path = start[:, None] + 1.2 * steps * heading[:, None]
+    xref = torch.cat([path, 1.2 * heading[:, None].expand(batch, T + 1, 3)], -1)
+    x0 = torch.cat([start, heading], -1)
+    dyn_A = nominal.A()[None, None].expand(batch, T, n, n).clone() \
+        + 0.005 * torch.randn(batch, T, n, n, generator=g, dtype=torch.float64)
+    dyn_c = 0.002 * torch.randn(batch, T, n, generator=g, dtype=torch.float64)
+    normals = torch.zeros(batch, NEIGHBORS, T, n, dtype=torch.float64)
+    z_nbr = torch.zeros(batch, NEIGHBORS, T + 1, n, dtype=torch.float64)
+    for j in range(NEIGHBORS):
+        side = torch.stack([-heading[:, 1], heading[:, 0], torch.zeros(batch, dtype=torch.float64)], 1) * (2 * j - 1)
+        z_nbr[:, j, :, :3] = path + 0.3 * side[:, None]
+        normals[:, j, :, :3] = -side[:, None]
+    z_own = xref[:, None].expand(batch, NEIGHBORS, T + 1, n).clone()
+    half_n = torch.zeros(batch, _HALFSPACES, T, n, dtype=torch.float64)
+    half_b = -torch.ones(batch, _HALFSPACES, T, dtype=torch.float64)
+    if "halfspaces" in fams:  # a face across the path (stay before it) and a ceiling at 0.15
+        half_n[:, 0, :, :2] = -heading[:, None, :2]
+        half_b[:, 0] = -0.2
+        half_n[:, 1, :, 2] = -1.0
+        half_b[:, 1] = -0.15
+    data = LocalProblemData(
+        x0=x0, xref=xref, dyn_A=dyn_A, dyn_c=dyn_c, normals=normals,
+        bounds=torch.full((batch, NEIGHBORS, T), 0.4, dtype=torch.float64),
+        active=torch.ones(batch, NEIGHBORS, dtype=torch.bool), rho=torch.tensor(RHO, dtype=torch.float64),
+        z_own=z_own, z_nbr=z_nbr, lam_own=torch.zeros_like(z_own), lam_nbr=torch.zeros_like(z_own),
+        halfspace_normals=half_n, halfspace_bounds=half_b)
+    return nominal, LocalConstraints.of(spec, workspace=workspace), data
+
+
+def run_families(quick: bool = False) -> dict:
+    """Each constraint family: ms per problem of ``fast`` and of cvxpylayers' default solver
+    (diffcp + SCS, default settings) on the same problems, batch 3 and 64, forward and
+    forward+backward; ``met`` when every ratio is >= :data:`FAMILY_TARGET`."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        rows, checks = [], []
+        for family in FAMILIES:
+            nominal, constraints, _ = family_problem(family, 1)
+            args = (HORIZON, 6, NEIGHBORS, nominal, None, ALPHA)
+            fast = InteriorPointMPC(*args, constraints=constraints, num_halfspaces=_HALFSPACES)
+            layer = CvxpyLayerMPC(*args, solver="clarabel", constraints=constraints, num_halfspaces=_HALFSPACES)
+            default = lambda d, layer=layer: _solve_family_default(layer, d)  # noqa: E731
+            for batch in BATCHES:
+                data = family_problem(family, batch, seed=batch)[2]
+                sol = fast(data)
+                ref = layer(data)
+                checks.append({"family": family, "batch": batch, "fast_ok_fraction": float(sol.ok.double().mean()),
+                               "max_abs_plan_diff_vs_clarabel": float((sol.X - ref.X).abs().max()),
+                               "state_slack_max": float(sol.state_slack.max())})
+                for backward in (False, True):
+                    t_fast = _time(_solve_layer(fast), data, backward, 2 if quick else 5)
+                    t_default = _time(default, data, backward, 1)
+                    rows.append({"family": family, "batch": batch,
+                                 "pass": "forward+backward" if backward else "forward",
+                                 "fast_ms_per_problem": 1e3 * t_fast / batch,
+                                 "default_ms_per_problem": 1e3 * t_default / batch,
+                                 "speedup_vs_default": t_default / t_fast})
+                    logger.info("local families %s", rows[-1])
+        worst = min(r["speedup_vs_default"] for r in rows)
+        return {"table": rows, "checks": checks,
+                "target": {"speedup_vs_default_min": worst, "target": FAMILY_TARGET, "met": worst >= FAMILY_TARGET},
+                "notes": "3D double integrator, T = 13, M = 2, one torch thread; fast best of 2-5 repeats, "
+                         "cvxpylayers default (diffcp + SCS) one run"}
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _solve_family_default(mpc: CvxpyLayerMPC, data: LocalProblemData) -> tuple[torch.Tensor, torch.Tensor]:
+    """cvxpylayers' default solver on a family problem; returns (X, Y)."""
+    outputs = mpc.layer(*mpc.layer_parameters(data))
+    return outputs[0], torch.stack(list(outputs[2:2 + NEIGHBORS]), dim=1)

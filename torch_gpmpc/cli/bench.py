@@ -61,6 +61,7 @@ def main(args) -> int:
         _print_table(name, section.get("table", []))
         _print_table(f"{name}: agent models", section.get("models", []))
         _print_table(f"{name}: default ADMM stopping", section.get("default_stopping", []))
+        _print_table(f"{name}: constraint families", section.get("families", {}).get("table", []))
     write_json(out / "bench.json", result)
     print(f"\nwrote {out / 'bench.json'}")
     return 0

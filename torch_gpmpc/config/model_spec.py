@@ -12,10 +12,20 @@ file looks like::
     residual = [3, 4, 5]        # state indices the GPs learn (one GP each); other rows: zero residual
     gp_inputs = ["x3", "x4", "x5", "u0", "u1", "u2"]   # default: all states
     [input_bound]
-    norm = 2.0                  # ||u|| <= norm   (or: box = [b0, b1, ...], |u_i| <= b_i)
-    [state_bound]               # optional, e.g. a speed limit ||x[indices]|| <= norm
+    norm = 2.0                  # ||u|| <= norm; and/or box = [b0, b1, ...], |u_i| <= b_i (both: both hold)
+    [state_bound]               # optional, e.g. a speed limit ||x[indices]|| <= norm (soft)
     indices = [3, 4, 5]
     norm = 1.5
+    [state_box]                 # optional, lower <= x[indices] <= upper (soft; +-inf for one side)
+    indices = [3, 4, 5]
+    lower = [-1.0, -1.0, -0.5]
+    upper = [1.0, 1.0, 0.5]
+    [state_rows]                # optional, general rows G x <= h (soft), G is r x n
+    G = [[0.0, 0.0, 1.0, 0.0, 0.0, 0.0]]
+    h = [3.0]
+
+State constraints hold at the planned steps tau = 1..T and are soft (an exact penalty on a
+slack, as the collision rows), so a measured state outside them never makes a plan fail.
 
 Built-ins: ``single-integrator`` (the paper: ``A = I``, ``B = 0.1 I``, state = position of
 dimension ``dim``) and ``double-integrator`` (state ``[p, v]``, input acceleration,
@@ -36,7 +46,8 @@ from torch_gpmpc.errors import GpmpcError
 
 BUILTIN_MODELS = ("single-integrator", "double-integrator")
 MODEL_SUFFIXES = (".toml", ".json")
-_KEYS = ("name", "dt", "A", "B", "position", "residual", "gp_inputs", "input_bound", "state_bound")
+_KEYS = ("name", "dt", "A", "B", "position", "residual", "gp_inputs", "input_bound", "state_bound", "state_box",
+         "state_rows")
 _REQUIRED = ("A", "B", "position", "residual")
 
 
@@ -51,10 +62,13 @@ class ModelSpec:
         position: state indices of the position (length P, 2 or 3 for the built-in wind).
         residual: state indices with a residual, one GP each (length R).
         gp_inputs: GP input columns, ``x<i>`` (state i) or ``u<j>`` (input j), length Din.
-        input_norm: ``||u|| <= input_norm``, or ``None`` with a box.
-        input_box: ``|u_j| <= input_box[j]`` (length m), or ``None`` with a norm.
+        input_norm: ``||u|| <= input_norm``, or ``None``.
+        input_box: ``|u_j| <= input_box[j]`` (length m), or ``None`` (at least one of the two is set).
         state_bound_indices: state indices of an optional bound ``||x[idx]|| <= state_bound_norm``.
         state_bound_norm: that bound, or ``None``.
+        state_box_indices, state_box_lower, state_box_upper: an optional box
+            ``lower <= x[idx] <= upper`` (entries may be infinite: one-sided), or ``None``.
+        state_rows_G, state_rows_h: optional general rows ``G x <= h`` ((r, n) and (r,)), or ``None``.
 
     Example:
         >>> from torch_gpmpc import ModelSpec
@@ -75,6 +89,11 @@ class ModelSpec:
     input_box: tuple[float, ...] | None = None
     state_bound_indices: tuple[int, ...] | None = None
     state_bound_norm: float | None = None
+    state_box_indices: tuple[int, ...] | None = None
+    state_box_lower: tuple[float, ...] | None = None
+    state_box_upper: tuple[float, ...] | None = None
+    state_rows_G: tuple[tuple[float, ...], ...] | None = None
+    state_rows_h: tuple[float, ...] | None = None
 
     @property
     def state_dim(self) -> int:
@@ -123,10 +142,16 @@ class ModelSpec:
         table: dict[str, Any] = {
             "name": self.name, "dt": self.dt, "A": [list(r) for r in self.A], "B": [list(r) for r in self.B],
             "position": list(self.position), "residual": list(self.residual), "gp_inputs": list(self.gp_inputs),
-            "input_bound": {"norm": self.input_norm} if self.input_box is None else {"box": list(self.input_box)},
+            "input_bound": {**({} if self.input_norm is None else {"norm": self.input_norm}),
+                            **({} if self.input_box is None else {"box": list(self.input_box)})},
         }
         if self.state_bound_norm is not None:
             table["state_bound"] = {"indices": list(self.state_bound_indices), "norm": self.state_bound_norm}
+        if self.state_box_indices is not None:
+            table["state_box"] = {"indices": list(self.state_box_indices), "lower": list(self.state_box_lower),
+                                  "upper": list(self.state_box_upper)}
+        if self.state_rows_G is not None:
+            table["state_rows"] = {"G": [list(r) for r in self.state_rows_G], "h": list(self.state_rows_h)}
         return table
 
 
@@ -226,9 +251,12 @@ def parse_model(data: dict[str, Any], where: str = "model") -> ModelSpec:
     gp_inputs = tuple(_gp_inputs(data.get("gp_inputs", [f"x{i}" for i in range(n)]), n, m, where))
     norm, box = _input_bound(data.get("input_bound"), m, where)
     sb_idx, sb_norm = _state_bound(data.get("state_bound"), n, where)
+    box_idx, box_lo, box_hi = _state_box(data.get("state_box"), n, where)
+    rows_G, rows_h = _state_rows(data.get("state_rows"), n, where)
     return ModelSpec(name=str(data.get("name", Path(where).stem)), dt=dt, A=A, B=B, position=position,
                      residual=residual, gp_inputs=gp_inputs, input_norm=norm, input_box=box,
-                     state_bound_indices=sb_idx, state_bound_norm=sb_norm)
+                     state_bound_indices=sb_idx, state_bound_norm=sb_norm, state_box_indices=box_idx,
+                     state_box_lower=box_lo, state_box_upper=box_hi, state_rows_G=rows_G, state_rows_h=rows_h)
 
 
 def _rows(m: list[list[float]]) -> tuple[tuple[float, ...], ...]:
@@ -293,14 +321,15 @@ def _input_bound(value: Any, m: int, where: str) -> tuple[float | None, tuple[fl
         if key not in ("norm", "box"):
             raise GpmpcError(f"{where}: unknown key input_bound.{key} (did you mean "
                              f"{nearest_key(key, ('norm', 'box'))!r}?)")
-    if ("norm" in value) == ("box" in value):
-        raise GpmpcError(f"{where}: input_bound needs exactly one of norm or box")
-    if "norm" in value:
-        return _positive(value["norm"], "input_bound.norm", where), None
+    if "norm" not in value and "box" not in value:
+        raise GpmpcError(f"{where}: input_bound needs norm, box or both")
+    norm = _positive(value["norm"], "input_bound.norm", where) if "norm" in value else None
+    if "box" not in value:
+        return norm, None
     box = value["box"]
     if not isinstance(box, list) or len(box) != m:
         raise GpmpcError(f"{where}: input_bound.box must list m = {m} bounds, got {box!r}")
-    return None, tuple(_positive(b, f"input_bound.box[{j}]", where) for j, b in enumerate(box))
+    return norm, tuple(_positive(b, f"input_bound.box[{j}]", where) for j, b in enumerate(box))
 
 
 def _state_bound(value: Any, n: int, where: str) -> tuple[tuple[int, ...] | None, float | None]:
@@ -316,3 +345,51 @@ def _state_bound(value: Any, n: int, where: str) -> tuple[tuple[int, ...] | None
         raise GpmpcError(f"{where}: state_bound needs indices and norm")
     indices = _indices(value["indices"], "state_bound.indices", n, where)
     return indices, _positive(value["norm"], "state_bound.norm", where)
+
+
+def _bound_list(value: Any, field: str, length: int, where: str) -> tuple[float, ...]:
+    """A list of ``length`` numbers that are not NaN (infinite allowed: a one-sided bound)."""
+    if not isinstance(value, list) or len(value) != length:
+        raise GpmpcError(f"{where}: {field} must list {length} numbers (one per index), got {value!r}")
+    out = []
+    for j, v in enumerate(value):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or v != v:
+            raise GpmpcError(f"{where}: {field}[{j}] must be a number (inf allowed), got {v!r}")
+        out.append(float(v))
+    return tuple(out)
+
+
+def _state_box(value: Any, n: int, where: str) -> tuple[tuple[int, ...] | None, tuple[float, ...] | None,
+                                                        tuple[float, ...] | None]:
+    keys = ("indices", "lower", "upper")
+    if value is None:
+        return None, None, None
+    if not isinstance(value, dict):
+        raise GpmpcError(f"{where}: state_box must be a table with indices, lower and upper")
+    for key in value:
+        if key not in keys:
+            raise GpmpcError(f"{where}: unknown key state_box.{key} (did you mean {nearest_key(key, keys)!r}?)")
+    if any(k not in value for k in keys):
+        raise GpmpcError(f"{where}: state_box needs indices, lower and upper (lists of the same length)")
+    indices = _indices(value["indices"], "state_box.indices", n, where)
+    lower = _bound_list(value["lower"], "state_box.lower", len(indices), where)
+    upper = _bound_list(value["upper"], "state_box.upper", len(indices), where)
+    for j, (lo, hi) in enumerate(zip(lower, upper)):
+        if not lo < hi or lo == math.inf or hi == -math.inf:
+            raise GpmpcError(f"{where}: state_box.lower[{j}] = {lo} must be < state_box.upper[{j}] = {hi}")
+    return indices, lower, upper
+
+
+def _state_rows(value: Any, n: int, where: str) -> tuple[tuple[tuple[float, ...], ...] | None,
+                                                         tuple[float, ...] | None]:
+    if value is None:
+        return None, None
+    if not isinstance(value, dict) or set(value) != {"G", "h"}:
+        raise GpmpcError(f"{where}: state_rows must be a table with G (r x n) and h (r numbers): G x <= h")
+    G = _matrix(value["G"], "state_rows.G", where)
+    if len(G[0]) != n:
+        raise GpmpcError(f"{where}: state_rows.G must have n = {n} columns, got {len(G[0])}")
+    h = value["h"]
+    if not isinstance(h, list) or len(h) != len(G):
+        raise GpmpcError(f"{where}: state_rows.h must list one number per row of G ({len(G)}), got {h!r}")
+    return G, tuple(_number(v, f"state_rows.h[{j}]", where) for j, v in enumerate(h))

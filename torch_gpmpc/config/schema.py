@@ -16,6 +16,7 @@ from typing import Any, Mapping
 
 from torch_gpmpc.config.fields import Rules, build, validate
 from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, parse_model, resolve_model
+from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.config.settings import (
     CONTROLLER_CHOICES, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings,
     controller_keys, resolve_uncertainty,
@@ -100,6 +101,8 @@ class Config:
             false (default): linearize once per control step around the warm start, so ADMM
             converges on one convex problem (the paper's per-iterate rule keeps it moving).
         wind_scale: amplitude of the vortex wind g (paper: 0.1).
+        workspace: a soft box on the positions, ``{"min": [...], "max": [...]}`` (P numbers each),
+            or null (none); a scenario file's ``workspace`` sets it for its run.
 
     Example:
         >>> from torch_gpmpc import Config
@@ -150,13 +153,18 @@ class Config:
     slack_penalty: float = 1e4
     relinearize: bool = False
     wind_scale: float = 0.1
+    workspace: Workspace | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.model, dict):  # an inline model table (a config file's [model])
             object.__setattr__(self, "model", parse_model(self.model, "config key 'model'"))
+        if self.workspace is not None and not isinstance(self.workspace, Workspace):
+            object.__setattr__(self, "workspace", Workspace.parse(self.workspace, "config key 'workspace'"))
         validate(self, RULES)
         if isinstance(self.model, str):
             check_model_name(self.model)
+        if self.workspace is not None:
+            self.workspace.check_dim(self.position_dim, "config key 'workspace'")
         if self.scenario == "paper" and self.num_agents != 3:
             raise GpmpcError(
                 f"config key 'num_agents': the paper scenario has 3 agents, got {self.num_agents}; "
@@ -209,6 +217,8 @@ class Config:
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         if isinstance(self.model, ModelSpec):
             out["model"] = self.model.to_table()
+        if self.workspace is not None:
+            out["workspace"] = self.workspace.to_table()
         return out
 
 

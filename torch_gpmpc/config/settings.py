@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 from torch_gpmpc.config.fields import Rules, build, validate
 from torch_gpmpc.config.model_spec import ModelSpec
+from torch_gpmpc.config.workspace import Workspace
 
 #: The controller methods of the paper's Table 1 (``--method``), in its order;
 #: :class:`~torch_gpmpc.dynamics.methods.Method` is the typed form.
@@ -74,6 +75,8 @@ class ControllerSettings:
         admm_tol, admm_dual_tol, admm_rel_tol, admm_stop, admm_max_iter: ADMM stopping.
         relinearize: re-linearize at every ADMM iterate (Algorithm 1, step 9).
         comm_radius: agents closer than this communicate (``None``: all pairs).
+        workspace: a soft box on the positions (:class:`~torch_gpmpc.config.workspace.Workspace`,
+            or ``{"min": [...], "max": [...]}``), or ``None``.
 
     Example:
         >>> from torch_gpmpc import ControllerSettings
@@ -104,8 +107,11 @@ class ControllerSettings:
     admm_max_iter: int = 100
     relinearize: bool = False
     comm_radius: float | None = None
+    workspace: Workspace | None = None
 
     def __post_init__(self) -> None:
+        if self.workspace is not None and not isinstance(self.workspace, Workspace):
+            object.__setattr__(self, "workspace", Workspace.parse(self.workspace, "controller setting 'workspace'"))
         validate(self, RULES)
 
     def replace(self, **changes: typing.Any) -> "ControllerSettings":

@@ -13,8 +13,8 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
+from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.dynamics.systems import NominalModel
 
 #: A slack above this counts as a softened (violated) collision row.
 SLACK_ACTIVE_TOL = 1e-6
@@ -54,6 +54,10 @@ class LocalProblemData:
             plans become fixed obstacles (the safety fallback).
         dyn_B: linearized input matrices ``B + J_u`` (GPs that read the input), shape
             (B, T, D, Du); ``None`` = the nominal B at every step.
+        halfspace_normals: extra soft rows ``n^T X_tau >= b`` (no neighbour copy; e.g. obstacle
+            faces on the positions), shape (B, L, T, D); ``None`` = none. A row with normal 0 and
+            bound <= 0 is inert. The solver's ``num_halfspaces`` fixes L.
+        halfspace_bounds: their right-hand sides, shape (B, L, T).
 
     Example:
         >>> from torch_gpmpc.control.examples import crossing_instance
@@ -76,9 +80,12 @@ class LocalProblemData:
     lam_nbr: Tensor
     rho_nbr: Tensor | None = None
     dyn_B: Tensor | None = None
+    halfspace_normals: Tensor | None = None
+    halfspace_bounds: Tensor | None = None
 
-    def validate(self, horizon: int, dim: int, num_neighbors: int, input_dim: int | None = None) -> int:
-        """Check all shapes against (T, D, M[, Du]); return the batch size B.
+    def validate(self, horizon: int, dim: int, num_neighbors: int, input_dim: int | None = None,
+                 num_halfspaces: int = 0) -> int:
+        """Check all shapes against (T, D, M[, Du], L = num_halfspaces); return the batch size B.
 
         Raises:
             GpmpcError: naming the first field with a wrong shape.
@@ -91,10 +98,16 @@ class LocalProblemData:
             "active": (batch, M), "z_own": (batch, M, T + 1, D), "z_nbr": (batch, M, T + 1, D),
             "lam_own": (batch, M, T + 1, D), "lam_nbr": (batch, M, T + 1, D),
             "dyn_B": (batch, T, D, input_dim if input_dim is not None else -1),
+            "halfspace_normals": (batch, num_halfspaces, T, D), "halfspace_bounds": (batch, num_halfspaces, T),
         }
+        if (self.halfspace_normals is None) != (self.halfspace_bounds is None):
+            raise GpmpcError("LocalProblemData: give halfspace_normals and halfspace_bounds together (or neither)")
+        if self.halfspace_normals is None and num_halfspaces:
+            raise GpmpcError(f"LocalProblemData: this solver has num_halfspaces = {num_halfspaces}; give "
+                             f"halfspace_normals {(batch, num_halfspaces, T, D)} and halfspace_bounds")
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name in ("rho_nbr", "dyn_B") and value is None:
+            if f.name in ("rho_nbr", "dyn_B", "halfspace_normals", "halfspace_bounds") and value is None:
                 continue
             if f.name == "dyn_B" and input_dim is None:
                 expected["dyn_B"] = (batch, T, D, value.shape[-1])
@@ -118,13 +131,17 @@ class LocalSolution:
         U: planned inputs, shape (B, T, D).
         Y: the agent's copies of its neighbours' trajectories, shape (B, M, T+1, D).
         slack: collision-row slacks for tau = 1..T, shape (B, M, T).
-        slack_active: some slack of the agent exceeds 1e-6 (a softened row), shape (B,).
+        slack_active: some collision slack of the agent exceeds 1e-6 (a softened row), shape (B,).
         ok: finite solution, no solver error, constraints met, shape (B,); rows with
             ``ok = False`` are NaN.
         cost: planned tracking + control cost ``||X - Xref||^2 + alpha ||U||^2``, shape (B,).
         failure: why a row was rejected, int64 shape (B,): 0 if ``ok``, else ``1 + i`` for
             ``FAILURE_KINDS[i]`` (exception, non-finite, inaccurate); ``None`` if unknown.
         failure_detail: the first solver exception message of the batch, if any.
+        state_slack: how far the plan leaves the soft state constraints (state box, rows, norm
+            bound, workspace, half-spaces) at tau = 1..T, shape (B, T) (0 inside; see
+            :meth:`~torch_gpmpc.control.constraints.LocalConstraints.state_violation`); ``None`` if
+            not computed.
 
     Example:
         >>> from torch_gpmpc import NominalModel, make_local_solver
@@ -144,6 +161,7 @@ class LocalSolution:
     cost: Tensor
     failure: Tensor | None = None
     failure_detail: str | None = None
+    state_slack: Tensor | None = None
 
 
 def mask_inactive_rows(normals: Tensor, bounds: Tensor, active: Tensor) -> tuple[Tensor, Tensor]:
@@ -197,48 +215,27 @@ class ConsensusTerms:
                    normals=normals, bounds=bounds)
 
 
-def input_bound_violation(U: Tensor, spec, u_max: float | None = None) -> Tensor:
-    """How far inputs (B, T, Du) exceed the model's bound (norm ``u_max``, default the model's,
-    or box), per problem (B,)."""
-    if spec.input_box is not None:
-        box = torch.tensor(spec.input_box, dtype=U.dtype, device=U.device)
-        return (U.abs() - box).clamp(min=0).flatten(1).amax(1)
-    bound = spec.input_norm if u_max is None else u_max
-    return (torch.linalg.vector_norm(U, dim=-1) - bound).clamp(min=0).amax(1)
-
-
-def state_bound_violation(X: Tensor, spec) -> Tensor:
-    """How far planned states (B, T+1, D) at tau = 1..T exceed the model's state bound, (B,)."""
-    if spec.state_bound_norm is None:
-        return X.new_zeros(X.shape[0])
-    sub = X[:, 1:, list(spec.state_bound_indices)]
-    return (torch.linalg.vector_norm(sub, dim=-1) - spec.state_bound_norm).clamp(min=0).amax(1)
-
-
 def acceptance_failures(data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor,
-                        nominal: NominalModel, u_max: float | None = None) -> Tensor:
+                        nominal_B: Tensor, constraints: LocalConstraints) -> Tensor:
     """Failure code per problem (0 accepted, else ``FAIL_NONFINITE`` or ``FAIL_INACCURATE``), (B,).
 
-    A finite answer is accepted when the initial condition, the dynamics, the input
-    bound (the model's; ``u_max`` overrides a norm bound), the state bound, ``slack >= 0``
-    and the (softened) collision rows of active slots hold within :data:`FEASIBILITY_TOL`
-    relative to the plan's scale.
+    A finite answer is accepted when the initial condition, the dynamics (``nominal_B`` (D, Du)
+    where ``data.dyn_B`` is None), the input bounds, ``slack >= 0`` and the (softened) collision
+    rows of active slots hold within :data:`FEASIBILITY_TOL` relative to the plan's scale. The
+    soft state constraints hold by construction (their slacks are free).
     """
     finite = torch.isfinite(X).flatten(1).all(1) & torch.isfinite(U).flatten(1).all(1) \
         & torch.isfinite(slack).flatten(1).all(1) & torch.isfinite(Y).flatten(1).all(1)
     Xs, Us = torch.nan_to_num(X), torch.nan_to_num(U)
     scale = 1.0 + Xs.abs().flatten(1).amax(1)
     if data.dyn_B is None:
-        drive = Us @ nominal.B(dtype=X.dtype).T
+        drive = Us @ nominal_B.to(X.dtype).T
     else:
         drive = (data.dyn_B.detach() @ Us[..., None]).squeeze(-1)
     pred = (data.dyn_A.detach() @ Xs[:, :-1, :, None]).squeeze(-1) + drive + data.dyn_c.detach()
     dyn_res = (Xs[:, 1:] - pred).abs().flatten(1).amax(1)
     init_res = (Xs[:, 0] - data.x0.detach()).abs().amax(1)
-    u_res = input_bound_violation(Us, nominal.spec, u_max)
-    x_res = state_bound_violation(Xs, nominal.spec)
-    u_scale = max(nominal.spec.input_box) if nominal.spec.input_box is not None else \
-        (nominal.spec.input_norm if u_max is None else u_max)
+    u_res = constraints.input_violation(Us)
     s_res = (-torch.nan_to_num(slack)).clamp(min=0).flatten(1).amax(1) if slack.numel() else torch.zeros_like(u_res)
     if Y.shape[1] > 0 and slack.numel():
         # collision rows n^T (X_tau - Y_j,tau) + s_j,tau >= bound_j,tau, tau = 1..T, active slots only
@@ -250,8 +247,7 @@ def acceptance_failures(data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor,
         c_res = torch.zeros_like(u_res)
     tol = FEASIBILITY_TOL
     feasible = (dyn_res <= tol * scale) & (init_res <= tol * scale) \
-        & (u_res <= tol * (1 + u_scale)) & (s_res <= tol * scale) & (c_res <= tol * scale) \
-        & (x_res <= tol * scale)
+        & (u_res <= tol * (1 + constraints.input_scale)) & (s_res <= tol * scale) & (c_res <= tol * scale)
     code = torch.full(finite.shape, FAIL_NONE, dtype=torch.int64)
     code = torch.where(feasible, code, torch.full_like(code, FAIL_INACCURATE))
     return torch.where(finite, code, torch.full_like(code, FAIL_NONFINITE))

@@ -311,6 +311,7 @@ class ADMM:
             state = self._check_safety(state, result.problem, graph, ctx.layer, result, safety_fallback)
         result.plans, result.inputs, result.state = state.plans, state.inputs, state
         result.slack_max = float(result.solution.slack.detach().max()) if result.solution.slack.numel() else 0.0
+        result.state_slack_max = state_slack_max(result.solution)
         result.messages = self.agent_step.message_size * graph.degrees()
         return result
 
@@ -333,3 +334,11 @@ class ADMM:
         result.unsafe_plan = bool(unsafe.any())
         result.pair_separation, result.pair_required = sep, req
         return state
+
+
+def state_slack_max(solution) -> float:
+    """The largest state-constraint slack of a :class:`LocalSolution` (0 if none or not computed)."""
+    slack = getattr(solution, "state_slack", None)
+    if slack is None or not slack.numel():
+        return 0.0
+    return float(torch.nan_to_num(slack.detach(), nan=0.0).max())

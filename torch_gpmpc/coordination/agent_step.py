@@ -28,6 +28,7 @@ from torch_gpmpc.control.problem import (
 from torch_gpmpc.control.risk import (
     collision_normals, lqr_gain, pair_margins, pair_risks, projected_variances, state_covariances,
 )
+from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.control.solvers import make_local_solver
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult
@@ -171,6 +172,8 @@ class LocalStep:
         self.gps = gps
         #: the covariance model in use (``settings.uncertainty`` with ``auto`` resolved for the model)
         self.uncertainty = self.settings.uncertainty_for(self.nominal.spec)
+        #: input bounds and soft state constraints (the model's, and the settings' workspace)
+        self.constraints = LocalConstraints.of(self.nominal.spec, workspace=self.settings.workspace)
         #: B K of the ancillary LQR feedback (``uncertainty = feedback``), else None
         self.feedback = None
         if self.uncertainty == "feedback":
@@ -187,6 +190,7 @@ class LocalStep:
             self._solvers[num_slots] = make_local_solver(
                 horizon=s.horizon, dim=self.nominal.dim, num_neighbors=num_slots, nominal=self.nominal,
                 u_max=None, alpha=s.alpha, slack_penalty=s.slack_penalty, solver=s.solver,
+                constraints=self.constraints,
             )
         return self._solvers[num_slots]
 
@@ -322,7 +326,9 @@ def fall_back_to_previous(sol: LocalSolution, state: ADMMState, graph: Graph) ->
     Y = torch.where(bad[:, None, None, None], nbr_prev, sol.Y)
     return LocalSolution(X=X, U=U, Y=Y, slack=torch.where(bad[:, None, None], torch.zeros_like(sol.slack), sol.slack),
                          slack_active=sol.slack_active, ok=sol.ok, cost=sol.cost, failure=sol.failure,
-                         failure_detail=sol.failure_detail)
+                         failure_detail=sol.failure_detail,
+                         state_slack=None if sol.state_slack is None else
+                         torch.where(bad[:, None], torch.zeros_like(sol.state_slack), sol.state_slack))
 
 
 def edge_copies(sol: LocalSolution, graph: Graph) -> Tensor:

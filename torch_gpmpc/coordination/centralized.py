@@ -7,7 +7,7 @@ problem directly, with cvxpy, from the same per-agent data the local solvers get
 
     minimize    sum_k ||X_k - Xref_k||^2 + alpha ||U_k||^2 + slack_penalty sum(s)
     subject to  X_k,0 = x0_k,  X_k,tau+1 = dyn_A X_k,tau + dyn_B U_k,tau + dyn_c
-                input bound (norm or box), optional state bound
+                input bounds, soft state constraints (:mod:`torch_gpmpc.control.constraints`)
                 n_{k,m,tau}^T (X_k,tau - X_j,tau) + s_{k,m,tau} >= bound_{k,m,tau},  s >= 0
 
 for every agent k, active slot m (neighbour j) and tau = 1..T. It is the independent
@@ -24,7 +24,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.control.problem import LocalProblemData
+from torch_gpmpc.control.solvers.conic import state_constraints
 from torch_gpmpc.coordination.admm import ADMM
 from torch_gpmpc.coordination.agent_step import LocalStep, edge_variances, slot_risks
 from torch_gpmpc.coordination.graph import Graph
@@ -58,21 +60,22 @@ def plan_cost(plans: Tensor, inputs: Tensor, xref: Tensor, alpha: float) -> floa
 
 
 def solve_centralized(data: LocalProblemData, graph: Graph, nominal: NominalModel, u_max: float | None = None,
-                      alpha: float = 1e-3, slack_penalty: float = 1e4) -> CentralizedSolution:
+                      alpha: float = 1e-3, slack_penalty: float = 1e4,
+                      constraints: LocalConstraints | None = None) -> CentralizedSolution:
     """Solve the joint problem (module docstring) with Clarabel.
 
     Args:
         data: the K agents' convexified local problems (the consensus fields are ignored).
         graph: the communication graph the slots refer to.
         nominal: the model (input bound, state bound, B where ``data.dyn_B`` is None).
-        u_max: input norm bound (``None``: the model's; ignored with a box bound).
+        u_max: input norm bound (``None``: the model's; ignored if the model has only a box).
         alpha, slack_penalty: the local problems' weights.
+        constraints: input bounds and soft state constraints (``None``: the model's with ``u_max``).
 
     Raises:
         GpmpcError: the solver did not find an optimum.
     """
-    spec = nominal.spec
-    u_max = spec.input_norm if u_max is None else u_max
+    constraints = constraints or LocalConstraints.of(nominal.spec, u_max)
     K, T, n = data.xref.shape[0], data.xref.shape[1] - 1, data.xref.shape[2]
     m = nominal.input_dim
     npy = lambda t: t.detach().cpu().numpy()  # noqa: E731
@@ -85,12 +88,12 @@ def solve_centralized(data: LocalProblemData, graph: Graph, nominal: NominalMode
         cost += cp.sum_squares(X[k] - xref[k]) + alpha * cp.sum_squares(U[k])
         cons.append(X[k][0] == x0[k])
         cons += [X[k][t + 1] == dyn_A[k, t] @ X[k][t] + dyn_B[k, t] @ U[k][t] + dyn_c[k, t] for t in range(T)]
-        if spec.input_box is not None:
-            cons.append(cp.abs(U[k]) <= np.ones((T, 1)) @ np.asarray(spec.input_box)[None, :])
-        else:
-            cons.append(cp.norm(U[k], 2, axis=1) <= u_max)
-        if spec.state_bound_norm is not None:
-            cons.append(cp.norm(X[k][1:, list(spec.state_bound_indices)], 2, axis=1) <= spec.state_bound_norm)
+        halfspaces = [] if data.halfspace_normals is None else \
+            [(npy(data.halfspace_normals[k, j]), npy(data.halfspace_bounds[k, j]))
+             for j in range(data.halfspace_normals.shape[1])]
+        local, penalty = state_constraints(X[k], U[k], constraints, slack_penalty, halfspaces)
+        cons += local
+        cost += penalty
     normals, bounds = npy(data.normals), npy(data.bounds)
     active = data.active.cpu().numpy()
     for k in range(K):
@@ -142,7 +145,8 @@ class CentralizedPlanner:
         with torch.no_grad():
             for _ in range(self.relinearizations):
                 assembled = local.assemble(x, xref, state, graph, rho, eps_self)
-                sol = solve_centralized(assembled.data, graph, local.nominal, None, cfg.alpha, cfg.slack_penalty)
+                sol = solve_centralized(assembled.data, graph, local.nominal, None, cfg.alpha, cfg.slack_penalty,
+                                        local.constraints)
                 pvar = state.pvar if assembled.own_variance is None else \
                     edge_variances(assembled.own_variance, graph, state.pvar)
                 z = sol.plans[graph.edges] if graph.num_edges else state.z

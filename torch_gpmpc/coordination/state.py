@@ -85,6 +85,8 @@ class StepResult:
         primal_residuals: per iteration, largest ``||y_{e,k} - z_e||``.
         dual_residuals: per iteration, largest ``rho ||z_e - z_e_prev||``.
         slack_max: largest collision slack of the final iterate.
+        state_slack_max: how far the final plans leave the soft state constraints (state box,
+            rows, norm bound, workspace), the largest over agents and steps (0 inside).
         infeasible_solves: local solves with active slack or failure, summed over iterations.
         failed_solves: local solves that failed (fallback plan used), summed over iterations.
         failed_by_kind: ``failed_solves`` split by kind, ``{kind: count}`` for every kind
@@ -121,6 +123,7 @@ class StepResult:
     primal_residuals: list[float] = field(default_factory=list)
     dual_residuals: list[float] = field(default_factory=list)
     slack_max: float = 0.0
+    state_slack_max: float = 0.0
     infeasible_solves: int = 0
     failed_solves: int = 0
     failed_by_kind: dict[str, int] = field(default_factory=lambda: dict.fromkeys(FAILURE_KINDS, 0))

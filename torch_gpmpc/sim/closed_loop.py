@@ -33,7 +33,7 @@ from torch_gpmpc.dynamics.systems import TrueSystem, project_input, system_from_
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.sim.recorder import StepInfo, StepRecorder, log_step
 from torch_gpmpc.sim.rollout import Rollout
-from torch_gpmpc.sim.scenarios import Scenario, make_scenario
+from torch_gpmpc.sim.scenarios import Scenario, make_scenario, with_scenario_workspace
 
 StepCallback = Callable[[int, StepInfo], None]
 
@@ -124,6 +124,7 @@ def simulate(
 
     cfg = cfg.replace(method=method or cfg.method)
     scenario = scenario or make_scenario(cfg)
+    cfg = with_scenario_workspace(cfg, scenario)
     num_agents = scenario.num_agents
     system = system_from_config(cfg)
     if needs_gp(cfg.method):

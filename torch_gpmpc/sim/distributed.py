@@ -58,7 +58,7 @@ from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.sim.closed_loop import StepCallback, run_closed_loop
 from torch_gpmpc.sim.metrics import pair_distances
 from torch_gpmpc.sim.rollout import Rollout
-from torch_gpmpc.sim.scenarios import Scenario, make_scenario
+from torch_gpmpc.sim.scenarios import Scenario, make_scenario, with_scenario_workspace
 
 log = logging.getLogger(__name__)
 
@@ -235,7 +235,7 @@ class RemotePlanner:
         self._mark_lost(t)
         inputs = torch.zeros(K, cfg.horizon, cfg.input_dim, dtype=DTYPE)
         plans = self.last_plan.clone()
-        margins, slacks = [], []
+        margins, slacks, state_slacks = [], [], []
         reported = set()
         for k, vec in zip(live, tel):
             if vec is None:
@@ -254,6 +254,7 @@ class RemotePlanner:
             res.fallback = res.fallback or c["fallback"] > 0.5
             res.unsafe_plan = res.unsafe_plan or c["unsafe_plan"] > 0.5
             slacks.append(c["slack_max"])
+            state_slacks.append(c["state_slack_max"])
             reported.add(k)
         for k in range(K):
             if k not in reported:  # lost: its vehicle executes the rest of its last plan, then holds
@@ -262,6 +263,7 @@ class RemotePlanner:
                 plans[k] = shift_in_time(self.last_plan[k], dim=0)
         res.max_margin = max(margins, default=0.0)
         res.slack_max = max(slacks, default=0.0)
+        res.state_slack_max = max(state_slacks, default=0.0)
         res.plans, res.inputs = plans, inputs
         self.last_plan = plans
 
@@ -336,6 +338,7 @@ def simulate_distributed(
     """
     cfg = cfg.replace(method=method or cfg.method)
     scenario = scenario or make_scenario(cfg)
+    cfg = with_scenario_workspace(cfg, scenario)
     K = scenario.num_agents
     if K > MAX_AGENTS:
         raise GpmpcError(f"distributed run: at most {MAX_AGENTS} agents, got {K}")

@@ -183,6 +183,8 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
         "final_distance_to_target": [float(v) for v in final],
         "at_target_final": bool(np.all(final <= goal_tol)),
         "max_slack": _max(np.asarray(rollout.slack_max, dtype=np.float64)),
+        "state_slack_max": None if getattr(rollout, "state_slack_max", None) is None
+        else _max(np.asarray(rollout.state_slack_max, dtype=np.float64)),
         "arrival_steps": arrivals,
         "arrival_step_max": None if any(a is None for a in arrivals) else max(arrivals, default=0),
         "fallback_steps": _count(getattr(rollout, "fallback", None)),

@@ -54,6 +54,7 @@ def log_step(tb, t: int, info: StepInfo, res: StepResult) -> None:
     tb.scalar("safety/violations", info.violations_total, t)
     tb.scalar("safety/chance_margin", res.max_margin, t)
     tb.scalar("safety/slack_max", res.slack_max, t)
+    tb.scalar("safety/state_slack_max", res.state_slack_max, t)
     tb.scalar("perf/solve_ms", 1000.0 * res.solve_time_s / max(res.iterations, 1), t)
 
 
@@ -70,7 +71,7 @@ class StepRecorder:
         self.num_agents = num_agents
         self.rows: dict[str, list] = {k: [] for k in (
             "inputs", "plans", "adjacency", "admm_iterations", "converged", "primal", "dual",
-            "slack_max", "infeasible_solves", "solve_time", "chance_margin", "messages",
+            "slack_max", "state_slack_max", "infeasible_solves", "solve_time", "chance_margin", "messages",
             "failed_solves", "failed_by_kind", "fallback", "unsafe_plan", "pair_separation", "pair_required")}
         self.pairs = torch.triu_indices(num_agents, num_agents, 1).unbind()
         self.position = list(cfg.model_spec().position)
@@ -87,6 +88,7 @@ class StepRecorder:
         r["primal"].append(res.primal_residuals)
         r["dual"].append(res.dual_residuals)
         r["slack_max"].append(res.slack_max)
+        r["state_slack_max"].append(res.state_slack_max)
         r["infeasible_solves"].append(res.infeasible_solves)
         r["failed_solves"].append(res.failed_solves)
         r["failed_by_kind"].append([res.failed_by_kind[kind] for kind in FAILURE_KINDS])
@@ -140,6 +142,7 @@ class StepRecorder:
             primal_residuals=primal,
             dual_residuals=dual,
             slack_max=stack("slack_max", (0,)),
+            state_slack_max=stack("state_slack_max", (0,)),
             infeasible_solves=stack("infeasible_solves", (0,), int),
             solve_time=stack("solve_time", (0,)),
             chance_margin=stack("chance_margin", (0,)),

@@ -34,6 +34,8 @@ class Rollout:
         dual_residuals: rho ||z - z_prev|| per iteration, shape (S, I), NaN-padded.
         slack_max: largest collision slack of the final ADMM iterate per step, shape (S,).
         infeasible_solves: local solves with active slack or failed status per step, int, shape (S,).
+        state_slack_max: how far the applied plans leave the soft state constraints per step, shape
+            (S,) (0 inside; ``None`` in rollouts written before it was recorded).
         solve_time: seconds spent in local solves per step, shape (S,).
         chance_margin: largest chance margin Phi^-1(1-eps_k) sigma~ used per step, shape (S,).
         wall_time_s: total wall-clock time of the run, seconds.
@@ -88,6 +90,7 @@ class Rollout:
     pair_separation: np.ndarray | None = None
     pair_required: np.ndarray | None = None
     position: list[int] | None = None
+    state_slack_max: np.ndarray | None = None
 
     @property
     def num_steps(self) -> int:
@@ -122,7 +125,7 @@ class Rollout:
             )
         }
         for name in ("messages_per_iteration", "failed_solves", "failed_solves_by_kind", "fallback",
-                     "unsafe_plan", "pair_separation", "pair_required"):
+                     "unsafe_plan", "pair_separation", "pair_required", "state_slack_max"):
             if getattr(self, name) is not None:
                 arrays[name] = np.asarray(getattr(self, name))
         meta = {"method": self.method, "seed": self.seed, "wall_time_s": self.wall_time_s,

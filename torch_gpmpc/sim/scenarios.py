@@ -19,6 +19,7 @@ A scenario file (JSON or TOML) overrides ``Config.scenario``::
     reference = "line"                           # optional: "line" | "target"
     ref_points = 50                              # optional, >= 2
     name = "two agents"                          # optional label
+    workspace = {"min": [-5, -5], "max": [5, 5]} # optional soft box on the positions (P numbers each)
 """
 
 from __future__ import annotations
@@ -35,12 +36,13 @@ from torch import Tensor
 from torch_gpmpc.config.fields import nearest_key
 from torch_gpmpc.config.reader import read_table
 from torch_gpmpc.config.schema import REFERENCES, Config
+from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.errors import GpmpcError
 
 logger = logging.getLogger(__name__)
 
 #: Keys a scenario file may contain.
-SCENARIO_KEYS = ("starts", "targets", "reference", "ref_points", "name")
+SCENARIO_KEYS = ("starts", "targets", "reference", "ref_points", "name", "workspace")
 #: Largest allowed absolute coordinate in a scenario file.
 MAX_COORDINATE = 1e4
 #: Candidates drawn per batch, and batches tried per agent, by ``random`` scenarios.
@@ -59,6 +61,7 @@ class Scenario:
             points, then hold the target) or ``target`` (constant target).
         ref_points: R, the number of points of the straight-line reference (>= 2).
         name: a label (``paper``, ``circle``, ``random`` or the file's stem).
+        workspace: a soft box on the positions the controller keeps to, or ``None``.
     """
 
     starts: Tensor
@@ -66,6 +69,7 @@ class Scenario:
     reference_kind: str = "line"
     ref_points: int = 50
     name: str = "custom"
+    workspace: Workspace | None = None
 
     def __post_init__(self) -> None:
         starts = torch.as_tensor(self.starts, dtype=torch.float64)
@@ -140,6 +144,7 @@ class Scenario:
             "targets": self.targets.tolist(),
             "reference": self.reference_kind,
             "ref_points": self.ref_points,
+            **({} if self.workspace is None else {"workspace": self.workspace.to_table()}),
         }
 
 
@@ -265,9 +270,20 @@ def load_scenario_file(path: str | Path, cfg: Config) -> Scenario:
         raise GpmpcError(f"{where}: 'name' must be a string, got {name!r}")
     _check_start_separation(starts, cfg.r_safe, where, "move them apart or lower r_safe")
     _warn_close_targets(targets, cfg.r_safe, where)
+    workspace = None
+    if "workspace" in data:
+        workspace = Workspace.parse(data["workspace"], where)
+        workspace.check_dim(cfg.position_dim, where)
     if starts.shape[0] != cfg.num_agents:
         logger.info("%s has %d agents; it overrides num_agents=%d", where, starts.shape[0], cfg.num_agents)
-    return Scenario(starts, targets, reference, ref_points, name)
+    return Scenario(starts, targets, reference, ref_points, name, workspace)
+
+
+def with_scenario_workspace(cfg: Config, scenario: Scenario) -> Config:
+    """``cfg`` with the scenario's workspace, if it has one (it overrides the config's ``workspace``)."""
+    if scenario.workspace is None or scenario.workspace == cfg.workspace:
+        return cfg
+    return cfg.replace(workspace=scenario.workspace.to_table())
 
 
 def _parse_matrix(value: Any, key: str, where: str) -> Tensor:

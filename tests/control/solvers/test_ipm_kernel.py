@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from torch_gpmpc.control.solvers import ipm_kernel as ipm
+from torch_gpmpc.control.solvers import ipm_linalg, ipm_residuals
 
 
 def _random_problem(seed: int, T: int = 5, D: int = 2, M: int = 2):
@@ -28,7 +29,7 @@ def _setup(canonical, alpha: float):
     n, K = h.shape[0], M * T
     H, g0, A = np.empty((n, n)), np.empty(n), np.empty((K, n))
     bt, rho, N, wy = np.empty(K), np.empty(K), np.empty((K, D)), np.empty((K, D))
-    ipm._setup(*canonical, alpha, H, g0, A, bt, rho, N, wy)
+    ipm_residuals.setup(*canonical, np.ones(M), alpha, H, g0, A, bt, rho, N, wy)
     return H, g0, A, bt, rho, N, wy
 
 
@@ -48,56 +49,76 @@ def test_setup_matches_the_condensed_problem_written_out():
             assert rho[k] == rho_y[j] and (N[k] == normals[j, t]).all() and (wy[k] == w_y[j, t]).all()
 
 
+@pytest.mark.parametrize("heavy_row", [False, True])
 @pytest.mark.parametrize("seed", range(5))
-def test_schur_cholesky_solve_matches_dense_augmented_solve(seed):
-    """_factor + _solve against np.linalg.solve of [[S0, E^T], [E, -W]] assembled densely."""
-    canonical, u, w, z = _random_problem(seed)
+def test_schur_cholesky_solve_matches_dense_augmented_solve(seed, heavy_row):
+    """factor + solve against np.linalg.solve of [[S0, E^T], [E, -W]] assembled densely. With
+    ``heavy_row`` the last slot is a state row (no copy) whose first row is nearly active
+    (weight ~1e8): it must join the augmented rows (E row A_k, W entry 1 / deff_k)."""
+    canonical, u, w, z = _random_problem(seed, M=3)
     normals = canonical[6]
     M, T, D = normals.shape
     n, K = T * D, M * T
-    H, g0, A, bt, rho, N, wy = _setup(canonical, alpha=0.1)
-    deff, S, V, Sch = np.empty(K), np.empty((n, n)), np.empty((T, n)), np.empty((T, T))
-    assert ipm._factor(H, A, N, rho, D, u, w, z, deff, S, V, Sch)
+    couple = np.array([1.0, 1.0, 0.0 if heavy_row else 1.0])
+    H, g0, A = np.empty((n, n)), np.empty(n), np.empty((K, n))
+    bt, rho, N, wy = np.empty(K), np.empty(K), np.empty((K, D)), np.empty((K, D))
+    ipm_residuals.setup(*canonical, couple, 0.1, H, g0, A, bt, rho, N, wy)
+    Rc = ipm_residuals.coupled_rows(couple, T)
+    heavy = 2 * T
+    if heavy_row:
+        w[heavy], w[K + heavy] = 1e-9, 1e-9  # w_c / z_c and s / z_s tiny: deff ~ 1e8
+    off = ipm_residuals.offsets(K, n, T, True, False, False)
+    deff, aug = np.empty(K), np.empty(K, dtype=np.int64)
+    S, E, V, Sch = np.empty((n, n)), np.empty((T + K, n)), np.empty((T + K, n)), np.empty((T + K, T + K))
+    first, xs = np.zeros(T + K, dtype=np.int64), np.empty((0, 0))
+    Ta = ipm._factor(H, A, N, rho, canonical[0], np.zeros(0, dtype=np.int64), D, D, 1.0, off, Rc, u, w, z, xs,
+                     deff, aug, S, E, first, V, Sch)
+    assert Ta == T + int(heavy_row) and (aug[:Rc] == -1).all()
     wc, s, wq = w[:K], w[K:2 * K], w[2 * K:]
     zc, zs, zq = z[:K], z[K:2 * K], z[2 * K:]
     expected_deff = 1.0 / (wc / zc + (N * N).sum(1) / rho + s / zs)
     np.testing.assert_allclose(deff, expected_deff, rtol=1e-13)
-    S0 = H + np.diag(np.repeat(zq, D)) + A.T @ np.diag(deff) @ A
-    E = np.zeros((T, n))
+    eliminated = aug < 0
+    S0 = H + np.diag(np.repeat(zq, D)) + A[eliminated].T @ np.diag(deff[eliminated]) @ A[eliminated]
+    E_dense = np.zeros((Ta, n))
+    W = np.zeros(Ta)
     for t in range(T):
-        E[t, t * D:(t + 1) * D] = -u[t * D:(t + 1) * D]
-    kkt = np.block([[S0, E.T], [E, -np.diag(wq / zq)]])
+        E_dense[t, t * D:(t + 1) * D] = -u[t * D:(t + 1) * D]
+        W[t] = wq[t] / zq[t]
+    for k in np.flatnonzero(~eliminated):
+        E_dense[aug[k]], W[aug[k]] = A[k], 1.0 / deff[k]
+    kkt = np.block([[S0, E_dense.T], [E_dense, -np.diag(W)]])
     rng = np.random.default_rng(100 + seed)
-    rhs1, rhs2 = rng.standard_normal(n), rng.standard_normal(T)
-    x1, x2 = np.empty(n), np.empty(T)
-    ipm._solve(S, V, Sch, rhs1, rhs2, x1, x2)
+    rhs1, rhs2 = rng.standard_normal(n), rng.standard_normal(Ta)
+    x1, x2 = np.empty(n), np.empty(Ta)
+    ipm._solve(S, V, Sch, Ta, rhs1, rhs2, x1, x2)
     np.testing.assert_allclose(np.concatenate([x1, x2]), np.linalg.solve(kkt, np.concatenate([rhs1, rhs2])),
-                               rtol=1e-9, atol=1e-11)
+                               rtol=1e-8, atol=1e-10)
 
 
 def test_cholesky_rejects_indefinite_and_nan():
-    assert not ipm._cholesky(np.array([[1.0, 2.0], [2.0, 1.0]]), 2)
-    assert not ipm._cholesky(np.array([[np.nan, 0.0], [0.0, 1.0]]), 2)
+    assert not ipm_linalg.cholesky(np.array([[1.0, 2.0], [2.0, 1.0]]), 2)
+    assert not ipm_linalg.cholesky(np.array([[np.nan, 0.0], [0.0, 1.0]]), 2)
     S = np.array([[4.0, 0.0], [2.0, 5.0]])
-    assert ipm._cholesky(S, 2)
+    assert ipm_linalg.cholesky(S, 2)
     np.testing.assert_allclose(np.tril(S) @ np.tril(S).T, [[4.0, 2.0], [2.0, 5.0]])
 
 
 def test_absmax_propagates_nan():
-    assert ipm._absmax(np.array([1.0, -3.0, 2.0])) == 3.0
-    assert np.isnan(ipm._absmax(np.array([1.0, np.nan, 2.0])))
-    assert np.isnan(ipm._absmax2(np.array([[1.0], [np.nan]])))
-    assert ipm._absmax(np.zeros(0)) == 0.0
+    assert ipm_linalg.absmax(np.array([1.0, -3.0, 2.0])) == 3.0
+    assert np.isnan(ipm_linalg.absmax(np.array([1.0, np.nan, 2.0])))
+    assert np.isnan(ipm_linalg.absmax2(np.array([[1.0], [np.nan]])))
+    assert ipm_linalg.absmax(np.zeros(0)) == 0.0
 
 
 def test_kkt_error_hand_computed_and_nan_anywhere_is_inf():
     r_u, r_y, r_s = np.array([0.5, -2.0]), np.array([[0.1, 0.2]]), np.array([3.0])
-    r_pc, r_pq, w, z = np.array([0.0]), np.array([-4.0]), np.array([1.0, 2.0]), np.array([0.5, 0.25])
-    # max(2/2, 0.2/1, 3/(1+2), 0/4, 4/4, w.z = 1.0) = 1.0; then make the u residual dominate
-    assert ipm._kkt_error(r_u, r_y, r_s, r_pc, r_pq, w, z, 2.0, 1.0, 4.0, 2.0) == 1.0
-    assert ipm._kkt_error(r_u, r_y, r_s, r_pc, r_pq, w, z, 0.5, 1.0, 4.0, 2.0) == 4.0
-    for bad in (r_y, r_s, r_pc, r_pq):  # a NaN in any residual, not only the first one checked
-        saved = bad.flat[0]
-        bad.flat[0] = np.nan
-        assert ipm._kkt_error(r_u, r_y, r_s, r_pc, r_pq, w, z, 2.0, 1.0, 4.0, 2.0) == np.inf
-        bad.flat[0] = saved
+    r_p, w, z = np.array([0.0, -4.0]), np.array([1.0, 2.0]), np.array([0.5, 0.25])
+    # max(2/2, 0.2/1, 3/(1+2), 4/4, w.z = 1.0) = 1.0; then make the u residual dominate
+    assert ipm_residuals.kkt_error(r_u, r_y, r_s, r_p, w, z, 2.0, 1.0, 4.0, 2.0) == 1.0
+    assert ipm_residuals.kkt_error(r_u, r_y, r_s, r_p, w, z, 0.5, 1.0, 4.0, 2.0) == 4.0
+    for bad in (r_y, r_s, r_p):  # a NaN in any residual, not only the first one checked
+        saved = bad.flat[-1]
+        bad.flat[-1] = np.nan
+        assert ipm_residuals.kkt_error(r_u, r_y, r_s, r_p, w, z, 2.0, 1.0, 4.0, 2.0) == np.inf
+        bad.flat[-1] = saved

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from torch import nn
 
+from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.dynamics.systems import NominalModel
 
 
@@ -23,10 +24,15 @@ def make_local_solver(
     alpha: float,
     slack_penalty: float = 1e4,
     solver: str = "fast",
+    constraints: LocalConstraints | None = None,
+    num_halfspaces: int = 0,
 ) -> nn.Module:
     """A new batched local-problem module for (T, n, M, model, constants, backend).
 
     ``u_max`` overrides the model's norm input bound (``None``: the model's bound).
+    ``constraints`` are the input bounds and soft state constraints (``None``: the model's,
+    :meth:`~torch_gpmpc.control.constraints.LocalConstraints.of`; give one to add a workspace);
+    ``num_halfspaces`` is the number L of per-problem half-space rows the data carries.
 
     ``solver='fast'`` (the default, as in the run configuration) gives the compiled interior
     point :class:`~torch_gpmpc.control.solvers.interior_point.InteriorPointMPC`; ``clarabel`` and
@@ -48,10 +54,11 @@ def make_local_solver(
     if solver == "fast":
         from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
 
-        return InteriorPointMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max), float(alpha),
-                            float(slack_penalty))
+        return InteriorPointMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max),
+                                float(alpha), float(slack_penalty), constraints=constraints,
+                                num_halfspaces=num_halfspaces)
     # cvxpy and cvxpylayers are imported only when a cvxpylayers path is asked for
     from torch_gpmpc.control.solvers.conic import CvxpyLayerMPC
 
     return CvxpyLayerMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max), float(alpha),
-                    float(slack_penalty), solver)
+                         float(slack_penalty), solver, constraints=constraints, num_halfspaces=num_halfspaces)

@@ -17,6 +17,7 @@ import torch
 from cvxpylayers.torch import CvxpyLayer
 from torch import Tensor, nn
 
+from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.dynamics.systems import NominalModel
 
@@ -61,10 +62,11 @@ class CvxpyLayerMPC(nn.Module):
         over        X (T+1, D), U (T, Du), Y_j (T+1, D) for j < M, s (M, T)
         subject to  X_0 = x0
                     X_{tau+1} = dyn_A_tau X_tau + dyn_B_tau U_tau + dyn_c_tau   tau = 0..T-1
-                    ||U_tau||_2 <= u_max   (or the model's box |U_tau,i| <= b_i)  tau = 0..T-1
-                    ||X_tau[idx]||_2 <= state_bound   (if the model has one)     tau = 1..T
+                    ||U_tau||_2 <= u_max  and/or  |U_tau,i| <= b_i (the model's)  tau = 0..T-1
                     n_{j,tau}^T (X_tau - Y_{j,tau}) + s_{j,tau} >= bound_{j,tau}   tau = 1..T
                     s >= 0
+                    + the soft state constraints (state box and rows, workspace, the data's
+                      half-spaces, state norm bound; :func:`state_constraints`)
 
     Agent k's copy of edge (k, j) is ``y_kj,k = [X; Y_j]`` with consensus value
     ``z_kj = [z_own_j; z_nbr_j]`` and multiplier ``[lam_own_j; lam_nbr_j]``;
@@ -94,11 +96,13 @@ class CvxpyLayerMPC(nn.Module):
         num_neighbors: M, the number of neighbour slots (0 allowed).
         nominal: the nominal model: its B where the data has no ``dyn_B``, its input bound
             (norm or box) and its optional state bound.
-        u_max: input norm bound (``None``: the model's; ignored with a box bound).
+        u_max: input norm bound (``None``: the model's; ignored if the model has only a box).
         alpha: control-effort weight.
-        slack_penalty: exact-penalty weight of the collision slacks.
+        slack_penalty: exact-penalty weight of the collision and state slacks.
         solver: ``clarabel`` (diffcp with Clarabel) or ``reference`` (cvxpylayers'
             default diffcp + SCS with tolerances 1e-9).
+        constraints: input bounds and soft state constraints (``None``: the model's).
+        num_halfspaces: L, the per-problem half-space rows the data carries.
 
     Example:
         >>> from torch_gpmpc import CvxpyLayerMPC, NominalModel
@@ -119,6 +123,8 @@ class CvxpyLayerMPC(nn.Module):
         alpha: float,
         slack_penalty: float = 1e4,
         solver: str = "clarabel",
+        constraints: LocalConstraints | None = None,
+        num_halfspaces: int = 0,
     ) -> None:
         super().__init__()
         if solver not in SOLVER_ARGS:
@@ -128,13 +134,13 @@ class CvxpyLayerMPC(nn.Module):
                              f"{horizon}, {dim}, {num_neighbors}")
         if nominal.dim != dim:
             raise GpmpcError(f"nominal model has dim {nominal.dim}, CvxpyLayerMPC dim is {dim}")
-        u_max = nominal.spec.input_norm if u_max is None else u_max
-        if nominal.spec.input_box is not None:
-            u_max = max(nominal.spec.input_box)
-        if u_max <= 0 or alpha <= 0 or slack_penalty <= 0:
-            raise GpmpcError(f"u_max, alpha and slack_penalty must be > 0; got {u_max}, {alpha}, {slack_penalty}")
+        self.constraints = constraints or LocalConstraints.of(nominal.spec, u_max)
+        if alpha <= 0 or slack_penalty <= 0 or num_halfspaces < 0:
+            raise GpmpcError(f"alpha and slack_penalty must be > 0 and num_halfspaces >= 0; got {alpha}, "
+                             f"{slack_penalty}, {num_halfspaces}")
         self.horizon, self.dim, self.num_neighbors = horizon, dim, num_neighbors
-        self.nominal, self.u_max, self.alpha = nominal, float(u_max), float(alpha)
+        self.num_halfspaces = int(num_halfspaces)
+        self.nominal, self.u_max, self.alpha = nominal, self.constraints.input_norm, float(alpha)
         self.slack_penalty, self.solver = float(slack_penalty), solver
         self.problem, parameters, variables = self._build_problem()
         #: cvxpy parameters in the order of :meth:`layer_parameters` (for plain cvxpy solves).
@@ -146,7 +152,7 @@ class CvxpyLayerMPC(nn.Module):
     def _build_problem(self) -> tuple[cp.Problem, list[cp.Parameter], list[cp.Variable]]:
         """The DPP problem, its parameters (layer order) and returned variables."""
         T, D, M = self.horizon, self.dim, self.num_neighbors
-        spec, Du = self.nominal.spec, self.nominal.input_dim
+        Du = self.nominal.input_dim
         X, U = cp.Variable((T + 1, D), name="X"), cp.Variable((T, Du), name="U")
         x0 = cp.Parameter(D, name="x0")
         scale_x = cp.Parameter(nonneg=True, name="scale_X")
@@ -161,13 +167,15 @@ class CvxpyLayerMPC(nn.Module):
                     for j in range(Du))
         objective = cp.sum_squares(scale_x * X - shift_x) + self.alpha * cp.sum_squares(U)
         constraints = [X[0] == x0, X[1:] == drift + drive + dyn_c]
-        if spec.input_box is not None:
-            constraints.append(cp.abs(U) <= np.ones((T, 1)) @ np.array(spec.input_box)[None, :])
-        else:
-            constraints.append(cp.norm(U, 2, axis=1) <= self.u_max)
-        if spec.state_bound_norm is not None:
-            constraints.append(cp.norm(X[1:, list(spec.state_bound_indices)], 2, axis=1) <= spec.state_bound_norm)
         parameters = [x0, scale_x, shift_x, *a_cols, *b_cols, dyn_c]
+        L = self.num_halfspaces
+        half_normals = [cp.Parameter((T, D), name=f"halfspace{j}") for j in range(L)]
+        half_bounds = cp.Parameter((L, T), name="halfspace_bounds") if L else None
+        cons, penalty = state_constraints(X, U, self.constraints, self.slack_penalty,
+                                          list(zip(half_normals, [half_bounds[j] for j in range(L)])))
+        constraints += cons
+        objective += penalty
+        parameters += [*half_normals, *([half_bounds] if L else [])]
         variables = [X, U]
         if M > 0:
             Ys = [cp.Variable((T + 1, D), name=f"Y{j}") for j in range(M)]
@@ -196,8 +204,9 @@ class CvxpyLayerMPC(nn.Module):
             data: the problem inputs (validated by the caller).
 
         Returns:
-            Tensors ``[x0, scale_X, shift_X, A_col_0..A_col_{D-1}, B_col_0..B_col_{Du-1}, dyn_c]`` and, if M > 0,
-            ``[scale_Y, shift_Y_0.., normal_0.., bounds]`` (see the class docstring).
+            Tensors ``[x0, scale_X, shift_X, A_col_0..A_col_{D-1}, B_col_0..B_col_{Du-1}, dyn_c]``, if L > 0
+            ``[halfspace_0.., halfspace_bounds]`` and, if M > 0, ``[scale_Y, shift_Y_0.., normal_0.., bounds]``
+            (see the class docstring).
         """
         M = self.num_neighbors
         terms = ConsensusTerms.of(data)
@@ -207,6 +216,8 @@ class CvxpyLayerMPC(nn.Module):
             self.nominal.B(data.x0.dtype, data.x0.device).expand(data.x0.shape[0], self.horizon, -1, -1)
         params = [data.x0, scale_x, shift_x, *[data.dyn_A[..., e] for e in range(self.dim)],
                   *[dyn_B[..., j] for j in range(self.nominal.input_dim)], data.dyn_c]
+        if self.num_halfspaces:
+            params += [*[data.halfspace_normals[:, j] for j in range(self.num_halfspaces)], data.halfspace_bounds]
         if M > 0:
             scale_y = torch.sqrt(0.5 * terms.rho_y)
             shift_y = terms.w_nbr / (2.0 * scale_y[:, :, None, None])
@@ -228,7 +239,8 @@ class CvxpyLayerMPC(nn.Module):
         Returns:
             The :class:`LocalSolution`.
         """
-        batch = data.validate(self.horizon, self.dim, self.num_neighbors, self.nominal.input_dim)
+        batch = data.validate(self.horizon, self.dim, self.num_neighbors, self.nominal.input_dim,
+                              self.num_halfspaces)
         params = self.layer_parameters(data)
         needs_grad = torch.is_grad_enabled() and any(p.requires_grad for p in params)
         args = {**SOLVER_ARGS[self.solver], **(BACKWARD_ARGS if needs_grad else {}), **(solver_args or {})}
@@ -293,13 +305,53 @@ class CvxpyLayerMPC(nn.Module):
             logger.debug("CvxpyLayerMPC: %d of %d local problems returned no valid solution (kinds %s)",
                          int((~ok).sum()), batch, failure.tolist())
         cost = ((X - data.xref) ** 2).sum(dim=(1, 2)) + self.alpha * (U ** 2).sum(dim=(1, 2))
+        state_slack = self.constraints.state_violation(X, data.halfspace_normals, data.halfspace_bounds)
         return LocalSolution(X=X, U=U, Y=Y, slack=slack, slack_active=slack_active & ok, ok=ok, cost=cost,
-                             failure=failure, failure_detail=detail)
+                             failure=failure, failure_detail=detail, state_slack=state_slack)
 
     def _check(self, data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor) -> Tensor:
         """Failure code per problem, (B,): see :func:`acceptance_failures`."""
-        return acceptance_failures(data, X, U, Y, slack, self.nominal,
-                                   None if self.nominal.spec.input_box is not None else self.u_max)
+        return acceptance_failures(data, X, U, Y, slack, self.nominal.B(X.dtype, X.device), self.constraints)
+
+
+def state_constraints(X: cp.Expression, U: cp.Expression, constraints: LocalConstraints, slack_penalty: float,
+                      halfspaces: list[tuple[Any, Any]] = ()) -> tuple[list, cp.Expression]:
+    """The input bounds and soft state constraints of one plan in cvxpy (as
+    :mod:`torch_gpmpc.control.constraints` states them), and the penalty of their slacks.
+
+    Args:
+        X: the plan (T+1, D). U: the inputs (T, Du).
+        constraints: the bounds and constant rows.
+        slack_penalty: the exact-penalty weight.
+        halfspaces: per-problem rows ``(normals (T, D), bounds (T,))`` (parameters or arrays).
+
+    Returns:
+        ``(constraints, penalty)``; the penalty is ``slack_penalty`` times the slacks' sum.
+    """
+    T, D = X.shape[0] - 1, X.shape[1]
+    cons: list = []
+    penalty = cp.Constant(0.0)
+    if constraints.input_box is not None:
+        cons.append(cp.abs(U) <= np.ones((T, 1)) @ np.asarray(constraints.input_box)[None, :])
+    if constraints.input_norm is not None:
+        cons.append(cp.norm(U, 2, axis=1) <= constraints.input_norm)
+    rows = []
+    if constraints.num_rows:
+        normals = np.asarray(constraints.row_normals).reshape(-1, D)
+        rows.append((X[1:] @ normals.T, np.ones((T, 1)) @ np.asarray(constraints.row_bounds)[None, :]))
+    for normal, bound in halfspaces:
+        rows.append((cp.reshape(cp.sum(cp.multiply(normal, X[1:]), axis=1), (T, 1), order="F"),
+                     cp.reshape(bound, (T, 1), order="F")))
+    for lhs, rhs in rows:
+        s = cp.Variable(lhs.shape, nonneg=True)
+        cons.append(lhs + s >= rhs)
+        penalty = penalty + slack_penalty * cp.sum(s)
+    if constraints.norm_bound is not None:
+        v = constraints.norm_bound
+        sigma = cp.Variable(T, nonneg=True)
+        cons.append(cp.sum(cp.square(X[1:, list(constraints.norm_indices)]), axis=1) <= v * v + 2 * v * sigma)
+        penalty = penalty + slack_penalty * cp.sum(sigma)
+    return cons, penalty
 
 
 #: The name this backend had before; kept for existing code.

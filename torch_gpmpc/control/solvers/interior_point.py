@@ -12,12 +12,14 @@ inputs, the neighbour copies and the collision slacks remain) -> the compiled ke
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
+from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.control.solvers import ipm_kernel as ipm
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.control.problem import (
@@ -92,8 +94,9 @@ class CanonicalData:
         w_y: linear weight of Y_{j,1..T}, ``rho_j z_nbr_j - lam_nbr_j`` (0 inactive),
             shape (B, M, T, D).
         y0: the closed-form copies at step 0, ``w_y / rho_y`` at tau = 0, shape (B, M, D).
-        normals: collision normals (0 inactive), shape (B, M, T, D).
-        bounds: collision bounds (-1 inactive), shape (B, M, T).
+        normals: collision normals (0 inactive), shape (B, M, T, D); after
+            :func:`with_state_rows` also the soft state rows, (B, M + L, T, D).
+        bounds: collision bounds (-1 inactive), shape (B, M, T) (then (B, M + L, T)).
     """
 
     G: Tensor
@@ -144,21 +147,50 @@ def canonicalize(data: LocalProblemData, B: Tensor, condense=condense_dynamics) 
                          normals=terms.normals, bounds=terms.bounds)
 
 
+def with_state_rows(canon: CanonicalData, rows: list[tuple[Tensor, Tensor]]) -> CanonicalData:
+    """``canon`` with soft state rows appended as slots without a neighbour copy (``rho_y = 1``,
+    ``w_y = 0``, so their copies stay 0; the kernel's ``couple`` flag is 0 for them).
+
+    Args:
+        rows: ``(normals (B, L, T, D), bounds (B, L, T))`` blocks (per-problem half-spaces, the
+            model's and workspace's constant rows expanded over B and T).
+    """
+    if not rows:
+        return canon
+    B, T, D = canon.h.shape[0], canon.normals.shape[2], canon.normals.shape[3]
+    L = sum(n.shape[1] for n, _ in rows)
+    return CanonicalData(
+        G=canon.G, h=canon.h, c_x=canon.c_x, l_x=canon.l_x,
+        rho_y=torch.cat([canon.rho_y, canon.rho_y.new_ones(B, L)], dim=1),
+        w_y=torch.cat([canon.w_y, canon.w_y.new_zeros(B, L, T, D)], dim=1), y0=canon.y0,
+        normals=torch.cat([canon.normals, *[n for n, _ in rows]], dim=1),
+        bounds=torch.cat([canon.bounds, *[b for _, b in rows]], dim=1))
+
+
 # ------------------------------------------------------------------------ differentiation
 def _stationarity_pairing(G: Tensor, h: Tensor, c_x: Tensor, l_x: Tensor, rho_y: Tensor, w_y: Tensor,
                           normals: Tensor, bounds: Tensor, u: Tensor, y: Tensor, zc: Tensor,
-                          a_u: Tensor, a_y: Tensor, xi: Tensor) -> Tensor:
-    """``a^T grad_v L(v, z; theta) + xi^T g_c(v; theta)`` summed over the batch (a scalar).
+                          a_u: Tensor, a_y: Tensor, xi: Tensor, norm_idx: list[int], zv: Tensor,
+                          xi_v: Tensor) -> Tensor:
+    """``a^T grad_v L(v, z; theta) + xi^T g(v; theta)`` summed over the batch (a scalar).
 
     Only the terms that depend on the problem data theta are kept; its gradient with
     respect to theta, negated, is the implicit-function-theorem vector-Jacobian product.
+    The rows with data are the linear rows (collision and state rows) and the state-norm rows
+    ``(v^2 + 2 v sigma - ||P x_tau||^2) / 2 >= 0`` (``x = G u + h``); the input bounds hold no data.
 
     Shapes: G (B, n, n), h (B, n), c_x (B,), l_x (B, n), rho_y (B, M), w_y (B, M, T, D),
-    normals (B, M, T, D), bounds (B, M, T); u, a_u (B, n); y, a_y (B, R, D); zc, xi (B, R).
+    normals (B, M, T, D), bounds (B, M, T); u, a_u (B, n); y, a_y (B, R, D); zc, xi (B, R);
+    zv, xi_v (B, Ts) (multiplier and adjoint of the state-norm rows, Ts = T or 0).
     """
     B, M, T, D = normals.shape
     x1 = _mv(G, u) + h
     dx1 = _mv(G, a_u)
+    if zv.shape[1]:  # -z_v grad g_v . a = z_v (P x) . (P dx); xi_v g_v's data part = -xi_v ||P x||^2 / 2
+        xs, dxs = x1.view(B, T, D)[..., norm_idx], dx1.view(B, T, D)[..., norm_idx]
+        extra = (zv * (xs * dxs).sum(-1)).sum() - 0.5 * (xi_v * (xs * xs).sum(-1)).sum()
+    else:
+        extra = x1.new_zeros(())
     obj = ((2.0 * c_x[:, None] * x1 - l_x) * dx1).sum()
     rho = rho_y[:, :, None].expand(B, M, T).reshape(B, -1, 1)
     obj = obj + ((rho * y - w_y.reshape(B, -1, D)) * a_y).sum()
@@ -166,7 +198,7 @@ def _stationarity_pairing(G: Tensor, h: Tensor, c_x: Tensor, l_x: Tensor, rho_y:
     x_rows = x1.view(B, 1, T, D).expand(B, M, T, D).reshape(B, -1, D)
     dx_rows = dx1.view(B, 1, T, D).expand(B, M, T, D).reshape(B, -1, D)
     obj = obj - (zc * (N * (dx_rows - a_y)).sum(-1)).sum()
-    return obj + (xi * ((N * (x_rows - y)).sum(-1) - bounds.reshape(B, -1))).sum()
+    return obj + (xi * ((N * (x_rows - y)).sum(-1) - bounds.reshape(B, -1))).sum() + extra
 
 
 def _kernel_arrays(tensors: tuple[Tensor, ...]) -> list[np.ndarray]:
@@ -176,7 +208,7 @@ def _kernel_arrays(tensors: tuple[Tensor, ...]) -> list[np.ndarray]:
 
 @dataclass
 class _Iterate:
-    """Primal-dual point of B problems (NumPy): u (B, n), y (B, R, D), w and z (B, 2R + T)."""
+    """Primal-dual point of B problems (NumPy): u (B, n), y (B, R, D), w and z (B, m)."""
 
     u: np.ndarray
     y: np.ndarray
@@ -193,7 +225,45 @@ def _where_rows(rows: np.ndarray, a: _Iterate, b: _Iterate) -> _Iterate:
                       for x, y in zip((a.u, a.y, a.w, a.z), (b.u, b.y, b.w, b.z))))
 
 
-def _polish(arrays: list[np.ndarray], point: _Iterate, kkt_error: np.ndarray, alpha: float, u_max: float,
+@dataclass(frozen=True)
+class KernelLimits:
+    """The constraint constants the kernel reads (from :class:`LocalConstraints`) and the slot flags.
+
+    Attributes:
+        u_max: input norm bound (``inf``: none). box: input box (Du,) or empty.
+        norm_idx: state indices of the soft norm bound (p,) int64 or empty. v_max: that bound.
+        couple: per slot, 1 for a neighbour slot, 0 for a state row, shape (M + L,).
+    """
+
+    u_max: float
+    box: np.ndarray
+    norm_idx: np.ndarray
+    v_max: float
+    couple: np.ndarray
+
+    @classmethod
+    def of(cls, constraints: LocalConstraints, num_neighbors: int, num_rows: int) -> "KernelLimits":
+        """The kernel's view of ``constraints`` for M neighbour slots and L state rows."""
+        return cls(u_max=math.inf if constraints.input_norm is None else float(constraints.input_norm),
+                   box=np.asarray(constraints.input_box or (), dtype=np.float64),
+                   norm_idx=np.asarray(constraints.norm_indices or (), dtype=np.int64),
+                   v_max=1.0 if constraints.norm_bound is None else float(constraints.norm_bound),
+                   couple=np.concatenate([np.ones(num_neighbors), np.zeros(num_rows)]))
+
+    def args(self) -> tuple:
+        """The kernel arguments after ``couple, alpha``: ``(u_max, box, norm_idx, v_max)``."""
+        return self.u_max, self.box, self.norm_idx, self.v_max
+
+    def sizes(self, R: int, n: int, T: int) -> tuple[int, int, int]:
+        """``(m, ov, Ts)``: inequality count, offset and count of the state-norm rows (as the kernel)."""
+        Tq = T if self.u_max < math.inf else 0
+        nb = n if self.box.size else 0
+        Ts = T if self.norm_idx.size else 0
+        ov = 2 * R + Tq + 2 * nb
+        return ov + 2 * Ts, ov, Ts
+
+
+def _polish(arrays: list[np.ndarray], point: _Iterate, kkt_error: np.ndarray, alpha: float, limits: KernelLimits,
             penalty: float, tol: float) -> tuple[_Iterate, np.ndarray, np.ndarray, np.ndarray]:
     """Continue from ``point`` to ``POLISH_FACTOR * tol`` (at most ``POLISH_ITERATIONS`` more
     iterations): gradients are more sensitive than solutions to the barrier perturbation (a
@@ -206,7 +276,7 @@ def _polish(arrays: list[np.ndarray], point: _Iterate, kkt_error: np.ndarray, al
     B = point.u.shape[0]
     polished = point.copy()
     p_conv, p_iter, p_err = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
-    ipm.solve_batch(*arrays, alpha, u_max, penalty, POLISH_FACTOR * tol, POLISH_ITERATIONS,
+    ipm.solve_batch(*arrays, limits.couple, alpha, *limits.args(), penalty, POLISH_FACTOR * tol, POLISH_ITERATIONS,
                     polished.u, polished.y, polished.w, polished.z, True, p_conv, p_iter, p_err)
     return polished, p_conv | (p_err <= kkt_error), p_iter, p_err
 
@@ -215,25 +285,26 @@ class _LocalQpFunction(torch.autograd.Function):
     """Batched interior-point solve with implicit differentiation of its KKT conditions.
 
     Inputs are the :class:`CanonicalData` tensors (G, h, c_x, l_x, rho_y, w_y, normals,
-    bounds) and a settings tuple; outputs ``(u (B, n), y (B, M, T, D), s (B, M, T),
-    converged (B,))``.
+    bounds; M' = M + L slots) and a settings tuple; outputs ``(u (B, n), y (B, M', T, D),
+    s (B, M', T), converged (B,))``.
     """
 
     @staticmethod
     def forward(ctx, G, h, c_x, l_x, rho_y, w_y, normals, bounds, settings):  # noqa: D102
-        alpha, u_max, penalty, tol, max_iter, stats = settings
+        alpha, limits, penalty, tol, max_iter, stats = settings
         arrays = _kernel_arrays((G, h, c_x, l_x, rho_y, w_y, normals, bounds))
         B, M, T, D = normals.shape
         R, n = M * T, G.shape[2]
-        point = _Iterate(np.empty((B, n)), np.empty((B, R, D)), np.empty((B, 2 * R + T)), np.empty((B, 2 * R + T)))
+        m, _, _ = limits.sizes(R, n, T)
+        point = _Iterate(np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m)))
         converged, iterations, kkt_error = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
-        ipm.solve_batch(*arrays, alpha, u_max, penalty, tol, max_iter, point.u, point.y, point.w, point.z, False,
-                        converged, iterations, kkt_error)
+        ipm.solve_batch(*arrays, limits.couple, alpha, *limits.args(), penalty, tol, max_iter,
+                        point.u, point.y, point.w, point.z, False, converged, iterations, kkt_error)
         # Return (and differentiate at) the polished point: the backward differentiates the exact
         # KKT conditions, and the returned point must be the one they hold at, else a nearly
         # degenerate row (active, multiplier ~1e-3) makes the returned map's derivative differ
         # from the gradient by O(tol / multiplier^2) (measured: 1.6e-4 relative at tol 1e-10).
-        polished, improved, p_iter, p_err = _polish(arrays, point, kkt_error, alpha, u_max, penalty, tol)
+        polished, improved, p_iter, p_err = _polish(arrays, point, kkt_error, alpha, limits, penalty, tol)
         better = converged & improved
         # an unconverged row (flagged as failed) is returned as solved but differentiated polished
         at = _where_rows(~converged | improved, polished, point)
@@ -241,7 +312,7 @@ class _LocalQpFunction(torch.autograd.Function):
         kkt_error = np.where(better, p_err, kkt_error)
         stats["iterations"] = int((iterations + np.where(better, p_iter, 0)).max(initial=0))
         ctx.at = at
-        ctx.alpha = alpha
+        ctx.alpha, ctx.limits = alpha, limits
         ctx.save_for_backward(G, h, c_x, l_x, rho_y, w_y, normals, bounds)
 
         def out(a: np.ndarray, *shape: int) -> Tensor:
@@ -254,11 +325,13 @@ class _LocalQpFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_u, g_y, g_s, _g_conv):  # noqa: D102
         at = ctx.at  # the polished point (forward)
-        alpha = ctx.alpha
+        alpha, limits = ctx.alpha, ctx.limits
         inputs = ctx.saved_tensors  # (autograd checks these were not modified in place)
         arrays = _kernel_arrays(inputs)
         B, R, D = at.y.shape
         n = at.u.shape[1]
+        T = inputs[6].shape[2]
+        _, ov, Ts = limits.sizes(R, n, T)
         ref = inputs[1]
 
         def arr(g: Tensor | None, *shape: int) -> np.ndarray:
@@ -269,14 +342,16 @@ class _LocalQpFunction(torch.autograd.Function):
         def ten(a: np.ndarray) -> Tensor:
             return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=ref.dtype, device=ref.device)
 
-        a_u, a_y, xi, failed = np.empty((B, n)), np.empty((B, R, D)), np.empty((B, R)), np.empty(B, dtype=np.bool_)
-        ipm.adjoint_batch(*arrays, alpha, at.u, at.w, at.z, arr(g_u, B, n), arr(g_y, B, R, D), arr(g_s, B, R),
-                          a_u, a_y, xi, failed)
-        a_u, a_y, xi = (ten(np.nan_to_num(a)) for a in (a_u, a_y, xi))
+        a_u, a_y, xi, xi_v = np.empty((B, n)), np.empty((B, R, D)), np.empty((B, R)), np.empty((B, Ts))
+        failed = np.empty(B, dtype=np.bool_)
+        ipm.adjoint_batch(*arrays, limits.couple, alpha, *limits.args(), at.u, at.w, at.z, arr(g_u, B, n),
+                          arr(g_y, B, R, D), arr(g_s, B, R), a_u, a_y, xi, xi_v, failed)
+        a_u, a_y, xi, xi_v = (ten(np.nan_to_num(a)) for a in (a_u, a_y, xi, xi_v))
         needs = ctx.needs_input_grad[:8]
         with torch.enable_grad():
             leaves = [t.detach().requires_grad_(n) for t, n in zip(inputs, needs)]
-            pairing = _stationarity_pairing(*leaves, ten(at.u), ten(at.y), ten(at.z[:, :R]), a_u, a_y, xi)
+            pairing = _stationarity_pairing(*leaves, ten(at.u), ten(at.y), ten(at.z[:, :R]), a_u, a_y, xi,
+                                            limits.norm_idx.tolist(), ten(at.z[:, ov:ov + Ts]), xi_v)
             wanted = [leaf for leaf, n in zip(leaves, needs) if n]
             grads = iter(torch.autograd.grad(pairing, wanted, allow_unused=True)) if wanted else iter(())
         out = []
@@ -297,12 +372,16 @@ class InteriorPointMPC(nn.Module):
                     + sum_{active j} [ lam_own_j . X + lam_nbr_j . Y_j
                                        + rho_j / 2 (||X - z_own_j||^2 + ||Y_j - z_nbr_j||^2) ]
                     + sum_{inactive j} 1/2 ||Y_j||^2
-        over        X (T+1, D), U (T, Du), Y_j (T+1, D), s (M, T)
+                    + slack_penalty * (sum(s_state) + sum(sigma))
+        over        X (T+1, D), U (T, Du), Y_j (T+1, D), s (M, T), s_state (L, T), sigma (T)
         subject to  X_0 = x0,  X_{t+1} = dyn_A_t X_t + dyn_B_t U_t + dyn_c_t   t = 0..T-1
-                    ||U_t||_2 <= u_max                                      t = 0..T-1
+                    ||U_t||_2 <= u_max  and/or  |U_t,i| <= box_i               t = 0..T-1
                     n_{j,t}^T (X_t - Y_{j,t}) + s_{j,t} >= bound_{j,t},  s >= 0   t = 1..T
+                    n_{l,t}^T X_t + s_state_{l,t} >= b_{l,t},  s_state >= 0       t = 1..T
+                    ||X_t[idx]||^2 <= v^2 + 2 v sigma_t,  sigma >= 0             t = 1..T
 
-    (inactive slots have no collision row). Method:
+    (inactive slots have no collision row; the state rows are the model's state box and rows,
+    the workspace and the data's half-spaces, see :mod:`torch_gpmpc.control.constraints`). Method:
 
     * **Condensing.** ``X_{1..T} = G u + h`` with ``u = vec(U)`` (:func:`condense_dynamics`);
       ``Y_{j,0} = (rho z_nbr - lam_nbr)_{j,0} / rho_j`` in closed form. Variables left:
@@ -335,19 +414,24 @@ class InteriorPointMPC(nn.Module):
     Never raises on numerical trouble: problems that do not converge within
     ``max_iter`` (or have non-finite data) get ``ok = False`` and finite outputs.
 
-    Only a norm input bound and no state bound (use the cvxpylayers path,
-    :class:`~torch_gpmpc.control.solvers.conic.CvxpyLayerMPC`, for box input bounds and state bounds).
+    The state rows are slots without a neighbour copy (eliminated like the collision rows),
+    the input box is a pair of rows per input (diagonal in the reduced matrix), and the state
+    norm bound is a smooth convex row like the input norm bound (augmented, with its slack
+    eliminated), so every family keeps the same two factorizations per iteration.
 
     Args:
         horizon: T.
         dim: D, the state dimension.
         num_neighbors: M (0 allowed).
         nominal: the nominal model: its B (D, Du) is used where the data has no ``dyn_B``.
-        u_max: input norm bound (``None``: the model's).
+        u_max: input norm bound (``None``: the model's; ignored if the model has only a box).
         alpha: control-effort weight.
-        slack_penalty: exact-penalty weight of the collision slacks.
+        slack_penalty: exact-penalty weight of the collision and state slacks.
         tol: stopping tolerance on the KKT error.
         max_iter: iteration limit.
+        constraints: the input bounds and soft state constraints (``None``: the model's,
+            :meth:`LocalConstraints.of`); pass one to add a workspace.
+        num_halfspaces: L, the per-problem half-space rows the data carries (0: none).
 
     Example:
         >>> from torch_gpmpc import InteriorPointMPC, NominalModel
@@ -359,26 +443,25 @@ class InteriorPointMPC(nn.Module):
     """
 
     def __init__(self, horizon: int, dim: int, num_neighbors: int, nominal: NominalModel, u_max: float | None,
-                 alpha: float, slack_penalty: float = 1e4, tol: float = 1e-10, max_iter: int = 50) -> None:
+                 alpha: float, slack_penalty: float = 1e4, tol: float = 1e-10, max_iter: int = 100,
+                 constraints: LocalConstraints | None = None, num_halfspaces: int = 0) -> None:
         super().__init__()
-        if horizon < 1 or dim < 1 or num_neighbors < 0:
-            raise GpmpcError(f"InteriorPointMPC needs horizon >= 1, dim >= 1, num_neighbors >= 0; got "
-                             f"{horizon}, {dim}, {num_neighbors}")
+        if horizon < 1 or dim < 1 or num_neighbors < 0 or num_halfspaces < 0:
+            raise GpmpcError(f"InteriorPointMPC needs horizon >= 1, dim >= 1, num_neighbors >= 0, num_halfspaces >= 0; "
+                             f"got {horizon}, {dim}, {num_neighbors}, {num_halfspaces}")
         if nominal.dim != dim:
             raise GpmpcError(f"nominal model has dim {nominal.dim}, InteriorPointMPC dim is {dim}")
-        spec = nominal.spec
-        if spec.input_box is not None or spec.state_bound_norm is not None:
-            raise GpmpcError(f"solver 'fast' supports a norm input bound and no state bound; model {spec.name!r} has "
-                             f"{'a box input bound' if spec.input_box is not None else 'a state bound'}: "
-                             "use --set solver=clarabel")
-        u_max = spec.input_norm if u_max is None else u_max
-        if u_max <= 0 or alpha <= 0 or slack_penalty <= 0 or tol <= 0 or max_iter < 1:
-            raise GpmpcError(f"u_max, alpha, slack_penalty, tol must be > 0 and max_iter >= 1; got "
-                             f"{u_max}, {alpha}, {slack_penalty}, {tol}, {max_iter}")
+        self.constraints = constraints or LocalConstraints.of(nominal.spec, u_max)
+        if alpha <= 0 or slack_penalty <= 0 or tol <= 0 or max_iter < 1:
+            raise GpmpcError(f"alpha, slack_penalty, tol must be > 0 and max_iter >= 1; got "
+                             f"{alpha}, {slack_penalty}, {tol}, {max_iter}")
         self.horizon, self.dim, self.num_neighbors = horizon, dim, num_neighbors
+        self.num_halfspaces = int(num_halfspaces)
         self.nominal, self.input_dim = nominal, nominal.input_dim
-        self.u_max, self.alpha, self.slack_penalty = float(u_max), float(alpha), float(slack_penalty)
+        self.u_max = self.constraints.input_norm
+        self.alpha, self.slack_penalty = float(alpha), float(slack_penalty)
         self.tol, self.max_iter = float(tol), int(max_iter)
+        self._limits = KernelLimits.of(self.constraints, num_neighbors, num_halfspaces + self.constraints.num_rows)
         #: Iterations used by the last call (for benchmarks and logging).
         self.last_iterations = 0
         self._condensed = CondensedCache()
@@ -398,16 +481,17 @@ class InteriorPointMPC(nn.Module):
         Raises:
             GpmpcError: if a field has the wrong shape.
         """
-        batch = data.validate(self.horizon, self.dim, self.num_neighbors, self.input_dim)
+        batch = data.validate(self.horizon, self.dim, self.num_neighbors, self.input_dim, self.num_halfspaces)
         T, D, M = self.horizon, self.dim, self.num_neighbors
         if self._B is None or self._B.dtype != data.x0.dtype or self._B.device != data.x0.device:
             self._B = self.nominal.B(data.x0.dtype, data.x0.device)  # one object: the cache keys on it
-        canon = canonicalize(data, self._B, self._condensed)
+        canon = with_state_rows(canonicalize(data, self._B, self._condensed), self._state_rows(data, batch))
         canon, valid = _sanitize(canon)
         stats: dict = {}
-        settings = (self.alpha, self.u_max, self.slack_penalty, self.tol, self.max_iter, stats)
+        settings = (self.alpha, self._limits, self.slack_penalty, self.tol, self.max_iter, stats)
         u, y1, slack, converged = _LocalQpFunction.apply(canon.G, canon.h, canon.c_x, canon.l_x, canon.rho_y,
                                                          canon.w_y, canon.normals, canon.bounds, settings)
+        y1, slack = y1[:, :M], slack[:, :M]  # the state rows' copies are 0; their slacks show in state_slack
         self.last_iterations = stats["iterations"]
         x0 = torch.where(valid[:, None], data.x0, torch.zeros_like(data.x0))
         X = torch.cat([x0[:, None], (_mv(canon.G, u) + canon.h).view(batch, T, D)], dim=1)
@@ -415,7 +499,7 @@ class InteriorPointMPC(nn.Module):
         Y = torch.cat([canon.y0[:, :, None], y1], dim=2)
         # the same acceptance rule as the cvxpylayers path; unconverged or invalid rows fail too
         failure = acceptance_failures(data, X.detach(), U.detach(), Y.detach(), slack.detach(),
-                                      self.nominal, self.u_max)
+                                      self._B, self.constraints)
         failure = torch.where(~valid, torch.full_like(failure, FAIL_NONFINITE), failure)  # bad input data
         failure = torch.where(~converged & (failure == 0), torch.full_like(failure, FAIL_INACCURATE), failure)
         ok = failure == 0
@@ -429,8 +513,22 @@ class InteriorPointMPC(nn.Module):
                          int((~ok).sum()), batch, self.tol, self.max_iter)
         xref = torch.where(valid[:, None, None], data.xref, torch.zeros_like(data.xref))
         cost = ((X - xref) ** 2).sum(dim=(1, 2)) + self.alpha * (U ** 2).sum(dim=(1, 2))
+        state_slack = self.constraints.state_violation(X, data.halfspace_normals, data.halfspace_bounds)
         return LocalSolution(X=X, U=U, Y=Y, slack=slack, slack_active=slack_active, ok=ok, cost=cost,
-                             failure=failure)
+                             failure=failure, state_slack=state_slack)
+
+    def _state_rows(self, data: LocalProblemData, batch: int) -> list[tuple[Tensor, Tensor]]:
+        """The soft state rows as slot blocks: the data's half-spaces, then the constant rows."""
+        T = self.horizon
+        rows = []
+        if self.num_halfspaces:
+            rows.append((data.halfspace_normals, data.halfspace_bounds))
+        if self.constraints.num_rows:
+            normals, bounds = self.constraints.rows(self.dim, data.x0.dtype, data.x0.device)
+            L = normals.shape[0]
+            rows.append((normals[None, :, None].expand(batch, L, T, self.dim),
+                         bounds[None, :, None].expand(batch, L, T)))
+        return rows
 
 
 def _sanitize(canon: CanonicalData) -> tuple[CanonicalData, Tensor]:

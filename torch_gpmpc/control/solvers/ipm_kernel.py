@@ -1,29 +1,38 @@
 """The interior-point kernel of :class:`~torch_gpmpc.control.solvers.interior_point.InteriorPointMPC`, compiled by numba.
 
-One local problem (paper eq. 27) after condensing the dynamics, in the variables
-``u = vec(U)`` (n = T Du), the neighbour copies ``y`` (R = M T rows of D; R counts collision rows) and the
-collision slacks ``s`` (R)::
+One local problem (paper eq. 27 with the constraints of :mod:`torch_gpmpc.control.constraints`)
+after condensing the dynamics, in the variables ``u = vec(U)`` (n = T Du), the copies ``y``
+(R = M T rows of D), the row slacks ``s`` (R) and the state-norm slacks ``sigma`` (Ts)::
 
-    minimize    1/2 u^T H u + g0^T u + sum_k (rho_k / 2 ||y_k||^2 - wy_k . y_k) + P sum(s)
-    subject to  g_c = A u - N.y + s - bt >= 0        (R collision rows)
-                s >= 0                               (R)
-                g_q = (u_max^2 - ||U_t||^2) / 2 >= 0 (T input bounds)
+    minimize    1/2 u^T H u + g0^T u + sum_k (rho_k / 2 ||y_k||^2 - wy_k . y_k) + P (sum(s) + sum(sigma))
+    subject to  g_c = A u - N.y + s - bt >= 0                      (R linear rows)
+                s >= 0                                             (R)
+                g_q = (u_max^2 - ||U_t||^2) / 2 >= 0               (Tq = T or 0: input norm)
+                box_i - u_i >= 0,  box_i + u_i >= 0                (nb = n or 0: input box)
+                g_v = (v^2 + 2 v sigma_t - ||P x_t||^2) / 2 >= 0   (Ts = T or 0: state norm, x = G u + h)
+                sigma >= 0                                         (Ts)
 
 with ``H = 2 c_x G^T G + 2 alpha I``, ``g0 = G^T (2 c_x h - l_x)``, ``A_k = G_t^T n_k`` and
-``bt_k = bound_k - n_k . h_t`` for row ``k = j T + t`` (built by :func:`_setup`).
+``bt_k = bound_k - n_k . h_t`` for row ``k = j T + t`` (built by
+:func:`~torch_gpmpc.control.solvers.ipm_residuals.setup`). The first Rc rows are collision rows
+(slot flag ``couple = 1``: ``N = n``); the rest are soft state rows (``N = 0``, ``y = 0``).
 
-Inequalities ``g >= 0`` get slacks ``w`` and multipliers ``z`` (both of length
-``m = 2 R + T``), ordered ``[collision rows | s | input bounds]``. Method: primal-dual
-Mehrotra predictor-corrector from an infeasible start, one step length, fraction to the
-boundary 0.99, inputs projected onto ``||U_t|| <= u_max`` after each step (globalization).
+Inequalities ``g >= 0`` get slacks ``w`` and multipliers ``z`` (length m), ordered
+``[linear rows | s | input norm | box upper | box lower | state norm | sigma]``. Method:
+primal-dual Mehrotra predictor-corrector from an infeasible start, one step length, fraction
+to the boundary 0.99, inputs projected onto the norm ball and the box after each step
+(globalization).
 
-Linear algebra per Newton step: per collision row, ``y_k`` and ``s_k`` are eliminated in
-closed form, leaving ``S0 = H + blockdiag(z_q I) + A^T diag(deff) A`` (n x n, positive
-definite, bounded entries) with ``deff_k = 1 / (w_c/z_c + |n_k|^2/rho_k + s/z_s)``. The
-input bounds stay in augmented form ``[[S0, E^T], [E, -diag(w_q/z_q)]]`` (``E`` row t
-is ``-U_t`` in block t), solved through the Schur complement
-``diag(w_q/z_q) + E S0^-1 E^T`` (T x T, positive definite): two Cholesky factorizations,
-no 1/mu-sized entry (eliminating ``dz_q`` instead would add ``(z_q/w_q) U_t U_t^T`` to S0).
+Linear algebra per Newton step: per linear row, ``y_k`` and ``s_k`` are eliminated in closed
+form with weight ``deff_k = 1 / (w_c/z_c + |N_k|^2/rho_k + s/z_s)``; a collision row's weight is
+at most ``rho_k / |n_k|^2`` and it goes into ``S0 = H + blockdiag(z_q I) + diag(box terms) +
+sum_t z_v G_t^T P^T P G_t + A^T diag(deff) A`` (n x n, positive definite). A state row's weight
+grows like 1/mu as it becomes active, so a heavy one (``deff |A_k|^2 > AUGMENT_WEIGHT max H_ii``)
+stays in augmented form with the quadratic rows: ``[[S0, E^T], [E, -W]]``, ``E`` rows ``-U_t``
+(input norm), ``-G_t^T P^T P x_t`` (state norm) and ``A_k`` (heavy rows), solved through the
+Schur complement ``W + E S0^-1 E^T`` (positive definite): two Cholesky factorizations per
+iteration and no 1/mu-sized entry in either (the box rows are diagonal, which Cholesky takes
+at any size).
 
 Why numba: the closed loop solves batches of 3 problems of ~80 unknowns. Written as
 batched NumPy/torch operations, one interior-point iteration costs about 0.85 ms at batch
@@ -39,294 +48,157 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from torch_gpmpc.control.solvers.ipm_linalg import (
+    absmax, absmax2, backward_solve, cholesky, copy_into, fill, forward_solve,
+)
+from torch_gpmpc.control.solvers.ipm_residuals import (
+    coupled_rows, initial_point, kkt_error, offsets, residuals, setup, state_values,
+)
+
 #: Fraction of the step to the boundary of the positive orthant.
 STEP_FRACTION = 0.99
 
 #: After each step every U_t is projected onto the ball of this multiple of u_max.
 TRUST_RADIUS = 1.0
 
+#: A state row whose Newton weight ``deff |A_k|^2`` exceeds this multiple of H's largest
+#: diagonal entry (a nearly active row, weight ~1/mu) joins the augmented rows instead of S0.
+AUGMENT_WEIGHT = 1e4
+
 # error_model="numpy": float division by zero gives inf/nan (checked), never an exception.
 _jit = numba.njit(cache=True, error_model="numpy", nogil=True)
 
 
-# ------------------------------------------------------------------------ small dense algebra
-# (explicit loops, not array expressions: numba compiles them several times faster)
-@_jit
-def _absmax(x: np.ndarray) -> float:
-    """``max |x|`` of a 1-D array (0 if empty, NaN if any entry is NaN)."""
-    v = 0.0
-    for i in range(x.shape[0]):
-        a = abs(x[i])
-        if a > v:
-            v = a
-        elif a != a:
-            return np.nan
-    return v
-
-
-@_jit
-def _absmax2(x: np.ndarray) -> float:
-    """``max |x|`` of a 2-D array (0 if empty, NaN if any entry is NaN)."""
-    v = 0.0
-    for i in range(x.shape[0]):
-        a = _absmax(x[i])
-        if a != a:
-            return a
-        v = max(v, a)
-    return v
-
-
-@_jit
-def _fill(x: np.ndarray, value: float) -> None:
-    """``x[:] = value`` for a 1-D array."""
-    for i in range(x.shape[0]):
-        x[i] = value
-
-
-@_jit
-def _copy(src: np.ndarray, dst: np.ndarray) -> None:
-    """``dst[:] = src`` for 1-D arrays."""
-    for i in range(src.shape[0]):
-        dst[i] = src[i]
-
-
-@_jit
-def _cholesky(S: np.ndarray, size: int) -> bool:
-    """In place: the lower triangle of ``S[:size, :size]`` becomes L with S = L L^T.
-
-    Only the lower triangle of S is read. Returns False if S is not (numerically)
-    positive definite (a pivot <= 0 or NaN).
-    """
-    for j in range(size):
-        d = S[j, j]
-        for k in range(j):
-            d -= S[j, k] * S[j, k]
-        if not d > 0.0:
-            return False
-        d = np.sqrt(d)
-        S[j, j] = d
-        inv = 1.0 / d
-        for i in range(j + 1, size):
-            v = S[i, j]
-            for k in range(j):
-                v -= S[i, k] * S[j, k]
-            S[i, j] = v * inv
-    return True
-
-
-@_jit
-def _forward(L: np.ndarray, x: np.ndarray, size: int, first: int) -> None:
-    """In place ``x <- L^-1 x`` for lower-triangular L, where ``x[:first] == 0``."""
-    for i in range(first, size):
-        v = x[i]
-        for k in range(first, i):
-            v -= L[i, k] * x[k]
-        x[i] = v / L[i, i]
-
-
-@_jit
-def _backward(L: np.ndarray, x: np.ndarray, size: int) -> None:
-    """In place ``x <- L^-T x`` for lower-triangular L."""
-    for i in range(size - 1, -1, -1):
-        v = x[i]
-        for k in range(i + 1, size):
-            v -= L[k, i] * x[k]
-        x[i] = v / L[i, i]
-
-
 # ------------------------------------------------------------------------ one problem
 @_jit
-def _setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, alpha, H, g0, A, bt, rho, N, wy) -> None:
-    """Fill the problem arrays of one problem from its canonical data (see module docstring).
-
-    Shapes: G (nx, n), h (nx,), l_x (nx,), rho_y (M,), w_y (M, T, D), normals (M, T, D),
-    bounds (M, T) with nx = T D states and n = T Du inputs; outputs H (n, n), g0 (n,), A (R, n),
-    bt (R,), rho (R,), N (R, D), wy (R, D).
-    """
-    nx, n = G.shape
-    M, T, D = normals.shape
-    c2 = 2.0 * c_x
-    for i in range(n):
-        for j in range(i + 1):
-            v = 0.0
-            for r in range(nx):
-                v += G[r, i] * G[r, j]
-            H[i, j] = c2 * v
-            H[j, i] = c2 * v
-        H[i, i] += 2.0 * alpha
-    for i in range(n):
-        v = 0.0
-        for r in range(nx):
-            v += G[r, i] * (c2 * h[r] - l_x[r])
-        g0[i] = v
-    for j in range(M):
-        for t in range(T):
-            k = j * T + t
-            rho[k] = rho_y[j]
-            b = bounds[j, t]
-            for d in range(D):
-                N[k, d] = normals[j, t, d]
-                wy[k, d] = w_y[j, t, d]
-                b -= normals[j, t, d] * h[t * D + d]
-            bt[k] = b
-            for i in range(n):
-                v = 0.0
-                for d in range(D):
-                    v += normals[j, t, d] * G[t * D + d, i]
-                A[k, i] = v
-
-
-@_jit
-def _initial_point(N, bt, rho, wy, u_max2, penalty, u, y, w, z) -> None:
-    """Infeasible start: ``u = 0``, unconstrained copies, ``z_c + z_s = P`` (dual feasible
-    in s) and ``s z_s = 1``, so every complementarity product starts near 1."""
-    R, D = N.shape
-    T = w.shape[0] - 2 * R
-    zc0 = min(1.0, 0.5 * penalty)
-    zs0 = penalty - zc0
-    _fill(u, 0.0)
-    for k in range(R):
-        s = 1.0 / zs0
-        gc = s - bt[k]
-        for d in range(D):
-            y[k, d] = wy[k, d] / rho[k]
-            gc -= N[k, d] * y[k, d]
-        w[k] = max(gc, 1.0)
-        w[R + k] = s
-        z[k] = zc0
-        z[R + k] = zs0
-    for t in range(T):
-        w[2 * R + t] = 0.5 * u_max2
-        z[2 * R + t] = 1.0
-
-
-@_jit
-def _residuals(H, g0, A, N, bt, rho, wy, u_max2, penalty, Du, u, y, w, z, r_u, r_y, r_s, r_pc, r_pq) -> None:
-    """Dual residuals ``r_u (n,), r_y (R, D), r_s (R,)`` and primal residuals
-    ``r_pc (R,), r_pq (T,)`` at ``(u, y, w, z)``, written in place (``Du``: input dimension)."""
-    n = u.shape[0]
-    R, D = N.shape
-    T = r_pq.shape[0]
-    for i in range(n):
-        v = g0[i] + z[2 * R + i // Du] * u[i]
-        for j in range(n):
-            v += H[i, j] * u[j]
-        r_u[i] = v
-    for k in range(R):
-        zc = z[k]
-        for i in range(n):
-            r_u[i] -= A[k, i] * zc
-        v = w[R + k] - bt[k] - w[k]
-        for i in range(n):
-            v += A[k, i] * u[i]
-        for d in range(D):
-            r_y[k, d] = rho[k] * y[k, d] - wy[k, d] + zc * N[k, d]
-            v -= N[k, d] * y[k, d]
-        r_pc[k] = v
-        r_s[k] = penalty - zc - z[R + k]
-    for t in range(T):
-        v = u_max2
-        for d in range(Du):
-            v -= u[t * Du + d] * u[t * Du + d]
-        r_pq[t] = 0.5 * v - w[2 * R + t]
-
-
-@_jit
-def _kkt_error(r_u, r_y, r_s, r_pc, r_pq, w, z, scale_u, scale_y, scale_p, penalty) -> float:
-    """Largest of the relative dual residuals, the relative primal residuals and the
-    absolute complementarity ``sum(w z)`` (absolute because nearly degenerate collision
-    rows need it: their copies y follow z)."""
-    e_u = _absmax(r_u) / scale_u
-    e_y = _absmax2(r_y) / scale_y
-    e_s = _absmax(r_s) / (1.0 + penalty)
-    e_c = _absmax(r_pc) / scale_p
-    e_q = _absmax(r_pq) / scale_p
-    gap = 0.0
-    for i in range(w.shape[0]):
-        gap += w[i] * z[i]
-    # checked on the sum: max() drops a NaN that is not its first argument
-    if not np.isfinite(e_u + e_y + e_s + e_c + e_q + gap):
-        return np.inf
-    return max(e_u, e_y, e_s, e_c, e_q, gap)
-
-
-@_jit
-def _factor(H, A, N, rho, Du, u, w, z, deff, S, V, Sch) -> bool:
+def _factor(H, A, N, rho, G, sbi, D, Du, v_max, off, Rc, u, w, z, xs, deff, aug, S, E, first, V, Sch) -> int:
     """Factor the reduced Newton matrix at ``(u, w, z)`` (see the module docstring).
 
-    Writes ``deff (R,)``, the Cholesky factor of S0 into ``S (n, n)``, ``V = L^-1 E^T``
-    stored by rows into ``V (T, n)`` and the Cholesky factor of the Schur complement into
-    ``Sch (T, T)``. Returns False if a factorization breaks down.
+    Writes ``deff (R,)``, ``aug (R,)`` (the augmented position of a state row whose weight
+    ``deff |A_k|^2`` exceeds ``AUGMENT_WEIGHT`` times the scale of H, else -1), the Cholesky
+    factor of S0 into ``S (n, n)``, the rows of the augmented constraints' gradients into
+    ``E (Ta, n)`` (``first (Ta,)``: their first nonzero column; order: input norm rows, state
+    norm rows, heavy state rows), ``V = L^-1 E^T`` stored by rows into ``V (Ta, n)`` and the
+    Cholesky factor of the Schur complement into ``Sch (Ta, Ta)``.
+
+    Returns:
+        Ta, the number of augmented rows, or -1 if a factorization breaks down.
     """
     n = u.shape[0]
-    R, D = N.shape
-    T = V.shape[0]
+    R, D_ = N.shape
+    oq, ob, ov, osg, Tq, nb, Ts, m = off
+    Ta = Tq + Ts
+    hscale = 1.0
+    for i in range(n):
+        hscale = max(hscale, H[i, i])
     for i in range(n):
         for j in range(i + 1):
             S[i, j] = H[i, j]
-        S[i, i] += z[2 * R + i // Du]
+        if Tq:
+            S[i, i] += z[oq + i // Du]
+        if nb:
+            S[i, i] += z[ob + i] / w[ob + i] + z[ob + nb + i] / w[ob + nb + i]
+    for t in range(Ts):  # Hessian of the state-norm rows: z_v G_t^T P^T P G_t
+        zt = z[ov + t]
+        for a in range(sbi.shape[0]):
+            r = t * D + sbi[a]
+            for i in range(n):
+                gi = zt * G[r, i]
+                if gi != 0.0:
+                    for j in range(i + 1):
+                        S[i, j] += gi * G[r, j]
     for k in range(R):
         nn = 0.0
-        for d in range(D):
+        for d in range(D_):
             nn += N[k, d] * N[k, d]
         dk = 1.0 / (w[k] / z[k] + nn / rho[k] + w[R + k] / z[R + k])
         deff[k] = dk
+        aug[k] = -1
+        if k >= Rc:  # a state row: its deff is not bounded by rho; augment it when it is heavy
+            a2 = 0.0
+            for i in range(n):
+                a2 += A[k, i] * A[k, i]
+            if dk * a2 > AUGMENT_WEIGHT * hscale:
+                aug[k] = Ta
+                Ta += 1
+                continue
         for i in range(n):
             a = dk * A[k, i]
             if a != 0.0:
                 for j in range(i + 1):
                     S[i, j] += a * A[k, j]
-    if not _cholesky(S, n):
-        return False
-    for t in range(T):
-        _fill(V[t], 0.0)
+    if not cholesky(S, n):
+        return -1
+    for t in range(Tq):
+        fill(E[t], 0.0)
         for d in range(Du):
-            V[t, t * Du + d] = -u[t * Du + d]
-        _forward(S, V[t], n, t * Du)
-    for t1 in range(T):
-        for t2 in range(t1 + 1):
+            E[t, t * Du + d] = -u[t * Du + d]
+        first[t] = t * Du
+    for t in range(Ts):
+        row = E[Tq + t]
+        fill(row, 0.0)
+        for a in range(sbi.shape[0]):
+            r = t * D + sbi[a]
+            c = xs[t, a]
+            for i in range(n):
+                row[i] -= c * G[r, i]
+        first[Tq + t] = 0
+    for k in range(Rc, R):
+        if aug[k] >= 0:
+            copy_into(A[k], E[aug[k]])
+            first[aug[k]] = 0
+    for q in range(Ta):
+        copy_into(E[q], V[q])
+        forward_solve(S, V[q], n, first[q])
+    for q1 in range(Ta):
+        for q2 in range(q1 + 1):
             v = 0.0
             for i in range(n):
-                v += V[t1, i] * V[t2, i]
-            Sch[t1, t2] = v
-        Sch[t1, t1] += w[2 * R + t1] / z[2 * R + t1]
-    return _cholesky(Sch, T)
+                v += V[q1, i] * V[q2, i]
+            Sch[q1, q2] = v
+    for t in range(Tq):
+        Sch[t, t] += w[oq + t] / z[oq + t]
+    for t in range(Ts):
+        Sch[Tq + t, Tq + t] += w[ov + t] / z[ov + t] + v_max * v_max * w[osg + t] / z[osg + t]
+    for k in range(Rc, R):
+        if aug[k] >= 0:
+            Sch[aug[k], aug[k]] += 1.0 / deff[k]
+    return Ta if cholesky(Sch, Ta) else -1
 
 
 @_jit
-def _solve(S, V, Sch, rhs1, rhs2, x1, x2) -> None:
+def _solve(S, V, Sch, Ta, rhs1, rhs2, x1, x2) -> None:
     """Solve ``[[S0, E^T], [E, -W]] [x1; x2] = [rhs1; rhs2]`` with the factors of :func:`_factor`.
 
-    Shapes: rhs1, x1 (n,); rhs2, x2 (T,).
+    Shapes: rhs1, x1 (n,); rhs2, x2 (at least Ta,).
     """
     n = x1.shape[0]
-    T = x2.shape[0]
-    _copy(rhs1, x1)
-    _forward(S, x1, n, 0)  # a = L^-1 rhs1
-    for t in range(T):
-        v = -rhs2[t]
+    copy_into(rhs1, x1)
+    forward_solve(S, x1, n, 0)  # a = L^-1 rhs1
+    for q in range(Ta):
+        v = -rhs2[q]
         for i in range(n):
-            v += V[t, i] * x1[i]
-        x2[t] = v
-    _forward(Sch, x2, T, 0)
-    _backward(Sch, x2, T)  # x2 = Sch^-1 (E S0^-1 rhs1 - rhs2)
-    for t in range(T):
+            v += V[q, i] * x1[i]
+        x2[q] = v
+    forward_solve(Sch, x2, Ta, 0)
+    backward_solve(Sch, x2, Ta)  # x2 = Sch^-1 (E S0^-1 rhs1 - rhs2)
+    for q in range(Ta):
         for i in range(n):
-            x1[i] -= V[t, i] * x2[t]
-    _backward(S, x1, n)  # x1 = S0^-1 (rhs1 - E^T x2)
+            x1[i] -= V[q, i] * x2[q]
+    backward_solve(S, x1, n)  # x1 = S0^-1 (rhs1 - E^T x2)
 
 
 @_jit
-def _direction(A, N, rho, Du, u, w, z, deff, S, V, Sch, r_u, r_y, r_s, r_pc, r_pq, rc,
+def _direction(A, N, rho, Du, v_max, off, w, z, deff, aug, Ta, S, E, V, Sch, r_u, r_y, r_s, r_p, rc,
                du, dy, dw, dz, rhs1, rhs2, gam, dq) -> None:
     """Newton direction for the complementarity residual ``rc`` (``z dw + w dz = -rc``), shape (m,).
 
-    Writes ``du (n,), dy (R, D), dw (m,), dz (m,)``; ``rhs1 (n,), rhs2 (T,), gam (R,),
-    dq (T,)`` are work space.
+    Writes ``du (n,), dy (R, D), dw (m,), dz (m,)``; ``rhs1 (n,), rhs2 (Ta,), gam (R,),
+    dq (Ta,)`` are work space.
     """
-    n = u.shape[0]
+    n = du.shape[0]
     R, D = N.shape
-    T = rhs2.shape[0]
+    oq, ob, ov, osg, Tq, nb, Ts, m = off
     for i in range(n):
         rhs1[i] = -r_u[i]
     for k in range(R):
@@ -335,18 +207,31 @@ def _direction(A, N, rho, Du, u, w, z, deff, S, V, Sch, r_u, r_y, r_s, r_pc, r_p
             v += N[k, d] * r_y[k, d]
         s_zs = w[R + k] / z[R + k]
         rt_s = -r_s[k] - rc[R + k] / w[R + k]
-        gam[k] = v / rho[k] + rt_s * s_zs + r_pc[k] + rc[k] / z[k]  # gam + rho_c
+        gam[k] = v / rho[k] + rt_s * s_zs + r_p[k] + rc[k] / z[k]  # gam + rho_c
+        if aug[k] >= 0:  # augmented row: A_k du - xi_k / deff_k = -gam_k
+            rhs2[aug[k]] = -gam[k]
+            continue
         c = deff[k] * gam[k]
         for i in range(n):
             rhs1[i] -= A[k, i] * c
-    for t in range(T):
-        rhs2[t] = -r_pq[t] - rc[2 * R + t] / z[2 * R + t]
-    _solve(S, V, Sch, rhs1, rhs2, du, dq)
+    for i in range(nb):  # box rows: dz_+ - dz_- = p - q + (z_+/w_+ + z_-/w_-) du_i
+        p = (-rc[ob + i] - z[ob + i] * r_p[ob + i]) / w[ob + i]
+        q = (-rc[ob + nb + i] - z[ob + nb + i] * r_p[ob + nb + i]) / w[ob + nb + i]
+        rhs1[i] -= p - q
+    for t in range(Tq):
+        rhs2[t] = -r_p[oq + t] - rc[oq + t] / z[oq + t]
+    for t in range(Ts):
+        sg, zsg = w[osg + t], z[osg + t]
+        rhs2[Tq + t] = -r_p[ov + t] + v_max * (rc[osg + t] + sg * r_s[R + t]) / zsg - rc[ov + t] / z[ov + t]
+    _solve(S, V, Sch, Ta, rhs1, rhs2, du, dq)
     for k in range(R):
-        v = gam[k]
-        for i in range(n):
-            v += A[k, i] * du[i]
-        xi = deff[k] * v
+        if aug[k] >= 0:
+            xi = dq[aug[k]]
+        else:
+            v = gam[k]
+            for i in range(n):
+                v += A[k, i] * du[i]
+            xi = deff[k] * v
         for d in range(D):
             dy[k, d] = (N[k, d] * xi - r_y[k, d]) / rho[k]
         s_zs = w[R + k] / z[R + k]
@@ -355,12 +240,25 @@ def _direction(A, N, rho, Du, u, w, z, deff, S, V, Sch, r_u, r_y, r_s, r_pc, r_p
         dw[R + k] = s_zs * (rt_s - xi)
         dz[k] = -xi
         dz[R + k] = r_s[k] + xi
-    for t in range(T):
-        v = r_pq[t]
-        for d in range(Du):
-            v -= u[t * Du + d] * du[t * Du + d]
-        dw[2 * R + t] = v
-        dz[2 * R + t] = -dq[t]
+    for t in range(Tq):
+        v = r_p[oq + t]
+        for i in range(n):
+            v += E[t, i] * du[i]
+        dw[oq + t] = v
+        dz[oq + t] = -dq[t]
+    for i in range(nb):
+        j = ob + nb + i
+        dw[ob + i] = r_p[ob + i] - du[i]
+        dz[ob + i] = (-rc[ob + i] - z[ob + i] * dw[ob + i]) / w[ob + i]
+        dw[j] = r_p[j] + du[i]
+        dz[j] = (-rc[j] - z[j] * dw[j]) / w[j]
+    for t in range(Ts):
+        dzv = -dq[Tq + t]
+        sg, zsg = w[osg + t], z[osg + t]
+        dz[ov + t] = dzv
+        dw[ov + t] = (-rc[ov + t] - w[ov + t] * dzv) / z[ov + t]
+        dw[osg + t] = (-rc[osg + t] - sg * r_s[R + t] + sg * v_max * dzv) / zsg
+        dz[osg + t] = r_s[R + t] - v_max * dzv
 
 
 @_jit
@@ -373,7 +271,28 @@ def _max_step(w, z, dw, dz) -> float:
 
 
 @_jit
-def _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, Du, tol, max_iter, u, y, w, z):
+def _project_inputs(u, Du, u_max2, box) -> None:
+    """Globalization: each ``U_t`` onto the ball of radius ``TRUST_RADIUS u_max`` (if a norm
+    bound, ``u_max2 < inf``), then onto the box (if one)."""
+    T = u.shape[0] // Du
+    radius2 = TRUST_RADIUS * TRUST_RADIUS * u_max2
+    for t in range(T):
+        norm2 = 0.0
+        for d in range(Du):
+            norm2 += u[t * Du + d] * u[t * Du + d]
+        if norm2 > radius2:
+            shrink = np.sqrt(radius2 / norm2)
+            for d in range(Du):
+                u[t * Du + d] *= shrink
+    if box.shape[0]:
+        for i in range(u.shape[0]):
+            b = box[i % Du]
+            u[i] = min(max(u[i], -b), b)
+
+
+@_jit
+def _iterate(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, penalty, off, Rc, tol, max_iter,
+             u, y, w, z):
     """Run the method on one problem from ``(u, y, w, z)`` (updated in place).
 
     Returns:
@@ -381,26 +300,33 @@ def _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, Du, tol, max_iter, u, y,
         or whose step is not finite stops there, unconverged.
     """
     n = u.shape[0]
-    R, D = N.shape
-    m = w.shape[0]
-    T = m - 2 * R
-    radius2 = TRUST_RADIUS * TRUST_RADIUS * u_max2
-    scale_u = 1.0 + _absmax(g0)
-    scale_y = 1.0 + _absmax2(wy)
-    scale_p = 1.0 + max(_absmax(bt), u_max2)
+    R, D_ = N.shape
+    oq, ob, ov, osg, Tq, nb, Ts, m = off
+    Ta = Tq + Ts + R - Rc
+    p = sbi.shape[0]
+    scale_u = 1.0 + absmax(g0)
+    scale_y = 1.0 + absmax2(wy)
+    scale_p = 1.0 + max(absmax(bt), 0.0 if Tq == 0 else u_max2, absmax(box), v_max * v_max)
     r_u, rhs1, du = np.empty(n), np.empty(n), np.empty(n)
-    r_y, dy = np.empty((R, D)), np.empty((R, D))
-    r_s, r_pc, deff, gam = np.empty(R), np.empty(R), np.empty(R), np.empty(R)
-    r_pq, rhs2, dq = np.empty(T), np.empty(T), np.empty(T)
-    wz, rc, dw, dz = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
-    S, V, Sch = np.empty((n, n)), np.empty((T, n)), np.empty((T, T))
+    r_y, dy = np.empty((R, D_)), np.empty((R, D_))
+    r_s = np.empty(R + Ts)
+    deff, gam, aug = np.empty(R), np.empty(R), np.empty(R, dtype=np.int64)
+    rhs2, dq = np.empty(Ta), np.empty(Ta)
+    r_p, wz, rc, dw, dz = np.empty(m), np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+    S, E, V, Sch = np.empty((n, n)), np.empty((Ta, n)), np.empty((Ta, n)), np.empty((Ta, Ta))
+    first = np.zeros(Ta, dtype=np.int64)
+    xs = np.empty((Ts, p))
     err = np.inf
     for it in range(max_iter + 1):
-        _residuals(H, g0, A, N, bt, rho, wy, u_max2, penalty, Du, u, y, w, z, r_u, r_y, r_s, r_pc, r_pq)
-        err = _kkt_error(r_u, r_y, r_s, r_pc, r_pq, w, z, scale_u, scale_y, scale_p, penalty)
+        residuals(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, penalty, off,
+                   u, y, w, z, xs, r_u, r_y, r_s, r_p)
+        err = kkt_error(r_u, r_y, r_s, r_p, w, z, scale_u, scale_y, scale_p, penalty)
         if err <= tol:
             return True, it, err
-        if it == max_iter or not _factor(H, A, N, rho, Du, u, w, z, deff, S, V, Sch):
+        if it == max_iter:
+            return False, it, err
+        Ta_now = _factor(H, A, N, rho, G, sbi, D, Du, v_max, off, Rc, u, w, z, xs, deff, aug, S, E, first, V, Sch)
+        if Ta_now < 0:
             return False, it, err
         mu = 0.0
         for i in range(m):
@@ -408,7 +334,7 @@ def _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, Du, tol, max_iter, u, y,
             mu += wz[i]
         mu /= m
         # predictor (affine scaling)
-        _direction(A, N, rho, Du, u, w, z, deff, S, V, Sch, r_u, r_y, r_s, r_pc, r_pq, wz,
+        _direction(A, N, rho, Du, v_max, off, w, z, deff, aug, Ta_now, S, E, V, Sch, r_u, r_y, r_s, r_p, wz,
                    du, dy, dw, dz, rhs1, rhs2, gam, dq)
         a_aff = _max_step(w, z, dw, dz)
         mu_aff = 0.0
@@ -418,24 +344,17 @@ def _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, Du, tol, max_iter, u, y,
         # corrector
         for i in range(m):
             rc[i] = wz[i] + dw[i] * dz[i] - sigma * mu
-        _direction(A, N, rho, Du, u, w, z, deff, S, V, Sch, r_u, r_y, r_s, r_pc, r_pq, rc,
+        _direction(A, N, rho, Du, v_max, off, w, z, deff, aug, Ta_now, S, E, V, Sch, r_u, r_y, r_s, r_p, rc,
                    du, dy, dw, dz, rhs1, rhs2, gam, dq)
         step = min(STEP_FRACTION * _max_step(w, z, dw, dz), 1.0)
-        total = step + _absmax(du) + _absmax2(dy) + _absmax(dw) + _absmax(dz)
+        total = step + absmax(du) + absmax2(dy) + absmax(dw) + absmax(dz)
         if not total < np.inf:  # inf or NaN
             return False, it, err
-        for t in range(T):  # update U_t, then project it onto the trust ball
-            norm2 = 0.0
-            for d in range(Du):
-                i = t * Du + d
-                u[i] += step * du[i]
-                norm2 += u[i] * u[i]
-            if norm2 > radius2:
-                shrink = np.sqrt(radius2 / norm2)
-                for d in range(Du):
-                    u[t * Du + d] *= shrink
+        for i in range(n):
+            u[i] += step * du[i]
+        _project_inputs(u, Du, u_max2, box)
         for k in range(R):
-            for d in range(D):
+            for d in range(D_):
                 y[k, d] += step * dy[k, d]
         for i in range(m):
             w[i] += step * dw[i]
@@ -445,14 +364,18 @@ def _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, Du, tol, max_iter, u, y,
 
 # ------------------------------------------------------------------------ batched entry points
 @_jit
-def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, alpha, u_max, penalty, tol, max_iter,
-                u, y, w, z, warm, converged, iterations, kkt_error) -> None:
+def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, couple, alpha, u_max, box, sbi, v_max, penalty, tol,
+                max_iter, u, y, w, z, warm, converged, iterations, kkt_error) -> None:
     """Solve B problems one after another.
 
     Args:
         G (B, nx, n), h (B, nx), c_x (B,), l_x (B, nx), rho_y (B, M), w_y (B, M, T, D),
-        normals (B, M, T, D), bounds (B, M, T): the canonical data (float64, C-contiguous).
-        alpha, u_max, penalty, tol: floats; max_iter: int.
+        normals (B, M, T, D), bounds (B, M, T): the canonical data (float64, C-contiguous);
+        couple (M,): 1 for a neighbour slot (the row has a copy), 0 for a state row; the
+            neighbour slots come first.
+        alpha: float. u_max: input norm bound (``inf``: none). box (Du,) or (0,): input box.
+        sbi (p,) int64 or (0,): state indices of the soft norm bound ``v_max``.
+        penalty, tol: floats; max_iter: int.
         u (B, n), y (B, R, D), w (B, m), z (B, m): the primal-dual iterate, written in
             place; read as the starting point when ``warm`` (needs ``w, z > 0``).
         warm: start from the given iterate instead of the default initial point.
@@ -465,60 +388,88 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, alpha, u_max, penal
     B, n = h.shape[0], G.shape[2]
     M, T, D = normals.shape[1], normals.shape[2], normals.shape[3]
     R, Du = M * T, n // T
+    off = offsets(R, n, T, u_max < np.inf, box.shape[0] > 0, sbi.shape[0] > 0)
+    Rc = coupled_rows(couple, T)
     u_max2 = u_max * u_max
     H, g0, A = np.empty((n, n)), np.empty(n), np.empty((R, n))
     bt, rho, N, wy = np.empty(R), np.empty(R), np.empty((R, D)), np.empty((R, D))
+    xs = np.empty((off[6], sbi.shape[0]))
     for b in range(B):
-        _setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], alpha, H, g0, A, bt, rho, N, wy)
+        setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], couple, alpha,
+               H, g0, A, bt, rho, N, wy)
         if not warm:
-            _initial_point(N, bt, rho, wy, u_max2, penalty, u[b], y[b], w[b], z[b])
-        converged[b], iterations[b], kkt_error[b] = _iterate(H, g0, A, N, bt, rho, wy, u_max2, penalty, Du, tol,
-                                                             max_iter, u[b], y[b], w[b], z[b])
+            initial_point(N, bt, rho, wy, G[b], h[b], sbi, D, box, u_max2, v_max, penalty, off,
+                           u[b], y[b], w[b], z[b], xs)
+        converged[b], iterations[b], kkt_error[b] = _iterate(H, g0, A, N, bt, rho, wy, G[b], h[b], sbi, D, Du, box,
+                                                             u_max2, v_max, penalty, off, Rc, tol, max_iter,
+                                                             u[b], y[b], w[b], z[b])
 
 
 @_jit
-def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, alpha, u, w, z, g_u, g_y, g_s, a_u, a_y, xi,
-                  failed) -> None:
+def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, couple, alpha, u_max, box, sbi, v_max,
+                  u, w, z, g_u, g_y, g_s, a_u, a_y, xi, xi_v, failed) -> None:
     """Solve the reduced KKT system at each primal-dual point for the right-hand side
     ``(g_u, g_y, g_s)`` (the implicit-function adjoint; the system is symmetric).
 
-    Shapes: canonical data as in :func:`solve_batch`; ``u, g_u, a_u`` (B, n);
-    ``g_y, a_y`` (B, R, D); ``w, z`` (B, m); ``g_s, xi`` (B, R). Writes ``a_u, a_y`` and
-    ``xi``, the scaled multiplier ``(z_c / w_c) (grad g_c . a)`` of the collision rows,
-    and ``failed (B,)`` bool: problems whose matrix cannot be factored (they get zeros).
+    Shapes: canonical data and constraints as in :func:`solve_batch`; ``u, g_u, a_u`` (B, n);
+    ``g_y, a_y`` (B, R, D); ``w, z`` (B, m); ``g_s, xi`` (B, R); ``xi_v`` (B, Ts). Writes
+    ``a_u, a_y``, ``xi``, the scaled multiplier ``(z_c / w_c) (grad g_c . a)`` of the linear
+    rows, ``xi_v``, the adjoint multiplier of the state-norm rows, and ``failed (B,)`` bool:
+    problems whose matrix cannot be factored (they get zeros).
     """
     B, n = h.shape[0], G.shape[2]
     M, T, D = normals.shape[1], normals.shape[2], normals.shape[3]
     R, Du = M * T, n // T
+    off = offsets(R, n, T, u_max < np.inf, box.shape[0] > 0, sbi.shape[0] > 0)
+    Rc = coupled_rows(couple, T)
+    Tq, Ts = off[4], off[6]
+    Ta = Tq + Ts + R - Rc
     H, g0, A = np.empty((n, n)), np.empty(n), np.empty((R, n))
     bt, rho, N, wy = np.empty(R), np.empty(R), np.empty((R, D)), np.empty((R, D))
-    S, V, Sch = np.empty((n, n)), np.empty((T, n)), np.empty((T, T))
-    deff, rhs1, rhs2, dq = np.empty(R), np.empty(n), np.zeros(T), np.empty(T)
+    S, E, V, Sch = np.empty((n, n)), np.empty((Ta, n)), np.empty((Ta, n)), np.empty((Ta, Ta))
+    first = np.zeros(Ta, dtype=np.int64)
+    xs = np.empty((Ts, sbi.shape[0]))
+    deff, rhs1, rhs2, dq = np.empty(R), np.empty(n), np.empty(Ta), np.empty(Ta)
+    aug = np.empty(R, dtype=np.int64)
     for b in range(B):
         failed[b] = False
-        _setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], alpha, H, g0, A, bt, rho, N, wy)
-        _fill(a_u[b], 0.0)
-        _fill(xi[b], 0.0)
+        setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], couple, alpha,
+               H, g0, A, bt, rho, N, wy)
+        fill(a_u[b], 0.0)
+        fill(rhs2, 0.0)
+        fill(xi[b], 0.0)
+        fill(xi_v[b], 0.0)
         for k in range(R):
-            _fill(a_y[b, k], 0.0)
-        if not _factor(H, A, N, rho, Du, u[b], w[b], z[b], deff, S, V, Sch):
+            fill(a_y[b, k], 0.0)
+        state_values(G[b], h[b], sbi, D, u[b], xs)
+        Ta_now = _factor(H, A, N, rho, G[b], sbi, D, Du, v_max, off, Rc, u[b], w[b], z[b], xs, deff, aug, S, E,
+                         first, V, Sch)
+        if Ta_now < 0:
             failed[b] = True
             continue
-        _copy(g_u[b], rhs1)
+        copy_into(g_u[b], rhs1)
         for k in range(R):
             v = 0.0
             for d in range(D):
                 v -= N[k, d] * g_y[b, k, d]
             v = v / rho[k] + g_s[b, k] * w[b, R + k] / z[b, R + k]  # gam
             xi[b, k] = v
+            if aug[k] >= 0:
+                rhs2[aug[k]] = -v
+                continue
             for i in range(n):
                 rhs1[i] -= A[k, i] * deff[k] * v
-        _solve(S, V, Sch, rhs1, rhs2, a_u[b], dq)
+        _solve(S, V, Sch, Ta_now, rhs1, rhs2, a_u[b], dq)
+        for t in range(Ts):
+            xi_v[b, t] = dq[Tq + t]
         for k in range(R):
-            v = xi[b, k]
-            for i in range(n):
-                v += A[k, i] * a_u[b, i]
-            xi[b, k] = deff[k] * v
+            if aug[k] >= 0:
+                xi[b, k] = dq[aug[k]]
+            else:
+                v = xi[b, k]
+                for i in range(n):
+                    v += A[k, i] * a_u[b, i]
+                xi[b, k] = deff[k] * v
             for d in range(D):
                 a_y[b, k, d] = (g_y[b, k, d] + N[k, d] * xi[b, k]) / rho[k]
 
@@ -530,14 +481,15 @@ def warm_up() -> None:
     instead of each compiling it (about 10 s of one core, once per installation).
     """
     B, M, T, D = 1, 1, 1, 1
-    R, n, m = M * T, T * D, 2 * M * T + T
+    R, n, m = M * T, T * D, 2 * M * T + 4 * T
     canonical = (np.eye(n)[None], np.zeros((B, n)), np.ones(B), np.zeros((B, n)), np.ones((B, M)),
-                 np.zeros((B, M, T, D)), np.ones((B, M, T, D)), -np.ones((B, M, T)))
+                 np.zeros((B, M, T, D)), np.ones((B, M, T, D)), -np.ones((B, M, T)), np.ones(M))
+    limits = (1.0, np.ones(D), np.zeros(1, dtype=np.int64), 1.0)
     u, y, w, z = np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m))
     flags, counts, errors = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
-    solve_batch(*canonical, 1e-3, 1.0, 1e4, 1e-8, 30, u, y, w, z, False, flags, counts, errors)
-    adjoint_batch(*canonical, 1e-3, u, w, z, np.ones((B, n)), np.ones((B, R, D)), np.ones((B, R)),
-                  np.empty((B, n)), np.empty((B, R, D)), np.empty((B, R)), flags)
+    solve_batch(*canonical, 1e-3, *limits, 1e4, 1e-8, 30, u, y, w, z, False, flags, counts, errors)
+    adjoint_batch(*canonical, 1e-3, *limits, u, w, z, np.ones((B, n)), np.ones((B, R, D)), np.ones((B, R)),
+                  np.empty((B, n)), np.empty((B, R, D)), np.empty((B, R)), np.empty((B, T)), flags)
 
 
 def is_cached() -> bool:
@@ -548,5 +500,6 @@ def is_cached() -> bool:
     source = Path(__file__)
     index = list((source.parent / "__pycache__").glob(f"{source.stem}.*.nbi"))
     cached = {p.name.split(".")[1].rsplit("-", 1)[0] for p in index}
-    compiled = {name for name, obj in globals().items() if hasattr(obj, "py_func")}
+    compiled = {name for name, obj in globals().items()
+                if hasattr(obj, "py_func") and obj.py_func.__module__ == __name__}
     return bool(index) and compiled <= cached and min(p.stat().st_mtime for p in index) >= source.stat().st_mtime

@@ -317,6 +317,8 @@ class AgentController:
         k, res, c = self.k, self.result, self.counters
         slack = self.solution.slack[k] if hasattr(self, "solution") else torch.zeros(0)
         c["slack_max"] = float(slack.max()) if slack.numel() else 0.0
+        state_slack = getattr(self.solution, "state_slack", None) if hasattr(self, "solution") else None
+        c["state_slack_max"] = 0.0 if state_slack is None else float(torch.nan_to_num(state_slack[k]).max())
         c["infeasible"], c["failed"] = res.infeasible_solves, res.failed_solves
         for kind in FAILURE_KINDS:
             c[f"failed_{kind}"] = res.failed_by_kind.get(kind, 0)

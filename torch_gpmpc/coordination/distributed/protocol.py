@@ -67,7 +67,7 @@ class Kind(enum.IntEnum):
 CMD_STOP, CMD_STEP = 0.0, 1.0
 
 #: Counters in the telemetry message, after u (D), plan X ((T+1) D) and inputs U (T D).
-TELEMETRY_KEYS = ("slack_max", "infeasible", "failed", *[f"failed_{k}" for k in FAILURE_KINDS],
+TELEMETRY_KEYS = ("slack_max", "state_slack_max", "infeasible", "failed", *[f"failed_{k}" for k in FAILURE_KINDS],
                   "solve_time", "max_margin", "iterations_total", "copy_bytes", "reduce_bytes",
                   "plan_bytes", "telemetry_bytes", "comm_time", "setup_s", "gp_fit_s", "fallback", "unsafe_plan")
 
