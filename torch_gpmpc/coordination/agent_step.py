@@ -85,7 +85,7 @@ class Assembled:
         max_margin: largest chance margin of an active row, 0-d.
         own_variance: (B, M, T) each agent's variance along each slot's normal at tau = 1..T
             (what it sends its neighbours for ``sum``/``joint`` margins); ``None`` without margins.
-        linearization: the dynamics linearization used (reused by the caller while the
+        linearization: the :class:`Convexification` used (reused by the caller while the
             linearization points stay fixed within a step).
     """
 
@@ -93,6 +93,23 @@ class Assembled:
     max_margin: Tensor
     own_variance: Tensor | None = None
     linearization: Any = None
+
+
+@dataclass
+class Convexification:
+    """What the linearization points of a step fix in the local problems (computed once per step
+    when they stay fixed: the GP linearization, covariance propagation and normals were most of
+    an ADMM iteration's assembly).
+
+    Attributes:
+        lin: the dynamics linearization (:func:`~torch_gpmpc.control.linearize.linearize_plan`).
+        normals: collision normals, shape (B, M, T, D).
+        own_var: each agent's projected variance along each slot's normal, (B, M, T), or ``None``.
+    """
+
+    lin: Any
+    normals: Tensor
+    own_var: Tensor | None = None
 
 
 def exchanges_variance(settings: ControllerSettings, method: str | Method | None = None) -> bool:
@@ -223,28 +240,17 @@ class LocalStep:
             eps_self: (B, M) own risk per slot of the selected agents.
             rows: which agents (B of them): all by default; an agent process passes its own row.
                 ``self.gps`` is indexed by agent id (an agent process may hold ``None`` for others).
-            linearization: a previous call's ``Assembled.linearization`` at the same plans and
-                inputs (the GP linearization dominates an iteration's cost); ``None``: compute it.
+            linearization: a previous call's ``Assembled.linearization`` (a :class:`Convexification`)
+                at the same plans, inputs and rows, or a dynamics linearization alone; ``None``:
+                compute it.
         """
         cfg = self.settings
-        xbar = state.plans[rows]
-        lin = linearization
-        if lin is None:
-            gps = None if self.gps is None else self.gps[rows]
-            lin = linearize_plan(self.method, xbar, self.nominal, self.wind, gps,
-                                 include_noise=cfg.margin_variance == "predictive", ubar=state.inputs[rows])
+        conv = linearization if isinstance(linearization, Convexification) else \
+            self._convexify(state, graph, rows, linearization)
+        lin, normals, own_var = conv.lin, conv.normals, conv.own_var
         slot_edge, side, active = graph.slot_edge[rows], graph.slot_side[rows], graph.active[rows]
-        slot_nbr = graph.slot_nbr[rows]
         agent_ids = torch.arange(graph.num_agents)[rows]
-        pos = self.nominal.position
-        normals_p = collision_normals(xbar[..., pos], state.plans[slot_nbr][..., pos], agent_ids,
-                                      slot_nbr)[:, :, 1:]
-        normals = normals_p.new_zeros(*normals_p.shape[:3], xbar.shape[-1])
-        normals[..., pos] = normals_p  # collision rows act on the position states only
-        own_var = None
         if self.method.chance:
-            sigma = state_covariances(self.uncertainty, lin.var, lin.dyn_A, self.feedback)[:, 1:]
-            own_var = projected_variances(normals, sigma)
             nbr_var = _reported_variances(state, slot_edge, side, own_var)
             margins = pair_margins(cfg.pair_margin, own_var, nbr_var, eps_self, cfg.eps - eps_self)
         else:
@@ -260,7 +266,30 @@ class LocalStep:
             lam_own=lam_mine[r, c, side], lam_nbr=lam_mine[r, c, 1 - side],
         )
         max_margin = margins[active].max() if bool(active.any()) else margins.new_zeros(())
-        return Assembled(data, max_margin, own_var, lin)
+        return Assembled(data, max_margin, own_var, conv)
+
+    def _convexify(self, state: ADMMState, graph: Graph, rows: slice, lin: Any = None) -> "Convexification":
+        """The parts of the local problems fixed by the linearization points ``state.plans``
+        (and inputs): the dynamics linearization (``lin`` if given), the collision normals and
+        each agent's projected variances along them."""
+        xbar = state.plans[rows]
+        if lin is None:
+            gps = None if self.gps is None else self.gps[rows]
+            lin = linearize_plan(self.method, xbar, self.nominal, self.wind, gps,
+                                 include_noise=self.settings.margin_variance == "predictive",
+                                 ubar=state.inputs[rows])
+        slot_nbr = graph.slot_nbr[rows]
+        agent_ids = torch.arange(graph.num_agents)[rows]
+        pos = self.nominal.position
+        normals_p = collision_normals(xbar[..., pos], state.plans[slot_nbr][..., pos], agent_ids,
+                                      slot_nbr)[:, :, 1:]
+        normals = normals_p.new_zeros(*normals_p.shape[:3], xbar.shape[-1])
+        normals[..., pos] = normals_p  # collision rows act on the position states only
+        own_var = None
+        if self.method.chance:
+            sigma = state_covariances(self.uncertainty, lin.var, lin.dyn_A, self.feedback)[:, 1:]
+            own_var = projected_variances(normals, sigma)
+        return Convexification(lin, normals, own_var)
 
     def solve(self, layer: nn.Module, data: LocalProblemData) -> LocalSolution:
         """One batched local solve; an exception escaping the layer fails every agent (kind
