@@ -149,6 +149,12 @@ def test_new_constraint_blocks_parse_round_trip_and_become_soft_rows():
     assert torch.allclose(c.state_violation(X), torch.tensor([[0.5, 0.4]], dtype=F64))
     U = torch.tensor([[[1.6, 0.0], [1.2, 1.0]]], dtype=F64)  # box 0.1 over; norm 1.56 < 2
     assert float(c.input_violation(U)) == pytest.approx(0.1)
+    from torch_gpmpc.dynamics.systems import project_input
+
+    tight = parse_model({**table, "input_bound": {"norm": 1.0, "box": [0.8, 0.5]}}, "m")
+    applied = project_input(torch.tensor([[3.0, 3.0], [-3.0, 0.1]], dtype=F64), tight)
+    assert (applied.abs() <= torch.tensor([0.8, 0.5], dtype=F64) + 1e-12).all()
+    assert (applied.norm(dim=-1) <= 1.0 + 1e-12).all()
 
 
 def test_workspace_is_validated_in_config_and_scenario_files(tmp_path):

@@ -101,13 +101,13 @@ class LocalConstraints:
 
     def input_violation(self, U: Tensor) -> Tensor:
         """How far inputs (B, T, Du) exceed the input bounds, per problem (B,)."""
-        out = U.new_zeros(U.shape[0])
+        parts = []
         if self.input_box is not None:
             box = torch.tensor(self.input_box, dtype=U.dtype, device=U.device)
-            out = torch.maximum(out, (U.abs() - box).clamp(min=0).flatten(1).amax(1))
+            parts.append((U.abs() - box).clamp(min=0).flatten(1).amax(1))
         if self.input_norm is not None:
-            out = torch.maximum(out, (torch.linalg.vector_norm(U, dim=-1) - self.input_norm).clamp(min=0).amax(1))
-        return out
+            parts.append((torch.linalg.vector_norm(U, dim=-1) - self.input_norm).clamp(min=0).amax(1))
+        return parts[0] if len(parts) == 1 else torch.maximum(*parts)
 
     @property
     def input_scale(self) -> float:
@@ -122,6 +122,9 @@ class LocalConstraints:
         (B, L', T, D), (B, L', T)) and ``||x[idx]|| - v``, clamped at 0 (differentiable)."""
         Xt = X[:, 1:]
         out = Xt.new_zeros(Xt.shape[:2])
+        if not self.num_rows and self.norm_bound is None and (halfspace_normals is None
+                                                              or not halfspace_normals.shape[1]):
+            return out
         if self.num_rows:
             normals, bounds = self.rows(X.shape[-1], X.dtype, X.device)
             gap = bounds - Xt @ normals.T  # (B, T, L)

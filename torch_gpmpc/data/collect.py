@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.data.transitions import MIN_SAMPLES, Transitions
-from torch_gpmpc.dynamics.systems import TrueSystem
+from torch_gpmpc.dynamics.systems import TrueSystem, clip_norm
 from torch_gpmpc.errors import GpmpcError
 
 #: Most transitions :func:`collect_transitions` writes in one call (K x N); more is
@@ -78,6 +78,8 @@ def collect_transitions(system: TrueSystem, num_agents: int = 3, samples: int = 
         else:
             u = (2.0 * torch.rand(int(samples), du, generator=gen, dtype=torch.float64) - 1.0) \
                 * torch.tensor(spec.input_box, dtype=torch.float64)
+            if spec.input_norm is not None:  # both bounds: the box's samples inside the ball
+                u = clip_norm(u, u_max)
         xs.append(x)
         us.append(u)
         xns.append(system.step(x, u, generator=gen))

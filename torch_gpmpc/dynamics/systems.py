@@ -296,11 +296,12 @@ def system_from_config(cfg) -> TrueSystem:
 
 
 def project_input(u: Tensor, spec: ModelSpec) -> Tensor:
-    """Inputs (..., m) projected onto the model's bound (norm ball or box) before they are applied."""
+    """Inputs (..., m) projected onto the model's bounds (box, then norm ball: scaling towards 0 keeps
+    a symmetric box) before they are applied."""
     if spec.input_box is not None:
         box = torch.tensor(spec.input_box, dtype=u.dtype, device=u.device)
-        return torch.maximum(torch.minimum(u, box), -box)
-    return clip_norm(u, spec.input_norm)
+        u = torch.maximum(torch.minimum(u, box), -box)
+    return u if spec.input_norm is None else clip_norm(u, spec.input_norm)
 
 
 def clip_norm(u: Tensor, u_max: float) -> Tensor:

@@ -498,8 +498,8 @@ def is_cached() -> bool:
     from pathlib import Path
 
     source = Path(__file__)
-    index = list((source.parent / "__pycache__").glob(f"{source.stem}.*.nbi"))
-    cached = {p.name.split(".")[1].rsplit("-", 1)[0] for p in index}
-    compiled = {name for name, obj in globals().items()
-                if hasattr(obj, "py_func") and obj.py_func.__module__ == __name__}
-    return bool(index) and compiled <= cached and min(p.stat().st_mtime for p in index) >= source.stat().st_mtime
+    # numba names an index file <module>.<function>-<first line>.<python>.nbi
+    wanted = {f"{source.stem}.{name}-{obj.py_func.__code__.co_firstlineno}" for name, obj in globals().items()
+              if hasattr(obj, "py_func") and obj.py_func.__module__ == __name__}
+    index = {p.name.rsplit(".", 2)[0]: p for p in (source.parent / "__pycache__").glob(f"{source.stem}.*.nbi")}
+    return wanted <= set(index) and all(index[key].stat().st_mtime >= source.stat().st_mtime for key in wanted)
