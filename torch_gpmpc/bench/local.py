@@ -297,7 +297,7 @@ def run_families(quick: bool = False) -> dict:
             args = (HORIZON, 6, NEIGHBORS, nominal, None, ALPHA)
             fast = InteriorPointMPC(*args, constraints=constraints, num_halfspaces=_HALFSPACES)
             layer = CvxpyLayerMPC(*args, solver="clarabel", constraints=constraints, num_halfspaces=_HALFSPACES)
-            default = lambda d, layer=layer: _solve_family_default(layer, d)  # noqa: E731
+            default = lambda d, layer=layer: _solve_default(layer, d)  # noqa: E731
             for batch in BATCHES:
                 data = family_problem(family, batch, seed=batch)[2]
                 sol = fast(data)
@@ -321,9 +321,3 @@ def run_families(quick: bool = False) -> dict:
                          "cvxpylayers default (diffcp + SCS) one run"}
     finally:
         torch.set_num_threads(threads)
-
-
-def _solve_family_default(mpc: CvxpyLayerMPC, data: LocalProblemData) -> tuple[torch.Tensor, torch.Tensor]:
-    """cvxpylayers' default solver on a family problem; returns (X, Y)."""
-    outputs = mpc.layer(*mpc.layer_parameters(data))
-    return outputs[0], torch.stack(list(outputs[2:2 + NEIGHBORS]), dim=1)

@@ -25,8 +25,9 @@ from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.control.problem import LocalProblemData
 from torch_gpmpc.control.solvers import make_local_solver
 from torch_gpmpc.dynamics.systems import NominalModel
+from tests.control.solvers.test_general_models import ALPHA, PENALTY, RHO, T
+from tests.control.solvers.test_general_models import instance as crossing_problem
 
-T, ALPHA, PENALTY, RHO = 8, 1e-3, 1e4, 20.0
 F64 = torch.float64
 NUM_NBR, NUM_HALF = 2, 2
 
@@ -54,35 +55,12 @@ FAMILIES = ("input-box", "input-norm-and-box", "state-box", "state-norm", "state
 
 
 def instance(nominal: NominalModel, seed: int = 3) -> LocalProblemData:
-    """A crossing-like local problem: the agent heads from (-1, 0, ..) to the origin past two
-    neighbours whose rows bind; perturbed linearized dynamics and input matrices; two
-    (inert) half-space slots."""
-    g = torch.Generator().manual_seed(seed)
-    D, Du, pos = nominal.dim, nominal.input_dim, nominal.position
-    dyn_A = nominal.A() + 0.01 * torch.randn(1, T, D, D, generator=g, dtype=F64)
-    dyn_B = nominal.B() + 0.01 * torch.randn(1, T, D, Du, generator=g, dtype=F64)
-    dyn_c = 0.005 * torch.randn(1, T, D, generator=g, dtype=F64)
-    start = torch.zeros(len(pos), dtype=F64)
-    start[0] = -1.0
-    x0 = nominal.states_at(start)[None]
-    path = torch.linspace(0, 1, T + 1, dtype=F64)[:, None] * (-start) + start
-    xref = nominal.reference_states(path)[None]
-    normals = torch.zeros(1, NUM_NBR, T, D, dtype=F64)
-    z_nbr = torch.zeros(1, NUM_NBR, T + 1, D, dtype=F64)
-    for j in range(NUM_NBR):
-        angle = 0.7 + 2.0 * j + 0.3 * torch.rand((), generator=g, dtype=F64)
-        offset = torch.zeros(len(pos), dtype=F64)
-        offset[0], offset[1] = torch.cos(angle), torch.sin(angle)
-        z_nbr[0, j] = nominal.states_at(path + 0.3 * offset)
-        normals[0, j][..., pos] = -offset
-    z_own = xref[:, None].expand(1, NUM_NBR, T + 1, D).clone()
-    zeros = torch.zeros_like(z_own)
-    return LocalProblemData(
-        x0=x0, xref=xref, dyn_A=dyn_A, dyn_c=dyn_c, normals=normals, bounds=torch.full((1, NUM_NBR, T), 0.4, dtype=F64),
-        active=torch.ones(1, NUM_NBR, dtype=torch.bool), rho=torch.tensor(RHO, dtype=F64), z_own=z_own, z_nbr=z_nbr,
-        lam_own=zeros.clone(), lam_nbr=zeros.clone(), dyn_B=dyn_B,
-        halfspace_normals=torch.zeros(1, NUM_HALF, T, D, dtype=F64),
-        halfspace_bounds=-torch.ones(1, NUM_HALF, T, dtype=F64))
+    """The crossing-like problem of the general-model tests (time-varying B, two binding neighbour
+    rows) with two (inert) half-space slots."""
+    data = crossing_problem(nominal, NUM_NBR, seed, time_varying_b=True)
+    D = nominal.dim
+    return LocalProblemData(**{**data.__dict__, "halfspace_normals": torch.zeros(1, NUM_HALF, T, D, dtype=F64),
+                               "halfspace_bounds": -torch.ones(1, NUM_HALF, T, dtype=F64)})
 
 
 def shrink(lo: float, hi: float, frac: float = 0.2) -> tuple[float, float]:

@@ -306,7 +306,7 @@ def _iterate(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, pen
     p = sbi.shape[0]
     scale_u = 1.0 + absmax(g0)
     scale_y = 1.0 + absmax2(wy)
-    scale_p = 1.0 + max(absmax(bt), 0.0 if Tq == 0 else u_max2, absmax(box), v_max * v_max)
+    scale_p = 1.0 + max(absmax(bt), 0.0 if Tq == 0 else u_max2, absmax(box), 0.0 if Ts == 0 else v_max * v_max)
     r_u, rhs1, du = np.empty(n), np.empty(n), np.empty(n)
     r_y, dy = np.empty((R, D_)), np.empty((R, D_))
     r_s = np.empty(R + Ts)
