@@ -179,3 +179,15 @@ def test_fallback_and_unsafe_plan_steps_are_counted(hand_rollout):
     hand_rollout.unsafe_plan = np.array([False, False, True, False])
     m = compute_metrics(hand_rollout)
     assert m["fallback_steps"] == 2 and m["unsafe_plan_steps"] == 1
+
+
+def test_risk_spent_sums_the_pair_bounds_and_survives_a_round_trip(hand_rollout, tmp_path):
+    """``risk_spent`` is the sum of the recorded pair bounds (NaN = no contact); ``risk_budget``
+    is reported under a mission budget only; files without the array give null."""
+    assert compute_metrics(hand_rollout)["risk_spent"] is None
+    hand_rollout.pair_risk = np.array([[0.01], [np.nan], [0.002], [0.0]])
+    hand_rollout.config = {**hand_rollout.config, "risk_mode": "mission", "risk_budget": 0.05}
+    path = tmp_path / "r.npz"
+    hand_rollout.save(path)
+    m = compute_metrics(Rollout.load(path))
+    assert m["risk_spent"] == pytest.approx(0.012) and m["risk_mode"] == "mission" and m["risk_budget"] == 0.05

@@ -105,6 +105,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--runs", type=int, default=20, help="seeds per formulation and eps (default 20)")
     p.add_argument("--eps", default="0.01,0.05,0.1,0.2", help="comma-separated risks per pair")
     p.add_argument("--steps", type=int, default=45, help="closed-loop steps per run (the crossing; default 45)")
+    p.add_argument("--mission", action="store_true",
+                   help="whole runs under risk_mode=mission: the fraction of runs with any violation against "
+                        "risk_budget (--runs and --budgets; --eps and --steps do not apply)")
+    p.add_argument("--budgets", help="with --mission: comma-separated mission budgets (default: risk_budget)")
+    p.add_argument("--baseline-runs", type=int, default=0,
+                   help="with --mission: also this many runs under risk_mode=pair_step at eps (default 0)")
     p.add_argument("--workers", type=int, help="parallel processes (default: number of cores)")
     p.add_argument("--out", default="runs/calibrate")
 

@@ -112,6 +112,14 @@ def prepare_solver_kernel() -> None:
     ipm_kernel.warm_up()
 
 
+def _risk_note(m: dict) -> str:
+    """``, risk spent X`` (of budget delta under a mission budget), or nothing without margins."""
+    if m.get("risk_spent") is None:
+        return ""
+    budget = f" of budget {m['risk_budget']:g}" if m.get("risk_budget") is not None else ""
+    return f", risk spent {m['risk_spent']:.3g}{budget}"
+
+
 def _summary(m: dict, out: Path) -> str:
     def num(value, fmt: str) -> str:  # null when K = 1 (no pairs) or no step was taken
         return "-" if value is None else format(value, fmt)
@@ -121,6 +129,6 @@ def _summary(m: dict, out: Path) -> str:
     return (
         f"{m['method']} seed {m['seed']}: {arrival}, {'all at once at t = ' + str(ttt) if m['reached'] else 'never all at once'} "
         f"in {m['steps']} steps; min distance {num(m['min_pair_distance'], '.3f')} "
-        f"({m['violations']} violations of r_safe); ADMM iterations mean {num(m['admm_iterations_mean'], '.1f')} "
+        f"({m['violations']} violations of r_safe{_risk_note(m)}); ADMM iterations mean {num(m['admm_iterations_mean'], '.1f')} "
         f"max {num(m['admm_iterations_max'], 'd')}; wall {m['wall_time_s']:.1f} s -> {out}"
     )

@@ -18,7 +18,7 @@ from torch_gpmpc.config.fields import Rules, build, validate
 from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, parse_model, resolve_model
 from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.config.settings import (
-    CONTROLLER_CHOICES, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings,
+    CONTROLLER_CHOICES, check_risk_mode, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings,
     controller_keys, resolve_uncertainty,
 )
 from torch_gpmpc.errors import GpmpcError
@@ -103,6 +103,13 @@ class Config:
         wind_scale: amplitude of the vortex wind g (paper: 0.1).
         workspace: a soft box on the positions, ``{"min": [...], "max": [...]}`` (P numbers each),
             or null (none); a scenario file's ``workspace`` sets it for its run.
+        risk_mode: ``pair_step`` (default: every pair's collision rows hold with probability
+            ``1 - eps`` at every step) or ``mission`` (the probability of any collision over the
+            whole run is at most ``risk_budget``: each agent starts with ``risk_budget / K`` and
+            spends it on its pairs' steps; :mod:`~torch_gpmpc.coordination.mission_risk`).
+        risk_budget: the mission's collision probability delta (``risk_mode = mission``).
+        risk_pacing: under ``mission``, a control step spends at most ``1 / risk_pacing`` of an
+            agent's remaining budget (so it never runs out, however long the run).
 
     Example:
         >>> from torch_gpmpc import Config
@@ -154,6 +161,9 @@ class Config:
     relinearize: bool = False
     wind_scale: float = 0.1
     workspace: Workspace | None = None
+    risk_mode: str = "pair_step"
+    risk_budget: float = 0.05
+    risk_pacing: int = 10
 
     def __post_init__(self) -> None:
         if isinstance(self.model, dict):  # an inline model table (a config file's [model])
@@ -161,6 +171,7 @@ class Config:
         if self.workspace is not None and not isinstance(self.workspace, Workspace):
             object.__setattr__(self, "workspace", Workspace.parse(self.workspace, "config key 'workspace'"))
         validate(self, RULES)
+        check_risk_mode(self.risk_mode, self.method, self.pair_margin, "config key")
         if isinstance(self.model, str):
             check_model_name(self.model)
         if self.workspace is not None:

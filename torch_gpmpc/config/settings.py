@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from torch_gpmpc.config.fields import Rules, build, validate
 from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.workspace import Workspace
+from torch_gpmpc.errors import GpmpcError
 
 #: The controller methods of the paper's Table 1 (``--method``), in its order;
 #: :class:`~torch_gpmpc.dynamics.methods.Method` is the typed form.
@@ -28,6 +29,7 @@ MARGIN_VARIANCES = ("latent", "predictive")
 PAIR_MARGINS = ("own", "sum", "joint")
 RHO_UPDATES = ("fixed", "adaptive")
 ADMM_STOPS = ("primal", "primal-dual")
+RISK_MODES = ("pair_step", "mission")
 SOLVERS = ("fast", "clarabel", "reference")
 
 CONTROLLER_CHOICES: dict[str, tuple] = {
@@ -38,6 +40,7 @@ CONTROLLER_CHOICES: dict[str, tuple] = {
     "admm_stop": ADMM_STOPS,
     "solver": SOLVERS,
     "method": METHOD_NAMES,
+    "risk_mode": RISK_MODES,
 }
 
 CONTROLLER_RANGES: dict[str, tuple[typing.Callable[[typing.Any], bool], str]] = {
@@ -53,6 +56,8 @@ CONTROLLER_RANGES: dict[str, tuple[typing.Callable[[typing.Any], bool], str]] = 
     "admm_max_iter": (lambda v: 1 <= v <= 100_000, "an integer in [1, 100000]"),
     "comm_radius": (lambda v: v is None or v > 0, "a number > 0 or null (all pairs)"),
     "slack_penalty": (lambda v: v > 0, "a number > 0"),
+    "risk_budget": (lambda v: 0 < v < 1, "a number in (0, 1)"),
+    "risk_pacing": (lambda v: 1 <= v <= 1_000_000, "an integer in [1, 1000000]"),
 }
 
 
@@ -70,6 +75,9 @@ class ControllerSettings:
         alpha: control-effort weight. slack_penalty: exact-penalty weight on slacks.
         solver: ``fast`` (compiled interior point), ``clarabel`` or ``reference`` (cvxpylayers).
         r_safe, eps, risk_split: safety radius, pair risk, lower-indexed agent's share.
+        risk_mode, risk_budget, risk_pacing: ``pair_step`` (every pair may fail with probability
+            ``eps`` at every step) or ``mission`` (the team's probability of any collision over
+            the run is at most ``risk_budget``; :mod:`~torch_gpmpc.coordination.mission_risk`).
         pair_margin, margin_variance, uncertainty: how chance margins are built.
         rho, rho_update: ADMM penalty (start) and its update rule.
         admm_tol, admm_dual_tol, admm_rel_tol, admm_stop, admm_max_iter: ADMM stopping.
@@ -108,11 +116,15 @@ class ControllerSettings:
     relinearize: bool = False
     comm_radius: float | None = None
     workspace: Workspace | None = None
+    risk_mode: str = "pair_step"
+    risk_budget: float = 0.05
+    risk_pacing: int = 10
 
     def __post_init__(self) -> None:
         if self.workspace is not None and not isinstance(self.workspace, Workspace):
             object.__setattr__(self, "workspace", Workspace.parse(self.workspace, "controller setting 'workspace'"))
         validate(self, RULES)
+        check_risk_mode(self.risk_mode, self.method, self.pair_margin, "controller setting")
 
     def replace(self, **changes: typing.Any) -> "ControllerSettings":
         """A copy with ``changes`` applied (same checks; unknown keys name the nearest one)."""
@@ -124,6 +136,27 @@ class ControllerSettings:
 
 
 RULES = Rules("controller setting", "", CONTROLLER_CHOICES, CONTROLLER_RANGES)
+
+#: The methods with chance margins (the ones a mission budget can be spent on).
+CHANCE_METHODS = tuple(name for name in METHOD_NAMES if name.endswith("-chance"))
+
+
+def check_risk_mode(risk_mode: str, method: str, pair_margin: str, what: str) -> None:
+    """A mission budget needs chance margins and a sound pair margin (its bound adds the two
+    agents' risks of a pair).
+
+    Raises:
+        GpmpcError: ``risk_mode = mission`` with a method without margins or ``pair_margin = own``.
+    """
+    if risk_mode != "mission":
+        return
+    if method not in CHANCE_METHODS:
+        raise GpmpcError(f"{what} 'risk_mode': mission needs chance margins, but method {method!r} has none; "
+                         f"use one of {', '.join(CHANCE_METHODS)} or risk_mode=pair_step")
+    if pair_margin == "own":
+        raise GpmpcError(f"{what} 'risk_mode': mission needs a sound pair margin (the pair's risk is the sum "
+                         "of its agents' shares), but pair_margin=own is the paper's unsound one; "
+                         "use pair_margin=sum or joint")
 
 
 def resolve_uncertainty(uncertainty: str, spec: ModelSpec) -> str:

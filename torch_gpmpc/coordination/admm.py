@@ -50,6 +50,10 @@ from torch_gpmpc.coordination.agent_step import (
     LocalStep, edge_copies, edge_variances, fall_back_to_previous, obstacle_problem, pair_safety, slot_risks,
 )
 from torch_gpmpc.coordination.graph import Graph
+from torch_gpmpc.coordination.mission_risk import (
+    RISK_FLOOR, agent_charges, edge_allotments, edge_separations, pair_matrix, pair_risk_bounds,
+    slot_risks_from_edges, starting_budgets,
+)
 from torch_gpmpc.coordination.penalty import balance_penalty, edge_residuals, should_stop, starting_penalties
 from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult, adapt_state, initial_state
 from torch_gpmpc.dynamics.methods import Method
@@ -89,7 +93,9 @@ class StepContext:
         x0: (K, n) measured states. xref: (K, T+1, n) reference windows.
         graph: the communication graph of the step.
         rho: the penalty, 0-d (with ``rho_update = adaptive``: the start of new edges).
-        eps_self: (K, M) each agent's own risk per slot.
+        eps_self: (K, M) each agent's own risk per slot. eps_nbr: (K, M) its neighbour's.
+        eps_edge: (E, 2) the step's risk of each end of each edge under a mission budget
+            (``None``: ``risk_mode = pair_step``).
         lin_plans, lin_inputs: (K, T+1, n) and (K, T, m) linearization points (the warm start);
             ``None`` with ``relinearize``, where every iterate is its own.
         layer: the batched local solver for the graph's slot count.
@@ -103,6 +109,8 @@ class StepContext:
     graph: Graph
     rho: Tensor
     eps_self: Tensor
+    eps_nbr: Tensor
+    eps_edge: Tensor | None
     lin_plans: Tensor | None
     lin_inputs: Tensor | None
     layer: nn.Module
@@ -218,13 +226,22 @@ class ADMM:
         """
         s = self.settings
         rho_t = torch.as_tensor(s.rho if rho is None else rho, dtype=x0.dtype)
-        eps_self = slot_risks(graph, s.eps, s.risk_split if risk_split is None else risk_split)
         state = initial_state(x0, s.horizon, graph, self.nominal.input_dim) if warm is None \
             else adapt_state(warm, graph)
+        eps_edge = None
+        if s.risk_mode == "mission":
+            remaining = starting_budgets(graph.num_agents, s.risk_budget, x0) if state.risk_left is None \
+                else state.risk_left
+            state = dataclasses.replace(state, risk_left=remaining)
+            eps_edge = edge_allotments(remaining, graph, s.risk_pacing)
+            eps_self, eps_nbr = slot_risks_from_edges(graph, eps_edge)
+        else:
+            eps_self = slot_risks(graph, s.eps, s.risk_split if risk_split is None else risk_split)
+            eps_nbr = s.eps - eps_self
         if s.rho_update == "adaptive":
             state = dataclasses.replace(state, rho=starting_penalties(state.rho, rho_t, graph.num_edges))
         lin_plans, lin_inputs = (None, None) if s.relinearize else (state.plans, state.inputs)
-        ctx = StepContext(x0, xref, graph, rho_t, eps_self, lin_plans, lin_inputs,
+        ctx = StepContext(x0, xref, graph, rho_t, eps_self, eps_nbr, eps_edge, lin_plans, lin_inputs,
                           self.agent_step.solver(graph.num_slots), s.admm_tol if tol is None else tol)
         return ctx, state
 
@@ -238,7 +255,7 @@ class ADMM:
         rho_now = state.rho if adaptive else ctx.rho
         rho_slots = state.rho[graph.slot_edge] if adaptive and graph.num_edges else ctx.rho
         assembled = step.assemble(ctx.x0, ctx.xref, lin_state, graph, rho_slots, ctx.eps_self,
-                                  linearization=ctx.linearization)
+                                  linearization=ctx.linearization, eps_nbr=ctx.eps_nbr)
         if ctx.lin_plans is not None:
             ctx.linearization = assembled.linearization
         data = assembled.data
@@ -267,7 +284,8 @@ class ADMM:
         pvar = state.pvar
         if assembled.own_variance is not None:
             pvar = edge_variances(assembled.own_variance, graph, state.pvar)
-        return ADMMState(sol.X, sol.U, graph.edges, z_new, lam, pvar, rho_now if adaptive else None), stats
+        return ADMMState(sol.X, sol.U, graph.edges, z_new, lam, pvar, rho_now if adaptive else None,
+                         state.risk_left), stats
 
     def solve_step(
         self,
@@ -309,6 +327,7 @@ class ADMM:
                 break
         if graph.num_edges and result.iterations:
             state = self._check_safety(state, result.problem, graph, ctx.layer, result, safety_fallback)
+            state = self._account_risk(state, result, graph, ctx)
         result.plans, result.inputs, result.state = state.plans, state.inputs, state
         result.slack_max = float(result.solution.slack.detach().max()) if result.solution.slack.numel() else 0.0
         result.state_slack_max = state_slack_max(result.solution)
@@ -334,6 +353,22 @@ class ADMM:
         result.unsafe_plan = bool(unsafe.any())
         result.pair_separation, result.pair_required = sep, req
         return state
+
+
+    def _account_risk(self, state: ADMMState, result: StepResult, graph: Graph, ctx: StepContext) -> ADMMState:
+        """The pairs' collision-probability bounds of the applied plans (``result.pair_risk``) and,
+        under a mission budget, each agent's remaining risk less its charge."""
+        if state.pvar is None or result.problem is None:
+            return state
+        with torch.no_grad():
+            sep = edge_separations(state.plans.detach(), result.problem.normals.detach(), graph)
+            var = state.pvar.detach()[:, :, 0].sum(dim=1)
+            bounds = pair_risk_bounds(sep, var, self.settings.r_safe)
+        result.pair_risk = pair_matrix(bounds, graph)
+        if ctx.eps_edge is None:
+            return state
+        charges = agent_charges(bounds, ctx.eps_edge.detach(), graph)
+        return dataclasses.replace(state, risk_left=(state.risk_left - charges).clamp_min(RISK_FLOOR))
 
 
 def state_slack_max(solution) -> float:

@@ -223,7 +223,7 @@ class LocalStep:
 
     def assemble(
         self, x0: Tensor, xref: Tensor, state: ADMMState, graph: Graph, rho: Tensor, eps_self: Tensor,
-        rows: slice = slice(None), linearization: Any = None,
+        rows: slice = slice(None), linearization: Any = None, eps_nbr: Tensor | None = None,
     ) -> Assembled:
         """Linearize around the current plans and assemble the local problems of agents ``rows``.
 
@@ -243,6 +243,8 @@ class LocalStep:
             linearization: a previous call's ``Assembled.linearization`` (a :class:`Convexification`)
                 at the same plans, inputs and rows, or a dynamics linearization alone; ``None``:
                 compute it.
+            eps_nbr: (B, M) the neighbour's risk per slot (default ``settings.eps - eps_self``:
+                the pair's risk is ``eps``; a mission budget gives both ends their own).
         """
         cfg = self.settings
         conv = linearization if isinstance(linearization, Convexification) else \
@@ -252,7 +254,8 @@ class LocalStep:
         agent_ids = torch.arange(graph.num_agents)[rows]
         if self.method.chance:
             nbr_var = _reported_variances(state, slot_edge, side, own_var)
-            margins = pair_margins(cfg.pair_margin, own_var, nbr_var, eps_self, cfg.eps - eps_self)
+            margins = pair_margins(cfg.pair_margin, own_var, nbr_var, eps_self,
+                                   cfg.eps - eps_self if eps_nbr is None else eps_nbr)
         else:
             margins = normals.new_zeros(normals.shape[:3])
         r = torch.arange(agent_ids.shape[0])[:, None]

@@ -32,6 +32,8 @@ class ADMMState:
             NaN or ``None`` where not known yet.
         rho: (E,) each edge's ADMM penalty (adapted by residual balancing); ``None``: the
             step's starting rho on every edge.
+        risk_left: (K,) each agent's unspent mission risk (``risk_mode = mission``), carried
+            from step to step; ``None``: not in use, or a fresh mission.
 
     Example:
         >>> import torch
@@ -52,12 +54,14 @@ class ADMMState:
     lam: Tensor
     pvar: Tensor | None = None
     rho: Tensor | None = None
+    risk_left: Tensor | None = None
 
     def detached(self) -> "ADMMState":
         """The same iterate with every tensor detached from the autograd graph."""
         return ADMMState(self.plans.detach(), self.inputs.detach(), self.edges, self.z.detach(), self.lam.detach(),
                          None if self.pvar is None else self.pvar.detach(),
-                         None if self.rho is None else self.rho.detach())
+                         None if self.rho is None else self.rho.detach(),
+                         None if self.risk_left is None else self.risk_left.detach())
 
     def shifted(self) -> "ADMMState":
         """Shift everything one step forward in time (drop the first point, hold the last)."""
@@ -69,6 +73,7 @@ class ADMMState:
             lam=shift_in_time(self.lam, dim=3),
             pvar=None if self.pvar is None else shift_in_time(self.pvar, dim=2),
             rho=self.rho,
+            risk_left=self.risk_left,
         )
 
 
@@ -102,6 +107,9 @@ class StepResult:
             their collision rows require (``r_safe`` plus the pair's margin, less ``admm_tol``).
         pair_separation: (K, K) the applied plans' distance at tau = 1 per pair (NaN off edges).
         pair_required: (K, K) the larger of the pair's two tau = 1 row bounds (NaN off edges).
+        pair_risk: (K, K) the bound on each pair's probability of colliding at the next sample,
+            from the applied plans and the agents' variances at tau = 1 (NaN off edges; ``None``
+            for methods without margins; :func:`~torch_gpmpc.coordination.mission_risk.pair_risk_bounds`).
         problem: the agents' local problems of the last iteration (its convexification; what
             :func:`~torch_gpmpc.coordination.centralized.solve_centralized` solves jointly).
 
@@ -136,6 +144,7 @@ class StepResult:
     unsafe_plan: bool = False
     pair_separation: Tensor | None = None
     pair_required: Tensor | None = None
+    pair_risk: Tensor | None = None
     problem: LocalProblemData | None = None
 
     def record(self, stats: IterationStats) -> None:
@@ -226,4 +235,4 @@ def adapt_state(state: ADMMState, graph: Graph) -> ADMMState:
                 pvar[i] = state.pvar[old[tuple(e)]]
             if rho is not None:
                 rho = rho.index_put((torch.tensor(i),), state.rho[old[tuple(e)]])
-    return ADMMState(state.plans, state.inputs, graph.edges, z, lam, pvar, rho)
+    return ADMMState(state.plans, state.inputs, graph.edges, z, lam, pvar, rho, state.risk_left)

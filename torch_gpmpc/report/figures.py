@@ -431,3 +431,43 @@ def plot_calibration(rows: Sequence[Mapping[str, Any]], path: str | Path) -> Pat
     ax.grid(True, lw=0.3)
     ax.legend(fontsize=7)
     return _save(fig, path)
+
+
+def plot_mission_calibration(entries: Sequence[Mapping[str, Any]], path: str | Path) -> Path:
+    """The fraction of whole runs with any violation (95 % Clopper-Pearson intervals) per
+    risk setting, against each mission budget delta; and each setting's mean arrival.
+
+    Args:
+        entries: ``calibration.json``'s ``mission_rows`` (``risk_mode``, ``risk_budget`` or ``eps``,
+            ``rate``, ``ci95``, ``runs``, ``arrival_mean``).
+        path: PNG file to write.
+
+    Returns:
+        ``path``.
+    """
+    if not entries:
+        raise GpmpcError("plot_mission_calibration: no entries to plot")
+    fig, axes = _new_figure(2, panel=(4.2, 3.8))
+    ax, ax_arr = axes[0, 0], axes[0, 1]
+    labels = [f"mission\ndelta={e['risk_budget']:g}" if e["risk_mode"] == "mission" else f"pair_step\neps={e['eps']:g}"
+              for e in entries]
+    x = np.arange(len(entries))
+    for i, e in enumerate(entries):
+        rate = e["rate"] or 0.0
+        low, high = e["ci95"]
+        ax.errorbar([i], [rate], yerr=[[rate - low], [high - rate]], fmt="o", color=_color(i), capsize=4,
+                    label=f"{labels[i].replace(chr(10), ' ')}: {e['runs_with_violation']}/{e['runs']} runs")
+        if e["risk_mode"] == "mission":
+            ax.plot([i - 0.3, i + 0.3], [e["risk_budget"]] * 2, "k--", lw=1)
+        if e.get("arrival_mean") is not None:
+            ax_arr.bar([i], [e["arrival_mean"]], color=_color(i))
+    for a in (ax, ax_arr):
+        a.set_xticks(x)
+        a.set_xticklabels(labels, fontsize=7)
+        a.grid(True, lw=0.3, axis="y")
+    ax.set_ylabel("runs with any violation (fraction)")
+    ax.set_title("mission risk: Monte Carlo (dashed: delta)", fontsize=9)
+    ax.legend(fontsize=6)
+    ax_arr.set_ylabel("last agent's arrival step (mean)")
+    ax_arr.set_title("cost of the promise", fontsize=9)
+    return _save(fig, path)

@@ -1,4 +1,6 @@
 """Calibration of the chance constraints: does a row that binds fail as often as it promises?
+And, for a mission budget (``calibrate --mission``), does a whole run collide at most as often
+as ``risk_budget`` promises (:func:`mission_tasks`, :func:`mission_entry`)?
 
 For every (step, pair) whose tau = 1 collision row was active in the *applied* plans
 (the planned separation within :data:`ACTIVE_TOL` of what the row required), record
@@ -14,10 +16,11 @@ import math
 from typing import Any, Mapping, Sequence
 
 import numpy as np
+import scipy.stats
 
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.sim.experiments import PAPER_FORMULATION, Task
-from torch_gpmpc.sim.metrics import pair_distances
+from torch_gpmpc.sim.metrics import compute_metrics, pair_distances
 from torch_gpmpc.sim.rollout import Rollout
 
 #: The formulations compared: the package's default and the paper's eq. 24 with latent variance.
@@ -87,3 +90,69 @@ def calibration_rows(outcomes: Mapping[tuple[str, float], Sequence[tuple[int, in
                      "rate": violations / active if active else None, "runs": len(runs),
                      "rate_low": low, "rate_high": high})
     return rows
+
+
+def mission_tasks(cfg: Config, budgets: Sequence[float], runs: int, cache_dir: str,
+                  baseline_runs: int = 0) -> list[tuple[str, float, Task]]:
+    """Whole runs (``max_steps`` of ``cfg``) under ``risk_mode = mission`` at each budget, seeds
+    ``cfg.seed .. cfg.seed + runs - 1``, and ``baseline_runs`` of them under ``pair_step`` at
+    ``cfg.eps`` (the comparison).
+
+    Returns:
+        ``(mode, budget or eps, task)`` triples.
+    """
+    out = []
+    for budget in budgets:
+        config = {**cfg.to_dict(), "risk_mode": "mission", "risk_budget": float(budget)}
+        out += [("mission", float(budget), Task("mission", cfg.method, cfg.seed + s, cfg.rho, config, cache_dir))
+                for s in range(runs)]
+    config = {**cfg.to_dict(), "risk_mode": "pair_step"}
+    out += [("pair_step", cfg.eps, Task("mission", cfg.method, cfg.seed + s, cfg.rho, config, cache_dir))
+            for s in range(baseline_runs)]
+    return out
+
+
+def clopper_pearson(successes: int, trials: int, level: float = 0.95) -> tuple[float, float]:
+    """The exact (Clopper-Pearson) two-sided interval of a binomial proportion."""
+    if trials == 0:
+        return 0.0, 1.0
+    alpha = 1.0 - level
+    low = 0.0 if successes == 0 else float(scipy.stats.beta.ppf(alpha / 2, successes, trials - successes + 1))
+    high = 1.0 if successes == trials else float(scipy.stats.beta.ppf(1 - alpha / 2, successes + 1, trials - successes))
+    return low, high
+
+
+def mission_entry(mode: str, level: float, rollouts: Sequence[Rollout]) -> dict[str, Any]:
+    """One row of the mission calibration: how many whole runs had any violation, with its
+    Clopper-Pearson 95 % interval, beside what the runs cost and the pair-step rates of their
+    active rows.
+
+    Returns:
+        ``risk_mode``, ``risk_budget`` (mission) or ``eps`` (pair_step), ``runs``,
+        ``runs_with_violation``, ``rate``, ``ci95``, ``violations``, ``min_distance_worst``,
+        ``risk_spent_mean``/``_max``, ``runs_every_agent_arrived``, ``arrival_mean`` (the last
+        agent's arrival step over runs where every agent arrived), ``path_length_mean``,
+        ``admm_converged_fraction``, and the active-row ``pair_step_active``/``_violations``/``_rate``.
+    """
+    metrics = [compute_metrics(r) for r in rollouts]
+    hit = sum(m["violations"] > 0 for m in metrics)
+    arrivals = [m["arrival_step_max"] for m in metrics if m["arrival_step_max"] is not None]
+    spent = [m["risk_spent"] for m in metrics if m["risk_spent"] is not None]
+    active = [active_outcomes(r) for r in rollouts]
+    rows = sum(a for a, _ in active)
+    failed = sum(v for _, v in active)
+    return {
+        "risk_mode": mode, ("risk_budget" if mode == "mission" else "eps"): level,
+        "runs": len(metrics), "runs_with_violation": int(hit), "rate": hit / len(metrics) if metrics else None,
+        "ci95": list(clopper_pearson(hit, len(metrics))),
+        "violations": int(sum(m["violations"] for m in metrics)),
+        "min_distance_worst": min((m["min_pair_distance"] for m in metrics
+                                   if m["min_pair_distance"] is not None), default=None),
+        "risk_spent_mean": float(np.mean(spent)) if spent else None,
+        "risk_spent_max": float(np.max(spent)) if spent else None,
+        "runs_every_agent_arrived": len(arrivals),
+        "arrival_mean": float(np.mean(arrivals)) if arrivals else None,
+        "path_length_mean": float(np.mean([np.mean(m["path_length"]) for m in metrics])) if metrics else None,
+        "admm_converged_fraction": float(np.mean([m["converged_fraction"] or 0.0 for m in metrics])) if metrics else None,
+        "pair_step_active": rows, "pair_step_violations": failed, "pair_step_rate": failed / rows if rows else None,
+    }

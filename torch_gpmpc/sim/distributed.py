@@ -342,6 +342,10 @@ def simulate_distributed(
     K = scenario.num_agents
     if K > MAX_AGENTS:
         raise GpmpcError(f"distributed run: at most {MAX_AGENTS} agents, got {K}")
+    if cfg.risk_mode == "mission":
+        raise GpmpcError("config key 'risk_mode': the mission budget runs in process only so far (its agents "
+                         "would also exchange their step's risks and applied next states); drop "
+                         "--backend distributed or use risk_mode=pair_step")
     if agents_per_process < 1:
         raise GpmpcError(f"agents_per_process must be >= 1, got {agents_per_process}")
     if not timeout_s > 0:

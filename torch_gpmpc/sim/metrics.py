@@ -190,7 +190,23 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
         "fallback_steps": _count(getattr(rollout, "fallback", None)),
         "unsafe_plan_steps": _count(getattr(rollout, "unsafe_plan", None)),
         **_failures(rollout),
+        **risk_metrics(rollout),
     }
+
+
+def risk_metrics(rollout: Rollout) -> dict[str, Any]:
+    """``risk_spent`` (the sum over applied steps and pairs in contact of the bound on the pair's
+    collision probability at the next sample: by Boole's inequality a bound on the probability
+    of any collision in the run, under the chance constraints' assumptions; ``None`` without
+    margins or in older files), ``risk_mode`` and ``risk_budget`` (``None`` under ``pair_step``).
+    """
+    cfg = rollout.config or {}
+    mode = str(cfg.get("risk_mode", "pair_step"))
+    risks = getattr(rollout, "pair_risk", None)
+    risks = None if risks is None else np.asarray(risks, dtype=np.float64)
+    spent = None if risks is None or not np.isfinite(risks).any() else float(np.nansum(risks))
+    return {"risk_spent": spent, "risk_mode": mode,
+            "risk_budget": float(cfg.get("risk_budget", Config().risk_budget)) if mode == "mission" else None}
 
 
 def _count(flags: Any) -> int | None:

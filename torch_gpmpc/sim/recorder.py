@@ -26,6 +26,8 @@ class StepInfo:
         primal: the last primal residual.
         violations_total: (step, pair) distances below r_safe so far.
         lost_agents: agents the distributed backend has lost (empty in-process).
+        risk_spent: the pairs' collision-probability bounds summed over the steps so far
+            (``metrics.json``'s ``risk_spent``; 0 without margins).
     """
 
     iterations: int
@@ -34,6 +36,7 @@ class StepInfo:
     primal: float
     violations_total: int
     lost_agents: list[int] = field(default_factory=list)
+    risk_spent: float = 0.0
 
 
 def pair_min_distance(x: Tensor) -> float:
@@ -55,6 +58,7 @@ def log_step(tb, t: int, info: StepInfo, res: StepResult) -> None:
     tb.scalar("safety/chance_margin", res.max_margin, t)
     tb.scalar("safety/slack_max", res.slack_max, t)
     tb.scalar("safety/state_slack_max", res.state_slack_max, t)
+    tb.scalar("safety/risk_spent", info.risk_spent, t)
     tb.scalar("perf/solve_ms", 1000.0 * res.solve_time_s / max(res.iterations, 1), t)
 
 
@@ -72,10 +76,12 @@ class StepRecorder:
         self.rows: dict[str, list] = {k: [] for k in (
             "inputs", "plans", "adjacency", "admm_iterations", "converged", "primal", "dual",
             "slack_max", "state_slack_max", "infeasible_solves", "solve_time", "chance_margin", "messages",
-            "failed_solves", "failed_by_kind", "fallback", "unsafe_plan", "pair_separation", "pair_required")}
+            "failed_solves", "failed_by_kind", "fallback", "unsafe_plan", "pair_separation", "pair_required",
+            "pair_risk")}
         self.pairs = torch.triu_indices(num_agents, num_agents, 1).unbind()
         self.position = list(cfg.model_spec().position)
         self.violations_total = 0
+        self.risk_spent = 0.0
 
     def record(self, t: int, res: StepResult, adjacency: Tensor, u: Tensor, x_next: Tensor) -> StepInfo:
         """Record step t: its ADMM result, graph (K, K), applied inputs (K, Du), next states (K, D)."""
@@ -99,6 +105,8 @@ class StepRecorder:
         r["unsafe_plan"].append(res.unsafe_plan)
         r["pair_separation"].append(self._per_pair(res.pair_separation))
         r["pair_required"].append(self._per_pair(res.pair_required))
+        r["pair_risk"].append(self._per_pair(getattr(res, "pair_risk", None)))
+        self.risk_spent += float(np.nansum(r["pair_risk"][-1]))
         pos = x_next[:, self.position]
         min_dist = pair_min_distance(pos)
         if self.num_agents > 1:
@@ -106,7 +114,8 @@ class StepRecorder:
             self.violations_total += int((dist[self.pairs] < self.cfg.r_safe).sum())
         return StepInfo(iterations=res.iterations, min_distance=min_dist, converged=res.converged,
                         primal=res.primal_residuals[-1] if res.primal_residuals else math.nan,
-                        violations_total=self.violations_total, lost_agents=list(res.lost_agents))
+                        violations_total=self.violations_total, lost_agents=list(res.lost_agents),
+                        risk_spent=self.risk_spent)
 
     def _per_pair(self, matrix: Tensor | None) -> np.ndarray:
         """A (K, K) per-pair matrix as its P upper-triangle entries (NaN when not reported)."""
@@ -157,5 +166,6 @@ class StepRecorder:
             unsafe_plan=stack("unsafe_plan", (0,), bool),
             pair_separation=stack("pair_separation", (0, len(self.pairs[0]))),
             pair_required=stack("pair_required", (0, len(self.pairs[0]))),
+            pair_risk=stack("pair_risk", (0, len(self.pairs[0]))),
             position=None if position is None or position == list(range(D)) else list(position),
         )

@@ -55,6 +55,9 @@ class Rollout:
             the order of :func:`~torch_gpmpc.sim.metrics.pair_index`; NaN for pairs not in contact).
         pair_required: the separation the pair's collision rows required at tau = 1 (``r_safe``
             plus the pair margin), shape (S, P), NaN for pairs not in contact.
+        pair_risk: the bound on each pair's probability of colliding at the next sample, from the
+            applied plans and the agents' variances at tau = 1, shape (S, P), NaN for pairs not
+            in contact or methods without margins (``None`` in older files).
         (The last four are ``None`` in files written before they existed.)
         position: the state indices of the position (P of them); ``None``: every state.
 
@@ -91,6 +94,7 @@ class Rollout:
     pair_required: np.ndarray | None = None
     position: list[int] | None = None
     state_slack_max: np.ndarray | None = None
+    pair_risk: np.ndarray | None = None
 
     @property
     def num_steps(self) -> int:
@@ -125,7 +129,7 @@ class Rollout:
             )
         }
         for name in ("messages_per_iteration", "failed_solves", "failed_solves_by_kind", "fallback",
-                     "unsafe_plan", "pair_separation", "pair_required", "state_slack_max"):
+                     "unsafe_plan", "pair_separation", "pair_required", "state_slack_max", "pair_risk"):
             if getattr(self, name) is not None:
                 arrays[name] = np.asarray(getattr(self, name))
         meta = {"method": self.method, "seed": self.seed, "wall_time_s": self.wall_time_s,
