@@ -159,3 +159,10 @@ def test_distributed_backend_says_mission_is_in_process_only():
 
     with pytest.raises(GpmpcError, match="risk_mode.*in process"):
         simulate_distributed(Config(risk_mode="mission", max_steps=1))
+
+
+def test_tune_refuses_to_tune_a_split_a_mission_does_not_have(tmp_path, capsys):
+    from torch_gpmpc.cli import main
+
+    assert main(["tune", "--set", "risk_mode=mission", "--out", str(tmp_path / "t")]) == 2
+    assert "tune.tune_split=false" in capsys.readouterr().err

@@ -64,6 +64,9 @@ def main(args) -> int:
     if cfg.pair_margin == "joint" and settings.tune_split:
         raise GpmpcError("pair_margin=joint has no risk split (its margin depends on the pair's total eps "
                          "only); set --set tune.tune_split=false, or use pair_margin=sum to tune a split")
+    if cfg.risk_mode == "mission" and settings.tune_split:
+        raise GpmpcError("risk_mode=mission allots each agent's risk from its own budget, so there is no risk "
+                         "split to tune; set --set tune.tune_split=false (rho still tunes), or risk_mode=pair_step")
     if not Method.parse(cfg.method).chance and settings.tune_split:
         log.warning("method %s has no chance margins: the risk split gets no gradient", cfg.method)
 
