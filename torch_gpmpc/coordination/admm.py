@@ -354,7 +354,6 @@ class ADMM:
         result.pair_separation, result.pair_required = sep, req
         return state
 
-
     def _account_risk(self, state: ADMMState, result: StepResult, graph: Graph, ctx: StepContext) -> ADMMState:
         """The pairs' collision-probability bounds of the applied plans (``result.pair_risk``) and,
         under a mission budget, each agent's remaining risk less its charge."""
