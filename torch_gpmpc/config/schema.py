@@ -18,7 +18,7 @@ from torch_gpmpc.config.fields import Rules, build, validate
 from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, parse_model, resolve_model
 from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.config.settings import (
-    CONTROLLER_CHOICES, check_risk_mode, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings,
+    CONTROLLER_CHOICES, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings, check_risk_mode,
     controller_keys, resolve_uncertainty,
 )
 from torch_gpmpc.errors import GpmpcError
