@@ -35,7 +35,7 @@ def main(args) -> int:
     from torch_gpmpc.sim.calibration import active_outcomes, calibration_rows, calibration_tasks
     from torch_gpmpc.sim.rollout import Rollout
 
-    eps_values = _eps_list(args.eps)
+    eps_values = _unit_list(args.eps, "eps")
     tasks = calibration_tasks(cfg, eps_values, args.runs, str(out / "cache"), steps=args.steps)
     run_uncached([task for *_, task in tasks], workers)
     outcomes: dict = {}
@@ -86,10 +86,6 @@ def _existing(out) -> dict:
     except (OSError, ValueError) as exc:
         raise GpmpcError(f"{str(path)!r} exists but cannot be read ({exc}); move it away or choose another --out") from exc
     return data if isinstance(data, dict) else {}
-
-
-def _eps_list(text: str) -> list[float]:
-    return _unit_list(text, "eps")
 
 
 def _unit_list(text: str, name: str) -> list[float]:

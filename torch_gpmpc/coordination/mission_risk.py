@@ -114,9 +114,10 @@ def pair_risk_bounds(separation: Tensor, variance: Tensor, r_safe: float) -> Ten
     """
     gap = separation - r_safe
     std = variance.clamp_min(0.0).sqrt()
-    certain = (gap < 0).to(gap.dtype)
-    bound = torch.special.ndtr(-gap / torch.where(std > 0, std, torch.ones_like(std)))
-    return torch.where(std > 0, bound, certain).where(~(gap.isnan() | variance.isnan()), gap.new_tensor(float("nan")))
+    random = std > 0
+    tail = torch.special.ndtr(-gap / torch.where(random, std, torch.ones_like(std)))
+    bound = torch.where(random, tail, (gap < 0).to(gap.dtype))  # no variance: certain either way
+    return bound.masked_fill(gap.isnan() | variance.isnan(), float("nan"))
 
 
 def agent_charges(bounds: Tensor, eps_edge: Tensor, graph: Graph) -> Tensor:

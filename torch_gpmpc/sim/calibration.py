@@ -19,7 +19,7 @@ import numpy as np
 import scipy.stats
 
 from torch_gpmpc.config.schema import Config
-from torch_gpmpc.sim.experiments import PAPER_FORMULATION, Task
+from torch_gpmpc.sim.experiments import PAPER_FORMULATION, Task, summarize_metrics
 from torch_gpmpc.sim.metrics import compute_metrics, pair_distances
 from torch_gpmpc.sim.rollout import Rollout
 
@@ -123,8 +123,9 @@ def clopper_pearson(successes: int, trials: int, level: float = 0.95) -> tuple[f
 
 
 def mission_entry(mode: str, level: float, rollouts: Sequence[Rollout]) -> dict[str, Any]:
-    """One row of the mission calibration: how many whole runs had any violation, with its
-    Clopper-Pearson 95 % interval, beside what the runs cost and the pair-step rates of their
+    """One row of the mission calibration (``rollouts``: at least one run): how many whole runs
+    had any violation, with its Clopper-Pearson 95 % interval, beside what the runs cost (from
+    :func:`~torch_gpmpc.sim.experiments.summarize_metrics`) and the pair-step rates of their
     active rows.
 
     Returns:
@@ -135,24 +136,23 @@ def mission_entry(mode: str, level: float, rollouts: Sequence[Rollout]) -> dict[
         ``admm_converged_fraction``, and the active-row ``pair_step_active``/``_violations``/``_rate``.
     """
     metrics = [compute_metrics(r) for r in rollouts]
-    hit = sum(m["violations"] > 0 for m in metrics)
-    arrivals = [m["arrival_step_max"] for m in metrics if m["arrival_step_max"] is not None]
+    summary = summarize_metrics(metrics)
     spent = [m["risk_spent"] for m in metrics if m["risk_spent"] is not None]
     active = [active_outcomes(r) for r in rollouts]
     rows = sum(a for a, _ in active)
     failed = sum(v for _, v in active)
+    hit = summary["runs_with_violations"]
     return {
         "risk_mode": mode, ("risk_budget" if mode == "mission" else "eps"): level,
-        "runs": len(metrics), "runs_with_violation": int(hit), "rate": hit / len(metrics) if metrics else None,
+        "runs": len(metrics), "runs_with_violation": hit, "rate": hit / len(metrics),
         "ci95": list(clopper_pearson(hit, len(metrics))),
-        "violations": int(sum(m["violations"] for m in metrics)),
-        "min_distance_worst": min((m["min_pair_distance"] for m in metrics
-                                   if m["min_pair_distance"] is not None), default=None),
+        "violations": summary["violations_total"],
+        "min_distance_worst": summary["min_distance_worst"],
         "risk_spent_mean": float(np.mean(spent)) if spent else None,
         "risk_spent_max": float(np.max(spent)) if spent else None,
-        "runs_every_agent_arrived": len(arrivals),
-        "arrival_mean": float(np.mean(arrivals)) if arrivals else None,
-        "path_length_mean": float(np.mean([np.mean(m["path_length"]) for m in metrics])) if metrics else None,
-        "admm_converged_fraction": float(np.mean([m["converged_fraction"] or 0.0 for m in metrics])) if metrics else None,
+        "runs_every_agent_arrived": sum(m["arrival_step_max"] is not None for m in metrics),
+        "arrival_mean": summary["arrival_step_max_mean"],
+        "path_length_mean": summary["path_length_mean"],
+        "admm_converged_fraction": float(np.mean([m["converged_fraction"] or 0.0 for m in metrics])),
         "pair_step_active": rows, "pair_step_violations": failed, "pair_step_rate": failed / rows if rows else None,
     }

@@ -135,7 +135,11 @@ def summarize(rollouts: Sequence[Rollout]) -> dict[str, Any]:
         ``runs_with_violations``, ``path_length_mean`` (over agents and runs),
         ``straight_line_length``, ``admm_iterations_mean``/``_max``, ``wall_time_s_mean``.
     """
-    metrics = [compute_metrics(r) for r in rollouts]
+    return summarize_metrics([compute_metrics(r) for r in rollouts])
+
+
+def summarize_metrics(metrics: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """:func:`summarize` of runs whose ``metrics.json`` dicts are already computed (at least one)."""
     arrived = [m["time_to_target"] for m in metrics if m["time_to_target"] is not None]
     every = [m["arrival_step_max"] for m in metrics if m["arrival_step_max"] is not None]
     dists = [m["min_pair_distance"] for m in metrics if m["min_pair_distance"] is not None]
