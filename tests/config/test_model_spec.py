@@ -158,7 +158,7 @@ def test_new_constraint_blocks_parse_round_trip_and_become_soft_rows():
 
 
 def test_workspace_is_validated_in_config_and_scenario_files(tmp_path):
-    from torch_gpmpc.sim.scenarios import make_scenario, with_scenario_workspace
+    from torch_gpmpc.sim.scenarios import make_scenario, with_scenario_world
 
     cfg = Config(workspace={"min": [-5, -5], "max": [5, 5]})
     assert cfg.workspace.upper == (5.0, 5.0) and cfg.controller_settings().workspace == cfg.workspace
@@ -173,7 +173,7 @@ def test_workspace_is_validated_in_config_and_scenario_files(tmp_path):
                                 "workspace": {"min": [-4, -1], "max": [4, 1]}}))
     scenario = make_scenario(Config(), path)
     assert scenario.workspace.lower == (-4.0, -1.0)
-    assert with_scenario_workspace(Config(), scenario).workspace == scenario.workspace
+    assert with_scenario_world(Config(), scenario).workspace == scenario.workspace
     path.write_text(json.dumps({"starts": [[-3, 0]], "targets": [[3, 0]], "workspace": {"min": [-4], "max": [4]}}))
     with pytest.raises(GpmpcError, match="scenario file .*workspace has 1 coordinates"):
         make_scenario(Config(), path)

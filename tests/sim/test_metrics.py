@@ -191,3 +191,35 @@ def test_risk_spent_sums_the_pair_bounds_and_survives_a_round_trip(hand_rollout,
     hand_rollout.save(path)
     m = compute_metrics(Rollout.load(path))
     assert m["risk_spent"] == pytest.approx(0.012) and m["risk_mode"] == "mission" and m["risk_budget"] == 0.05
+
+
+def test_obstacle_metrics_by_hand():
+    import numpy as np
+
+    from torch_gpmpc.sim.metrics import obstacle_metrics
+
+    # one agent passing a unit disc at the origin: centre distances 2, 0.2 (closer than r_safe/2 = 0.25), 1
+    positions = np.array([[[-3.0, 0.0]], [[0.0, 1.2]], [[2.0, 0.0]]])
+    m = obstacle_metrics(positions, [{"center": [0.0, 0.0], "radius": 1.0}], r_safe=0.5)
+    assert m == {"obstacle_violations": 1, "min_obstacle_distance": pytest.approx(0.2)}
+    assert obstacle_metrics(positions, None, 0.5) == {"obstacle_violations": 0, "min_obstacle_distance": None}
+
+
+def test_deadlock_steps_by_hand():
+    import numpy as np
+
+    from torch_gpmpc.sim.metrics import deadlock_steps
+
+    # agent 0 walks to its target in 20 steps; agent 1 stops at x = 1 (target 3) from step 5 on
+    s = np.arange(31, dtype=float)
+    walker = np.stack([np.minimum(s / 20 * 3, 3), 0 * s], -1)
+    stopper = np.stack([np.minimum(s / 5, 1.0), 0 * s + 1], -1)
+    positions = np.stack([walker, stopper], 1)
+    targets = np.array([[3.0, 0.0], [3.0, 1.0]])
+    # stuck from s = 5 + 10 - ... : progress over [s-10, s] < 0.1 first at s = 15 (dist 2 at s-10 = 5), up to s = 30
+    assert deadlock_steps(positions, targets, goal_tol=0.1, r_safe=0.5) == 16
+    assert deadlock_steps(positions[:, :1], targets[:1], goal_tol=0.1, r_safe=0.5) == 0
+    # hovering 0.3 from the target (within r_safe + goal_tol) is not a deadlock
+    hover = positions.copy()
+    hover[:, 1, 0] += 1.7  # the stopper stops 0.3 from its target
+    assert deadlock_steps(hover, targets, goal_tol=0.1, r_safe=0.5) == 0

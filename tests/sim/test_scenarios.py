@@ -198,3 +198,49 @@ def test_random_impossible_separation_raises():
     cfg = Config(scenario="random", num_agents=20, min_separation=5.0, circle_radius=1.0)
     with pytest.raises(GpmpcError, match=r"could not place the start of agent \d+ at least 5 .*lower min_separation"):
         make_scenario(cfg)
+
+
+def test_forest_lanes_cross_a_seeded_field_of_trees_with_passable_gaps():
+    from torch_gpmpc.config.obstacles import FOREST_FILL, FOREST_GAP_EXTRA, FOREST_TREE_RADIUS
+
+    cfg = Config(scenario="forest", num_agents=10, num_obstacles=30, seed=3)
+    sc = make_scenario(cfg)
+    assert sc.num_agents == 10 and len(sc.obstacles) == 30
+    torch.testing.assert_close(sc.starts[:, 1], sc.targets[:, 1])
+    torch.testing.assert_close(sc.starts[:, 1], torch.arange(10, dtype=torch.float64) - 4.5)
+    # the band 2 (R - 1) x 2 H holds the 30 spacing discs at fill FOREST_FILL; H = 4.5 + 1
+    spacing = 2 * FOREST_TREE_RADIUS + cfg.r_safe + FOREST_GAP_EXTRA
+    R = 30 * math.pi * (spacing / 2) ** 2 / FOREST_FILL / (4 * 5.5) + 1.0
+    assert cfg.scenario_extent == pytest.approx(R) and cfg.gp_fit_settings().box == pytest.approx(R)
+    assert bool((sc.starts[:, 0] == -R).all()) and bool((sc.targets[:, 0] == R).all())
+    centres = torch.tensor([o.center for o in sc.obstacles.obstacles], dtype=torch.float64)
+    gaps = torch.pdist(centres) - 2 * FOREST_TREE_RADIUS
+    assert float(gaps.min()) >= cfg.r_safe + FOREST_GAP_EXTRA - 1e-12
+    assert float(centres[:, 0].abs().max()) <= R - 1.0 and float(centres[:, 1].abs().max()) <= 5.5
+    again = make_scenario(cfg)
+    assert again.obstacles == sc.obstacles and make_scenario(cfg.replace(seed=4)).obstacles != sc.obstacles
+    in_3d = make_scenario(cfg.replace(dim=3, num_obstacles=10))
+    assert {o.kind for o in in_3d.obstacles.obstacles} == {"cylinder"} and in_3d.starts.shape == (10, 3)
+
+
+def test_file_obstacles_reach_the_run_config(tmp_path):
+    from torch_gpmpc.sim.scenarios import with_scenario_world
+
+    path = tmp_path / "obstacles.json"
+    obstacles = [{"center": [0.0, 0.5], "radius": 0.5}, {"min": [1.0, -2.0], "max": [2.0, -1.0]}]
+    path.write_text(json.dumps({"starts": [[-3, 0]], "targets": [[3, 0]], "obstacles": obstacles}))
+    sc = make_scenario(Config(), path)
+    assert [o.kind for o in sc.obstacles.obstacles] == ["sphere", "box"]
+    cfg = with_scenario_world(Config(), sc)
+    assert cfg.obstacles == sc.obstacles and cfg.to_dict()["obstacles"] == obstacles
+    assert make_scenario(Config(), _write(tmp_path, sc.to_dict())).obstacles == sc.obstacles
+    path.write_text(json.dumps({"starts": [[-3, 0]], "targets": [[3, 0]],
+                                "obstacles": [{"center": [0.0, 0.5], "radius": 0.5, "z": [0, 1]}]}))
+    with pytest.raises(GpmpcError, match=r"obstacles\[0\].*only with 3D"):
+        make_scenario(Config(), path)
+
+
+def _write(tmp_path, table):
+    path = tmp_path / "round_trip.json"
+    path.write_text(json.dumps(table))
+    return path

@@ -120,6 +120,13 @@ def _risk_note(m: dict) -> str:
     return f", risk spent {m['risk_spent']:.3g}{budget}"
 
 
+def _obstacle_note(m: dict) -> str:
+    """``, obstacle distance X (N hits)`` for runs with obstacles, else nothing."""
+    if m.get("min_obstacle_distance") is None:
+        return ""
+    return f", obstacle distance {m['min_obstacle_distance']:.3f} ({m['obstacle_violations']} hits)"
+
+
 def _summary(m: dict, out: Path) -> str:
     def num(value, fmt: str) -> str:  # null when K = 1 (no pairs) or no step was taken
         return "-" if value is None else format(value, fmt)
@@ -129,6 +136,6 @@ def _summary(m: dict, out: Path) -> str:
     return (
         f"{m['method']} seed {m['seed']}: {arrival}, {'all at once at t = ' + str(ttt) if m['reached'] else 'never all at once'} "
         f"in {m['steps']} steps; min distance {num(m['min_pair_distance'], '.3f')} "
-        f"({m['violations']} violations of r_safe{_risk_note(m)}); ADMM iterations mean {num(m['admm_iterations_mean'], '.1f')} "
+        f"({m['violations']} violations of r_safe{_risk_note(m)}){_obstacle_note(m)}; ADMM iterations mean {num(m['admm_iterations_mean'], '.1f')} "
         f"max {num(m['admm_iterations_max'], 'd')}; wall {m['wall_time_s']:.1f} s -> {out}"
     )

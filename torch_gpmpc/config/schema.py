@@ -16,6 +16,7 @@ from typing import Any, Mapping
 
 from torch_gpmpc.config.fields import Rules, build, validate
 from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, parse_model, resolve_model
+from torch_gpmpc.config.obstacles import ObstacleField, forest_extent
 from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.config.settings import (
     CONTROLLER_CHOICES, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings, check_risk_mode,
@@ -25,7 +26,7 @@ from torch_gpmpc.errors import GpmpcError
 
 METHODS = METHOD_NAMES
 REFERENCES = ("line", "target")
-SCENARIOS = ("paper", "circle", "random")
+SCENARIOS = ("paper", "circle", "random", "forest")
 
 
 @dataclass(frozen=True)
@@ -70,7 +71,7 @@ class Config:
             ``m_k + m_j``, sound by the union bound), ``joint`` (``Phi^-1(1 - eps) sqrt(s_k + s_j)``,
             the tightest sound choice for independent Gaussian agents, no risk split) or
             ``own`` (the paper's eq. 24: each agent only its own margin; not sound).
-        scenario: ``paper``, ``circle`` or ``random``.
+        scenario: ``paper``, ``circle``, ``random`` or ``forest`` (obstacles: :mod:`~torch_gpmpc.sim.scenarios`).
         num_agents: K (the paper scenario has 3).
         seed: seed for data, noise and scenario generation.
         solver: ``fast`` (structure-exploiting interior point compiled with numba, :mod:`~torch_gpmpc.control.solvers.interior_point`),
@@ -90,7 +91,8 @@ class Config:
         circle_radius: radius of the start circle of ``paper``/``circle`` scenarios (and the
             half-width of ``random`` ones).
         gp_box: half-width of the box the GP training states are drawn from (the paper's data
-            recipe); ``null``: ``circle_radius``, so the data cover the scenario.
+            recipe); ``null``: :attr:`scenario_extent` (``circle_radius``, or the forest's
+            half-length), so the data cover the scenario.
         min_separation: minimum start (and target) separation of ``random`` scenarios.
         gp_samples: training transitions per agent (paper: 100).
         gp_inputs: ``state`` (paper) or ``state_input``.
@@ -110,6 +112,16 @@ class Config:
         risk_budget: the mission's collision probability delta (``risk_mode = mission``).
         risk_pacing: under ``mission``, a control step spends at most ``1 / risk_pacing`` of an
             agent's remaining budget (so it never runs out, however long the run).
+        obstacles: static obstacles, a list of ``{"center": [...], "radius": r}`` (disc/sphere),
+            ``{"center": [x, y], "radius": r, "z": [zmin, zmax]}`` (vertical cylinder, 3D) and
+            ``{"min": [...], "max": [...]}`` (box) tables, or null; a scenario's obstacles set it.
+            An agent's centre keeps ``r_safe / 2`` from every obstacle.
+        obstacle_eps: the risk of one obstacle row (chance methods: the row's margin is
+            ``Phi^{-1}(1 - obstacle_eps)`` times the agent's own standard deviation along it).
+        obstacle_rows: obstacle rows per agent and horizon step (its nearest obstacles).
+        num_obstacles: the cylinders (discs in 2D) of ``scenario = forest``.
+        deadlock_detour: an agent stuck behind a neighbour (no progress for 10 steps) detours
+            round it on a fixed side (:class:`~torch_gpmpc.sim.detours.DeadlockBreaker`).
 
     Example:
         >>> from torch_gpmpc import Config
@@ -164,18 +176,27 @@ class Config:
     risk_mode: str = "pair_step"
     risk_budget: float = 0.05
     risk_pacing: int = 10
+    obstacles: ObstacleField | None = None
+    obstacle_eps: float = 0.01
+    obstacle_rows: int = 4
+    num_obstacles: int = 20
+    deadlock_detour: bool = True
 
     def __post_init__(self) -> None:
         if isinstance(self.model, dict):  # an inline model table (a config file's [model])
             object.__setattr__(self, "model", parse_model(self.model, "config key 'model'"))
         if self.workspace is not None and not isinstance(self.workspace, Workspace):
             object.__setattr__(self, "workspace", Workspace.parse(self.workspace, "config key 'workspace'"))
+        if self.obstacles is not None and not isinstance(self.obstacles, ObstacleField):
+            object.__setattr__(self, "obstacles", ObstacleField.parse(self.obstacles, "config key 'obstacles'"))
         validate(self, RULES)
         check_risk_mode(self.risk_mode, self.method, self.pair_margin, "config key")
         if isinstance(self.model, str):
             check_model_name(self.model)
         if self.workspace is not None:
             self.workspace.check_dim(self.position_dim, "config key 'workspace'")
+        if self.obstacles is not None:
+            self.obstacles.check_dim(self.position_dim, "config key 'obstacles'")
         if self.scenario == "paper" and self.num_agents != 3:
             raise GpmpcError(
                 f"config key 'num_agents': the paper scenario has 3 agents, got {self.num_agents}; "
@@ -195,9 +216,18 @@ class Config:
 
     def gp_fit_settings(self) -> GPFitSettings:
         """How the agents' GPs are fitted (``gp_samples``, ``gp_iters``, ``gp_optimizer``, the
-        data box ``gp_box`` (default ``circle_radius``), ``seed``)."""
-        box = self.circle_radius if self.gp_box is None else self.gp_box
+        data box ``gp_box`` (default :attr:`scenario_extent`), ``seed``)."""
+        box = self.scenario_extent if self.gp_box is None else self.gp_box
         return GPFitSettings(self.gp_samples, self.gp_iters, self.gp_optimizer, box, self.seed)
+
+    @property
+    def scenario_extent(self) -> float:
+        """Half-width of the region the built-in scenario spans: ``circle_radius``, or the
+        ``forest``'s half-length (:func:`~torch_gpmpc.config.obstacles.forest_extent`)."""
+        if self.scenario != "forest":
+            return self.circle_radius
+        return forest_extent(self.num_agents, self.num_obstacles, self.circle_radius, self.min_separation,
+                             self.r_safe)[0]
 
     @property
     def uncertainty_mode(self) -> str:
@@ -230,6 +260,8 @@ class Config:
             out["model"] = self.model.to_table()
         if self.workspace is not None:
             out["workspace"] = self.workspace.to_table()
+        if self.obstacles is not None:
+            out["obstacles"] = self.obstacles.to_table()
         return out
 
 
@@ -274,6 +306,7 @@ _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "goal_tol": (lambda v: v > 0, "a number > 0"),
     "max_steps": (lambda v: 1 <= v <= 1_000_000, "an integer in [1, 1000000]"),
     "num_agents": (lambda v: 1 <= v <= 1000, "an integer in [1, 1000]"),
+    "num_obstacles": (lambda v: 0 <= v <= 10_000, "an integer in [0, 10000]"),
     "seed": (lambda v: v >= 0, "an integer >= 0"),
     "dim": (lambda v: v in (2, 3), "2 or 3"),
     "ref_points": (lambda v: v >= 2, "an integer >= 2"),

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 from torch_gpmpc.config.fields import Rules, build, validate
 from torch_gpmpc.config.model_spec import ModelSpec
+from torch_gpmpc.config.obstacles import ObstacleField
 from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.errors import GpmpcError
 
@@ -58,6 +59,8 @@ CONTROLLER_RANGES: dict[str, tuple[typing.Callable[[typing.Any], bool], str]] = 
     "slack_penalty": (lambda v: v > 0, "a number > 0"),
     "risk_budget": (lambda v: 0 < v < 1, "a number in (0, 1)"),
     "risk_pacing": (lambda v: 1 <= v <= 1_000_000, "an integer in [1, 1000000]"),
+    "obstacle_eps": (lambda v: 0 < v < 1, "a number in (0, 1)"),
+    "obstacle_rows": (lambda v: 1 <= v <= 256, "an integer in [1, 256]"),
 }
 
 
@@ -85,6 +88,10 @@ class ControllerSettings:
         comm_radius: agents closer than this communicate (``None``: all pairs).
         workspace: a soft box on the positions (:class:`~torch_gpmpc.config.workspace.Workspace`,
             or ``{"min": [...], "max": [...]}``), or ``None``.
+        obstacles, obstacle_eps, obstacle_rows: static obstacles
+            (:class:`~torch_gpmpc.config.obstacles.ObstacleField` or its list of tables, or ``None``),
+            the risk of one obstacle row (chance methods), and the rows per agent (its nearest
+            obstacles over the horizon; :mod:`~torch_gpmpc.control.obstacle_rows`).
 
     Example:
         >>> from torch_gpmpc import ControllerSettings
@@ -119,10 +126,15 @@ class ControllerSettings:
     risk_mode: str = "pair_step"
     risk_budget: float = 0.05
     risk_pacing: int = 10
+    obstacles: ObstacleField | None = None
+    obstacle_eps: float = 0.01
+    obstacle_rows: int = 4
 
     def __post_init__(self) -> None:
         if self.workspace is not None and not isinstance(self.workspace, Workspace):
             object.__setattr__(self, "workspace", Workspace.parse(self.workspace, "controller setting 'workspace'"))
+        if self.obstacles is not None and not isinstance(self.obstacles, ObstacleField):
+            object.__setattr__(self, "obstacles", ObstacleField.parse(self.obstacles, "controller setting 'obstacles'"))
         validate(self, RULES)
         check_risk_mode(self.risk_mode, self.method, self.pair_margin, "controller setting")
 

@@ -22,11 +22,13 @@ from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.control.linearize import linearize_plan
+from torch_gpmpc.control.obstacle_rows import obstacle_rows
 from torch_gpmpc.control.problem import (
     FAIL_EXCEPTION, FAIL_INACCURATE, FAIL_NONFINITE, FAILURE_KINDS, LocalProblemData, LocalSolution,
 )
 from torch_gpmpc.control.risk import (
-    collision_normals, lqr_gain, pair_margins, pair_risks, projected_variances, state_covariances,
+    chance_quantile, collision_normals, lqr_gain, pair_margins, pair_risks, projected_variances, safe_sqrt,
+    state_covariances,
 )
 from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.control.solvers import make_local_solver
@@ -105,11 +107,15 @@ class Convexification:
         lin: the dynamics linearization (:func:`~torch_gpmpc.control.linearize.linearize_plan`).
         normals: collision normals, shape (B, M, T, D).
         own_var: each agent's projected variance along each slot's normal, (B, M, T), or ``None``.
+        obstacle_normals, obstacle_bounds: the agent's obstacle rows ``n^T x_tau >= b`` with their
+            chance margins, shapes (B, L, T, D) and (B, L, T), or ``None`` (no obstacles).
     """
 
     lin: Any
     normals: Tensor
     own_var: Tensor | None = None
+    obstacle_normals: Tensor | None = None
+    obstacle_bounds: Tensor | None = None
 
 
 def exchanges_variance(settings: ControllerSettings, method: str | Method | None = None) -> bool:
@@ -191,6 +197,9 @@ class LocalStep:
         self.uncertainty = self.settings.uncertainty_for(self.nominal.spec)
         #: input bounds and soft state constraints (the model's, and the settings' workspace)
         self.constraints = LocalConstraints.of(self.nominal.spec, workspace=self.settings.workspace)
+        #: obstacle rows per agent (L; 0 without obstacles)
+        obstacles = self.settings.obstacles
+        self.num_obstacle_rows = self.settings.obstacle_rows if obstacles is not None and len(obstacles) else 0
         #: B K of the ancillary LQR feedback (``uncertainty = feedback``), else None
         self.feedback = None
         if self.uncertainty == "feedback":
@@ -207,7 +216,7 @@ class LocalStep:
             self._solvers[num_slots] = make_local_solver(
                 horizon=s.horizon, dim=self.nominal.dim, num_neighbors=num_slots, nominal=self.nominal,
                 u_max=None, alpha=s.alpha, slack_penalty=s.slack_penalty, solver=s.solver,
-                constraints=self.constraints,
+                constraints=self.constraints, num_halfspaces=self.num_obstacle_rows,
             )
         return self._solvers[num_slots]
 
@@ -267,6 +276,7 @@ class LocalStep:
             bounds=cfg.r_safe + margins, active=active, rho=rho,
             z_own=z_slot[r, c, side], z_nbr=z_slot[r, c, 1 - side],
             lam_own=lam_mine[r, c, side], lam_nbr=lam_mine[r, c, 1 - side],
+            halfspace_normals=conv.obstacle_normals, halfspace_bounds=conv.obstacle_bounds,
         )
         max_margin = margins[active].max() if bool(active.any()) else margins.new_zeros(())
         return Assembled(data, max_margin, own_var, conv)
@@ -288,11 +298,27 @@ class LocalStep:
                                       slot_nbr)[:, :, 1:]
         normals = normals_p.new_zeros(*normals_p.shape[:3], xbar.shape[-1])
         normals[..., pos] = normals_p  # collision rows act on the position states only
-        own_var = None
+        own_var = sigma = None
         if self.method.chance:
             sigma = state_covariances(self.uncertainty, lin.var, lin.dyn_A, self.feedback)[:, 1:]
             own_var = projected_variances(normals, sigma)
-        return Convexification(lin, normals, own_var)
+        obs_normals, obs_bounds = self._obstacle_rows(xbar, sigma)
+        return Convexification(lin, normals, own_var, obs_normals, obs_bounds)
+
+    def _obstacle_rows(self, xbar: Tensor, sigma: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
+        """The agents' obstacle rows at the plans ``xbar`` (B, T+1, D), with the own chance margin
+        ``Phi^{-1}(1 - obstacle_eps) sqrt(n^T Sigma_tau n)`` when ``sigma`` (B, T, D, D) is given."""
+        if not self.num_obstacle_rows:
+            return None, None
+        pos = self.nominal.position
+        normals_p, bounds = obstacle_rows(self.settings.obstacles, xbar[:, 1:, pos], self.settings.r_safe / 2,
+                                          self.num_obstacle_rows)
+        normals = normals_p.new_zeros(*normals_p.shape[:3], xbar.shape[-1])
+        normals[..., pos] = normals_p
+        if sigma is not None:
+            quantile = chance_quantile(torch.as_tensor(self.settings.obstacle_eps, dtype=bounds.dtype))
+            bounds = bounds + quantile * safe_sqrt(projected_variances(normals, sigma))
+        return normals, bounds
 
     def solve(self, layer: nn.Module, data: LocalProblemData) -> LocalSolution:
         """One batched local solve; an exception escaping the layer fails every agent (kind

@@ -18,8 +18,9 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
-from matplotlib.patches import Circle
+from matplotlib.patches import Circle, Rectangle
 
+from torch_gpmpc.config.obstacles import ObstacleField
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.fileio import atomic_path
 from torch_gpmpc.sim.metrics import compute_metrics, pair_distances, pair_index, path_lengths
@@ -110,6 +111,7 @@ def _draw_snapshot(ax: Any, rollout: Rollout, states: np.ndarray, t: int, r_safe
     """One panel of :func:`plot_trajectories` at step t."""
     targets = np.asarray(rollout.targets, dtype=np.float64)
     plans = np.asarray(rollout.plan_positions, dtype=np.float64)
+    _draw_obstacles(ax, (rollout.config or {}).get("obstacles"))
     for k in range(states.shape[1]):
         c = _color(k)
         start, goal = states[0, k], targets[k]
@@ -130,6 +132,18 @@ def _draw_snapshot(ax: Any, rollout: Rollout, states: np.ndarray, t: int, r_safe
     ax.set_xlabel("x1")
     ax.set_ylabel("x2")
     ax.grid(True, lw=0.3)
+
+
+def _draw_obstacles(ax: Any, obstacles: Any) -> None:
+    """The obstacles' footprints in the x1-x2 plane (grey), if the run has any."""
+    if not obstacles:
+        return
+    for o in ObstacleField.parse(obstacles).obstacles:
+        if o.kind == "box":
+            ax.add_patch(Rectangle((o.lower[0], o.lower[1]), o.upper[0] - o.lower[0], o.upper[1] - o.lower[1],
+                                   color="0.6", alpha=0.6, lw=0))
+        else:
+            ax.add_patch(Circle((o.center[0], o.center[1]), o.radius, color="0.6", alpha=0.6, lw=0))
 
 
 def _share_limits(axes: Sequence[Any], states: np.ndarray, targets: Any) -> None:

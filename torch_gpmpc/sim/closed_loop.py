@@ -31,9 +31,10 @@ from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.dynamics.systems import TrueSystem, project_input, system_from_config
 from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.sim.detours import DeadlockBreaker, detour_reference
 from torch_gpmpc.sim.recorder import StepInfo, StepRecorder, log_step
 from torch_gpmpc.sim.rollout import Rollout
-from torch_gpmpc.sim.scenarios import Scenario, make_scenario, with_scenario_workspace
+from torch_gpmpc.sim.scenarios import Scenario, make_scenario, with_scenario_world
 
 StepCallback = Callable[[int, StepInfo], None]
 
@@ -124,7 +125,7 @@ def simulate(
 
     cfg = cfg.replace(method=method or cfg.method)
     scenario = scenario or make_scenario(cfg)
-    cfg = with_scenario_workspace(cfg, scenario)
+    cfg = with_scenario_world(cfg, scenario)
     num_agents = scenario.num_agents
     system = system_from_config(cfg)
     if needs_gp(cfg.method):
@@ -132,6 +133,24 @@ def simulate(
             else fit_agent_gps(cfg, system, num_agents)
     planner = ADMMPlanner(make_controller(cfg, system, gps))
     return run_closed_loop(cfg, scenario, system, planner, on_step, tb)
+
+
+def reference_window(cfg: Config, scenario: Scenario, t: int) -> Tensor:
+    """The position references of step ``t`` (K, T+1, P), bent round the run's discs and cylinders
+    (:mod:`~torch_gpmpc.sim.detours`; clearance ``r_safe`` beyond each obstacle's radius)."""
+    window = scenario.reference_window(t, cfg.horizon)
+    if cfg.obstacles is None or not len(cfg.obstacles):
+        return window
+    return detour_reference(cfg.obstacles, window, scenario.starts, scenario.targets, cfg.r_safe)
+
+
+def deadlock_breaker(cfg: Config, scenario: Scenario) -> DeadlockBreaker | None:
+    """The run's :class:`~torch_gpmpc.sim.detours.DeadlockBreaker` (``None`` with
+    ``deadlock_detour = false``); its detours advance at the scenario line's speed."""
+    if not cfg.deadlock_detour:
+        return None
+    speed = float(torch.linalg.vector_norm(scenario.targets - scenario.starts, dim=-1).max()) / (scenario.ref_points - 1)
+    return DeadlockBreaker(scenario.starts, scenario.targets, cfg.r_safe, cfg.goal_tol, speed)
 
 
 def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem, planner: Planner,
@@ -144,6 +163,7 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem, planner
     num_agents = scenario.num_agents
     noise = noise_sequence(cfg, num_agents)
     recorder = StepRecorder(cfg, num_agents)
+    breaker = deadlock_breaker(cfg, scenario)
     start_time = time.perf_counter()
     nominal = system.nominal
     x = nominal.states_at(scenario.starts)
@@ -152,8 +172,13 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem, planner
         for t in range(cfg.max_steps):
             if bool(((nominal.positions(x) - scenario.targets).norm(dim=1) < cfg.goal_tol).all()):
                 break
-            graph = communication_graph(nominal.positions(x), cfg.comm_radius)
-            xref = nominal.reference_states(scenario.reference_window(t, cfg.horizon))
+            positions = nominal.positions(x)
+            graph = communication_graph(positions, cfg.comm_radius)
+            window = reference_window(cfg, scenario, t)
+            if breaker is not None:
+                breaker.update(t, positions)
+                window = breaker.shape(t, window, positions)
+            xref = nominal.reference_states(window)
             res = planner.plan(t, x, xref, graph)
             if res is None:
                 break

@@ -58,7 +58,7 @@ from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.sim.closed_loop import StepCallback, run_closed_loop
 from torch_gpmpc.sim.metrics import pair_distances
 from torch_gpmpc.sim.rollout import Rollout
-from torch_gpmpc.sim.scenarios import Scenario, make_scenario, with_scenario_workspace
+from torch_gpmpc.sim.scenarios import Scenario, make_scenario, with_scenario_world
 
 log = logging.getLogger(__name__)
 
@@ -338,7 +338,7 @@ def simulate_distributed(
     """
     cfg = cfg.replace(method=method or cfg.method)
     scenario = scenario or make_scenario(cfg)
-    cfg = with_scenario_workspace(cfg, scenario)
+    cfg = with_scenario_world(cfg, scenario)
     K = scenario.num_agents
     if K > MAX_AGENTS:
         raise GpmpcError(f"distributed run: at most {MAX_AGENTS} agents, got {K}")

@@ -26,6 +26,12 @@ CONTRACT_KEYS = (
     "infeasible_local_solves",
 )
 
+#: Steps over which an agent that has not closed ``goal_tol`` of its distance to target counts as stuck.
+DEADLOCK_WINDOW = 10
+
+#: An agent counts as hitting an obstacle when closer than ``r_safe / 2`` by more than this.
+OBSTACLE_TOL = 1e-6
+
 
 def pair_index(num_agents: int) -> list[tuple[int, int]]:
     """All unordered agent pairs (i, j) with i < j, in row-major order.
@@ -137,7 +143,9 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
     ``fallback_steps`` (steps at which the safety fallback re-planned an agent) and
     ``unsafe_plan_steps`` (steps at which some pair's applied plans were closer at tau = 1 than
     their collision rows require: the honest safety report of the planner; collision slack
-    says nothing, because copies of neighbours' plans are free variables).
+    says nothing, because copies of neighbours' plans are free variables). With obstacles:
+    ``obstacle_violations`` and ``min_obstacle_distance`` (:func:`obstacle_metrics`); and
+    ``deadlock_steps`` (:func:`deadlock_steps`).
 
     Args:
         rollout: the run, with ``states`` (S+1, K, D) and ``targets`` (K, D).
@@ -191,7 +199,47 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
         "unsafe_plan_steps": _count(getattr(rollout, "unsafe_plan", None)),
         **_failures(rollout),
         **risk_metrics(rollout),
+        **obstacle_metrics(states, cfg.get("obstacles"), r_safe),
+        "deadlock_steps": deadlock_steps(states, targets, goal_tol, r_safe),
     }
+
+
+def deadlock_steps(positions: np.ndarray, targets: np.ndarray, goal_tol: float, r_safe: float,
+                   window: int = DEADLOCK_WINDOW) -> int:
+    """Steps s at which some agent is stuck: farther than ``r_safe + goal_tol`` from its target at
+    s (nearer, noise keeps agents hovering), and its distance to the target has not shrunk by
+    ``goal_tol`` over the last ``window`` steps.
+
+    Args:
+        positions: (S+1, K, P) true positions. targets: (K, P).
+    """
+    dist = target_distances(positions, targets)  # (S+1, K)
+    if dist.shape[0] <= window:
+        return 0
+    stalled = (dist[window:] > r_safe + goal_tol) & (dist[:-window] - dist[window:] < goal_tol)
+    return int(np.count_nonzero(stalled.any(axis=1)))
+
+
+def obstacle_metrics(positions: np.ndarray, obstacles: Any, r_safe: float) -> dict[str, Any]:
+    """``min_obstacle_distance`` (the smallest distance from an agent's centre to an obstacle's
+    surface over the run; negative inside; ``None`` without obstacles) and ``obstacle_violations``
+    (the (step, agent, obstacle) entries closer than the body radius ``r_safe / 2`` by more than
+    :data:`OBSTACLE_TOL`, the solvers' accuracy: a plan that holds its row exactly lands on it; 0 without).
+
+    Args:
+        positions: (S+1, K, P) true positions.
+        obstacles: the run's ``obstacles`` (list of tables or an ``ObstacleField``), or ``None``.
+    """
+    import torch
+
+    from torch_gpmpc.config.obstacles import ObstacleField
+    from torch_gpmpc.control.obstacle_rows import obstacle_geometry
+
+    if not obstacles:
+        return {"obstacle_violations": 0, "min_obstacle_distance": None}
+    dist, _ = obstacle_geometry(ObstacleField.parse(obstacles), torch.as_tensor(positions, dtype=torch.float64))
+    dist = dist.numpy()  # (S+1, K, O)
+    return {"obstacle_violations": int(np.count_nonzero(dist < r_safe / 2 - OBSTACLE_TOL)), "min_obstacle_distance": _scalar(dist.min())}
 
 
 def risk_metrics(rollout: Rollout) -> dict[str, Any]:

@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.config.schema import Config
+from torch_gpmpc.control.obstacle_rows import obstacle_geometry
 from torch_gpmpc.control.problem import FAILURE_KINDS
 from torch_gpmpc.coordination.state import StepResult
 from torch_gpmpc.sim.rollout import Rollout
@@ -28,6 +29,8 @@ class StepInfo:
         lost_agents: agents the distributed backend has lost (empty in-process).
         risk_spent: the pairs' collision-probability bounds summed over the steps so far
             (``metrics.json``'s ``risk_spent``; 0 without margins).
+        min_obstacle_distance: smallest distance from an agent's centre to an obstacle after the
+            step (NaN without obstacles).
     """
 
     iterations: int
@@ -37,6 +40,7 @@ class StepInfo:
     violations_total: int
     lost_agents: list[int] = field(default_factory=list)
     risk_spent: float = 0.0
+    min_obstacle_distance: float = math.nan
 
 
 def pair_min_distance(x: Tensor) -> float:
@@ -59,6 +63,8 @@ def log_step(tb, t: int, info: StepInfo, res: StepResult) -> None:
     tb.scalar("safety/slack_max", res.slack_max, t)
     tb.scalar("safety/state_slack_max", res.state_slack_max, t)
     tb.scalar("safety/risk_spent", info.risk_spent, t)
+    if not math.isnan(info.min_obstacle_distance):
+        tb.scalar("safety/min_obstacle_distance", info.min_obstacle_distance, t)
     tb.scalar("perf/solve_ms", 1000.0 * res.solve_time_s / max(res.iterations, 1), t)
 
 
@@ -115,7 +121,13 @@ class StepRecorder:
         return StepInfo(iterations=res.iterations, min_distance=min_dist, converged=res.converged,
                         primal=res.primal_residuals[-1] if res.primal_residuals else math.nan,
                         violations_total=self.violations_total, lost_agents=list(res.lost_agents),
-                        risk_spent=self.risk_spent)
+                        risk_spent=self.risk_spent, min_obstacle_distance=self._obstacle_distance(pos))
+
+    def _obstacle_distance(self, positions: Tensor) -> float:
+        """Smallest centre-to-obstacle distance of positions (K, P); NaN without obstacles."""
+        if self.cfg.obstacles is None or not len(self.cfg.obstacles):
+            return math.nan
+        return float(obstacle_geometry(self.cfg.obstacles, positions)[0].min())
 
     def _per_pair(self, matrix: Tensor | None) -> np.ndarray:
         """A (K, K) per-pair matrix as its P upper-triangle entries (NaN when not reported)."""

@@ -11,6 +11,13 @@ Generated scenarios (``Config.scenario``):
 * ``random``: K starts and K targets uniform in ``[-circle_radius, circle_radius]^D``,
   drawn from a generator seeded with ``Config.seed``; starts are pairwise at least
   ``max(min_separation, r_safe)`` apart, and so are targets.
+* ``forest``: K agents start on the line x1 = -R, spread ``max(min_separation, r_safe)``
+  apart along x2 (centred), and cross to x1 = +R at the same x2, through ``num_obstacles``
+  discs of radius ``FOREST_TREE_RADIUS`` (vertical cylinders in 3D) placed uniformly, seeded
+  with ``Config.seed``, in the band ``|x1| <= R - 1``; trees keep a free gap of at least
+  ``r_safe + FOREST_GAP_EXTRA`` between each other, so an agent with its chance margins fits
+  through every gap. R and the band's height grow with the trees and lanes
+  (:func:`~torch_gpmpc.config.obstacles.forest_extent`; at least ``circle_radius``).
 
 A scenario file (JSON or TOML) overrides ``Config.scenario``::
 
@@ -20,6 +27,8 @@ A scenario file (JSON or TOML) overrides ``Config.scenario``::
     ref_points = 50                              # optional, >= 2
     name = "two agents"                          # optional label
     workspace = {"min": [-5, -5], "max": [5, 5]} # optional soft box on the positions (P numbers each)
+    obstacles = [{"center": [0, 1], "radius": 0.5},  # optional: discs/spheres, vertical cylinders
+                 {"min": [1, -2], "max": [2, -1]}]   # ({..., "z": [zmin, zmax]}) and boxes
 """
 
 from __future__ import annotations
@@ -34,6 +43,9 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.config.fields import nearest_key
+from torch_gpmpc.config.obstacles import (
+    FOREST_GAP_EXTRA, FOREST_TREE_RADIUS, ObstacleField, forest_extent,
+)
 from torch_gpmpc.config.reader import read_table
 from torch_gpmpc.config.schema import REFERENCES, Config
 from torch_gpmpc.config.workspace import Workspace
@@ -42,7 +54,7 @@ from torch_gpmpc.errors import GpmpcError
 logger = logging.getLogger(__name__)
 
 #: Keys a scenario file may contain.
-SCENARIO_KEYS = ("starts", "targets", "reference", "ref_points", "name", "workspace")
+SCENARIO_KEYS = ("starts", "targets", "reference", "ref_points", "name", "workspace", "obstacles")
 #: Largest allowed absolute coordinate in a scenario file.
 MAX_COORDINATE = 1e4
 #: Candidates drawn per batch, and batches tried per agent, by ``random`` scenarios.
@@ -62,6 +74,7 @@ class Scenario:
         ref_points: R, the number of points of the straight-line reference (>= 2).
         name: a label (``paper``, ``circle``, ``random`` or the file's stem).
         workspace: a soft box on the positions the controller keeps to, or ``None``.
+        obstacles: static obstacles the agents keep ``r_safe / 2`` from, or ``None``.
     """
 
     starts: Tensor
@@ -70,6 +83,7 @@ class Scenario:
     ref_points: int = 50
     name: str = "custom"
     workspace: Workspace | None = None
+    obstacles: ObstacleField | None = None
 
     def __post_init__(self) -> None:
         starts = torch.as_tensor(self.starts, dtype=torch.float64)
@@ -145,6 +159,7 @@ class Scenario:
             "reference": self.reference_kind,
             "ref_points": self.ref_points,
             **({} if self.workspace is None else {"workspace": self.workspace.to_table()}),
+            **({} if self.obstacles is None else {"obstacles": self.obstacles.to_table()}),
         }
 
 
@@ -172,6 +187,8 @@ def make_scenario(cfg: Config, path: str | Path | None = None) -> Scenario:
         starts, targets = circle_positions(cfg.num_agents, cfg.position_dim, cfg.circle_radius)
     elif cfg.scenario == "random":
         starts, targets = random_positions(cfg)
+    elif cfg.scenario == "forest":
+        return forest_scenario(cfg)
     else:  # pragma: no cover - Config already restricts the choices
         raise GpmpcError(f"config key 'scenario': unknown scenario {cfg.scenario!r}")
     _check_start_separation(starts, cfg.r_safe, f"scenario {cfg.scenario!r}",
@@ -195,6 +212,48 @@ def circle_positions(num_agents: int, dim: int, radius: float) -> tuple[Tensor, 
     starts[:, 0] = radius * torch.cos(angles)
     starts[:, 1] = radius * torch.sin(angles)
     return starts, -starts
+
+
+def forest_scenario(cfg: Config) -> Scenario:
+    """The ``forest`` scenario (module docstring): lanes across a seeded field of trees.
+
+    Raises:
+        GpmpcError: the trees cannot be placed with their gaps in the band.
+    """
+    P, K = cfg.position_dim, cfg.num_agents
+    R, half_height = forest_extent(K, cfg.num_obstacles, cfg.circle_radius, cfg.min_separation, cfg.r_safe)
+    lanes = (torch.arange(K, dtype=torch.float64) - (K - 1) / 2) * max(cfg.min_separation, cfg.r_safe)
+    starts = torch.zeros(K, P, dtype=torch.float64)
+    starts[:, 0], starts[:, 1] = -R, lanes
+    targets = starts.clone()
+    targets[:, 0] = R
+    centres = _place_trees(cfg, R - 1.0, half_height)
+    trees = [{"center": c, "radius": FOREST_TREE_RADIUS} for c in centres.tolist()]
+    if P == 3:  # vertical cylinders through the agents' height
+        trees = [{**t, "z": [-half_height, half_height]} for t in trees]
+    return Scenario(starts, targets, cfg.reference, cfg.ref_points, "forest", obstacles=ObstacleField.parse(trees))
+
+
+def _place_trees(cfg: Config, half_width: float, half_height: float) -> Tensor:
+    """``num_obstacles`` seeded tree centres (x1, x2) in the band, pairwise at least
+    ``2 FOREST_TREE_RADIUS + r_safe + FOREST_GAP_EXTRA`` apart -> (O, 2)."""
+    gen = torch.Generator().manual_seed(cfg.seed)
+    spacing = 2 * FOREST_TREE_RADIUS + cfg.r_safe + FOREST_GAP_EXTRA
+    scale = torch.tensor([half_width, half_height], dtype=torch.float64)
+    trees = torch.empty(0, 2, dtype=torch.float64)
+    for _ in range(cfg.num_obstacles):
+        for _ in range(_RANDOM_BATCHES):
+            cand = (torch.rand(_RANDOM_BATCH, 2, generator=gen, dtype=torch.float64) * 2 - 1) * scale
+            ok = (torch.cdist(cand, trees) >= spacing).all(dim=1) if trees.shape[0] else \
+                torch.ones(_RANDOM_BATCH, dtype=torch.bool)
+            if ok.any():
+                trees = torch.cat([trees, cand[ok.nonzero()[0]]], dim=0)
+                break
+        else:  # pragma: no cover - the band is sized to leave room (FOREST_FILL)
+            raise GpmpcError(f"scenario 'forest': could not place tree {trees.shape[0]} of {cfg.num_obstacles} "
+                             f"{spacing:g} from the others in the band {2 * half_width:g} x {2 * half_height:g}; "
+                             "lower num_obstacles")
+    return trees
 
 
 def random_positions(cfg: Config) -> tuple[Tensor, Tensor]:
@@ -274,16 +333,24 @@ def load_scenario_file(path: str | Path, cfg: Config) -> Scenario:
     if "workspace" in data:
         workspace = Workspace.parse(data["workspace"], where)
         workspace.check_dim(cfg.position_dim, where)
+    obstacles = None
+    if "obstacles" in data:
+        obstacles = ObstacleField.parse(data["obstacles"], f"{where}: obstacles")
+        obstacles.check_dim(cfg.position_dim, f"{where}: obstacles")
     if starts.shape[0] != cfg.num_agents:
         logger.info("%s has %d agents; it overrides num_agents=%d", where, starts.shape[0], cfg.num_agents)
-    return Scenario(starts, targets, reference, ref_points, name, workspace)
+    return Scenario(starts, targets, reference, ref_points, name, workspace, obstacles)
 
 
-def with_scenario_workspace(cfg: Config, scenario: Scenario) -> Config:
-    """``cfg`` with the scenario's workspace, if it has one (it overrides the config's ``workspace``)."""
-    if scenario.workspace is None or scenario.workspace == cfg.workspace:
-        return cfg
-    return cfg.replace(workspace=scenario.workspace.to_table())
+def with_scenario_world(cfg: Config, scenario: Scenario) -> Config:
+    """``cfg`` with the scenario's workspace and obstacles, where it has them (they override the
+    config's ``workspace`` and ``obstacles``)."""
+    changes = {}
+    if scenario.workspace is not None and scenario.workspace != cfg.workspace:
+        changes["workspace"] = scenario.workspace.to_table()
+    if scenario.obstacles is not None and scenario.obstacles != cfg.obstacles:
+        changes["obstacles"] = scenario.obstacles.to_table()
+    return cfg.replace(**changes) if changes else cfg
 
 
 def _parse_matrix(value: Any, key: str, where: str) -> Tensor:
