@@ -25,6 +25,7 @@ _COMMANDS = {
     "reproduce": "torch_gpmpc.cli.reproduce",
     "bench": "torch_gpmpc.cli.bench",
     "calibrate": "torch_gpmpc.cli.calibrate",
+    "benchmark": "torch_gpmpc.cli.benchmark",
 }
 
 

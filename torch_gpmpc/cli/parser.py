@@ -114,6 +114,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, help="parallel processes (default: number of cores)")
     p.add_argument("--out", default="runs/calibrate")
 
+    p = sub.add_parser("benchmark", help="success rate and failure causes over scenarios, team sizes and seeds")
+    _add_config_args(p)
+    p.add_argument("--scenario", nargs="+", default=["random"],
+                   help="built-in scenario names (random, circle, forest, ...) and/or scenario files (default random)")
+    p.add_argument("--agents", default="4,8,16", help="comma-separated team sizes of built-in scenarios")
+    p.add_argument("--seeds", type=int, default=10, help="seeds per scenario and team size (default 10)")
+    p.add_argument("--quick", action="store_true", help="smoke form: the first team size, <= 2 seeds, <= 60 steps")
+    p.add_argument("--workers", type=int, help="parallel processes (default: number of cores)")
+    p.add_argument("--out", default="runs/benchmark")
+
     p = sub.add_parser("bench", help="performance workloads, ratios against baselines")
     p.add_argument("--out", default="runs/bench")
     p.add_argument("--sections", default="gp,local,scale,run", help="comma-separated: gp, local, scale, run")

@@ -485,3 +485,26 @@ def plot_mission_calibration(entries: Sequence[Mapping[str, Any]], path: str | P
     ax_arr.set_ylabel("last agent's arrival step (mean)")
     ax_arr.set_title("cost of the promise", fontsize=9)
     return _save(fig, path)
+
+
+def plot_benchmark(summary: Sequence[Mapping[str, Any]], path: str | Path) -> Path:
+    """``gpmpc benchmark``'s figure: success rate and compute per agent-step against team size,
+    one line per scenario (rows of :func:`~torch_gpmpc.sim.benchmark.summary_rows`)."""
+    fig, axes = _new_figure(2)
+    by_scenario: dict[str, list] = {}
+    for row in summary:
+        by_scenario.setdefault(row["scenario"], []).append(row)
+    for n, (name, rows) in enumerate(by_scenario.items()):
+        rows = sorted(rows, key=lambda r: r["agents"])
+        k = [r["agents"] for r in rows]
+        axes[0][0].plot(k, [100 * r["success_rate"] for r in rows], "o-", color=_color(n), label=name)
+        axes[0][1].plot(k, [np.nan if r["compute_ms_per_agent_step"] is None else r["compute_ms_per_agent_step"]
+                            for r in rows], "o-", color=_color(n), label=name)
+    axes[0][0].set_ylabel("success (%)")
+    axes[0][0].set_ylim(-5, 105)
+    axes[0][1].set_ylabel("compute per agent-step (ms)")
+    for ax in axes[0]:
+        ax.set_xlabel("agents")
+        ax.grid(True, lw=0.3)
+        ax.legend(fontsize=7)
+    return _save(fig, path)

@@ -36,6 +36,8 @@ class Task:
         config: flat config dict (method, seed and rho are overridden by the fields above).
         cache_dir: where the rollout file goes.
         label: the table row this run belongs to (default: the method).
+        scenario_file: a scenario file the run uses instead of ``config['scenario']`` ("" = none;
+            its contents are part of the cache key).
     """
 
     kind: str
@@ -45,6 +47,7 @@ class Task:
     config: dict
     cache_dir: str
     label: str = ""
+    scenario_file: str = ""
 
     @property
     def row(self) -> str:
@@ -59,7 +62,11 @@ class Task:
     @property
     def path(self) -> Path:
         """Cache file of this task's rollout."""
-        tag = f"{self.kind}_{self.method}_s{self.seed}_rho{self.rho:g}_{config_hash(self.cfg)}"
+        key = config_hash(self.cfg)
+        if self.scenario_file:
+            text = Path(self.scenario_file).read_bytes()
+            key = hashlib.sha256(key.encode() + text).hexdigest()[:12]
+        tag = f"{self.kind}_{self.method}_s{self.seed}_rho{self.rho:g}_{key}"
         return Path(self.cache_dir) / f"{tag}.npz"
 
 
@@ -86,12 +93,14 @@ SOUND_LABEL = "gp-chance (sound)"
 def execute(task: Task) -> str:
     """Run ``task`` unless its rollout is cached; return the rollout path (worker entry point)."""
     from torch_gpmpc.sim.closed_loop import simulate
+    from torch_gpmpc.sim.scenarios import make_scenario
 
     if not task.path.exists():
         threads = torch.get_num_threads()
         torch.set_num_threads(1)  # small problems: extra threads only add overhead
         try:
-            simulate(task.cfg).save(task.path)
+            cfg = task.cfg
+            simulate(cfg, make_scenario(cfg, task.scenario_file or None)).save(task.path)
         finally:
             torch.set_num_threads(threads)  # the caller's setting, unchanged (workers=1 runs here)
     return str(task.path)
