@@ -43,6 +43,18 @@ def test_sphere_box_and_cylinder_distances_and_normals_in_closed_form():
     assert dist[5, 2] == pytest.approx(-0.1) and torch.allclose(normal[5, 2], t(0, 0, 1))
 
 
+
+def test_several_cylinders_at_once_match_one_at_a_time():
+    tables = [{"center": [0, 5], "radius": 1, "z": [0, 2]}, {"center": [2, -1], "radius": 0.5, "z": [-1, 1]},
+              {"center": [-3, 0], "radius": 0.7, "z": [0, 4]}]
+    points = (torch.rand(50, 3, generator=torch.Generator().manual_seed(1), dtype=F64) * 2 - 1) * 4
+    dist, normal = obstacle_geometry(ObstacleField.parse(tables), points)
+    for i, table in enumerate(tables):
+        d, n = obstacle_geometry(ObstacleField.parse([table]), points)
+        torch.testing.assert_close(dist[:, i], d[:, 0])
+        torch.testing.assert_close(normal[:, i], n[:, 0])
+
+
 @pytest.mark.parametrize("table", [
     {"center": [0.3, -0.2, 0.1], "radius": 0.8},
     {"min": [-1.0, -0.5, -0.2], "max": [0.5, 1.0, 0.7]},

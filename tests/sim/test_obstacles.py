@@ -94,3 +94,12 @@ def test_an_exactly_symmetric_head_on_swap_finishes_without_a_long_stall():
     m = compute_metrics(simulate(cfg))
     assert m["reached"] and m["time_to_target"] <= 60 and m["deadlock_steps"] <= 5
     assert m["min_pair_distance"] >= cfg.r_safe - cfg.admm_tol
+
+
+def test_a_3d_forest_of_cylinders_noiseless():
+    """Vertical cylinders in 3D, the model exact (no wind, no noise): every agent arrives, no hit."""
+    cfg = Config(scenario="forest", num_agents=4, num_obstacles=8, dim=3, noise_std=0.0, wind_scale=0.0,
+                 method="nominal")
+    m = compute_metrics(simulate(cfg))
+    assert m["reached"] and m["obstacle_violations"] == 0 and m["min_obstacle_distance"] >= 0.25 - 1e-6
+    assert m["min_pair_distance"] >= cfg.r_safe - cfg.admm_tol

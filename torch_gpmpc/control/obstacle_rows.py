@@ -58,7 +58,7 @@ def _cylinder(points: Tensor, axis: Tensor, radius: Tensor, zmin: Tensor, zmax: 
     """(N, 3) points vs (C,) vertical cylinders -> signed distance (N, C) and normal (N, C, 3)."""
     p = points[:, None]
     r_dist, r_normal = _radial(p[..., :2] - axis, radius)  # (N, C), (N, C, 2)
-    z = p[..., 2]
+    z = p[..., 2].expand_as(r_dist)
     z_excess = z - torch.minimum(torch.maximum(z, zmin), zmax)  # exact: 0 within [zmin, zmax]
     offset = torch.cat([r_dist.clamp(min=0)[..., None] * r_normal, z_excess[..., None]], dim=-1)
     out_dist, out_normal = _radial(offset, torch.zeros((), dtype=p.dtype))
