@@ -95,13 +95,17 @@ def obstacle_geometry(field: ObstacleField, points: Tensor) -> tuple[Tensor, Ten
         by_kind.setdefault(o.kind, []).append(i)
     for kind, idx in by_kind.items():
         obs = [field.obstacles[i] for i in idx]
+
+        def stack(attr):  # one attribute of this kind's obstacles as a tensor
+            return torch.tensor([attr(o) for o in obs], **kw)
+
         if kind == "sphere":
-            d, n = _sphere(flat, torch.tensor([o.center for o in obs], **kw), torch.tensor([o.radius for o in obs], **kw))
+            d, n = _sphere(flat, stack(lambda o: o.center), stack(lambda o: o.radius))
         elif kind == "box":
-            d, n = _box(flat, torch.tensor([o.lower for o in obs], **kw), torch.tensor([o.upper for o in obs], **kw))
+            d, n = _box(flat, stack(lambda o: o.lower), stack(lambda o: o.upper))
         else:
-            d, n = _cylinder(flat, torch.tensor([o.center for o in obs], **kw), torch.tensor([o.radius for o in obs], **kw),
-                             torch.tensor([o.lower[0] for o in obs], **kw), torch.tensor([o.upper[0] for o in obs], **kw))
+            d, n = _cylinder(flat, stack(lambda o: o.center), stack(lambda o: o.radius), stack(lambda o: o.lower[0]),
+                             stack(lambda o: o.upper[0]))
         dist[:, idx], normal[:, idx] = d, n
     return dist.reshape(*lead, len(field)), normal.reshape(*lead, len(field), P)
 

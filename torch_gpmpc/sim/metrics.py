@@ -239,7 +239,8 @@ def obstacle_metrics(positions: np.ndarray, obstacles: Any, r_safe: float) -> di
         return {"obstacle_violations": 0, "min_obstacle_distance": None}
     dist, _ = obstacle_geometry(ObstacleField.parse(obstacles), torch.as_tensor(positions, dtype=torch.float64))
     dist = dist.numpy()  # (S+1, K, O)
-    return {"obstacle_violations": int(np.count_nonzero(dist < r_safe / 2 - OBSTACLE_TOL)), "min_obstacle_distance": _scalar(dist.min())}
+    return {"obstacle_violations": int(np.count_nonzero(dist < r_safe / 2 - OBSTACLE_TOL)),
+            "min_obstacle_distance": _scalar(dist.min())}
 
 
 def risk_metrics(rollout: Rollout) -> dict[str, Any]:
