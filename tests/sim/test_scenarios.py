@@ -194,6 +194,21 @@ def test_random_3d():
     assert sc.starts.shape == (5, 3) and _min_pair(sc.starts) >= 1.0
 
 
+def test_random_in_a_workspace_keeps_bodies_inside_and_is_unchanged_without_one():
+    ws = {"min": [-2.0, -3.0, 0.0], "max": [2.0, 3.0, 2.5]}
+    cfg = Config(scenario="random", num_agents=8, dim=3, seed=2, workspace=ws)
+    sc = make_scenario(cfg)
+    for pts in (sc.starts, sc.targets):
+        assert bool((pts >= torch.tensor(ws["min"], dtype=torch.float64) + 0.25).all())
+        assert bool((pts <= torch.tensor(ws["max"], dtype=torch.float64) - 0.25).all())
+        assert _min_pair(pts) >= 1.0
+    assert cfg.scenario_extent == 3.0 and cfg.gp_fit_settings().box == 3.0
+    plain = make_scenario(Config(scenario="random", num_agents=5, dim=3, seed=1))
+    assert float(plain.starts.abs().max()) > 2.0  # [-4, 4]^3 as before
+    with pytest.raises(GpmpcError, match="no room"):
+        make_scenario(Config(scenario="random", dim=2, workspace={"min": [0, 0], "max": [0.4, 3]}))
+
+
 def test_random_impossible_separation_raises():
     cfg = Config(scenario="random", num_agents=20, min_separation=5.0, circle_radius=1.0)
     with pytest.raises(GpmpcError, match=r"could not place the start of agent \d+ at least 5 .*lower min_separation"):

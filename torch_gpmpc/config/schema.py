@@ -222,8 +222,11 @@ class Config:
 
     @property
     def scenario_extent(self) -> float:
-        """Half-width of the region the built-in scenario spans: ``circle_radius``, or the
-        ``forest``'s half-length (:func:`~torch_gpmpc.config.obstacles.forest_extent`)."""
+        """Half-width of the region the built-in scenario spans: ``circle_radius``, the
+        ``forest``'s half-length (:func:`~torch_gpmpc.config.obstacles.forest_extent`), or for a
+        ``random`` scenario in a workspace the largest coordinate of the workspace."""
+        if self.scenario == "random" and self.workspace is not None:
+            return max(abs(v) for v in self.workspace.lower + self.workspace.upper)
         if self.scenario != "forest":
             return self.circle_radius
         return forest_extent(self.num_agents, self.num_obstacles, self.circle_radius, self.min_separation,

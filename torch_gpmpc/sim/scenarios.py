@@ -8,9 +8,10 @@ Generated scenarios (``Config.scenario``):
   2*pi*k/K in the x1-x2 plane (third coordinate 0 in 3D), targets the antipodes
   (the straight paths all cross the centre).
 * ``circle``: the same construction for any K = ``num_agents``.
-* ``random``: K starts and K targets uniform in ``[-circle_radius, circle_radius]^D``,
-  drawn from a generator seeded with ``Config.seed``; starts are pairwise at least
-  ``max(min_separation, r_safe)`` apart, and so are targets.
+* ``random``: K starts and K targets uniform in ``[-circle_radius, circle_radius]^D`` (with a
+  ``workspace``: inside it, ``r_safe / 2`` from its faces), drawn from a generator seeded with
+  ``Config.seed``; starts are pairwise at least ``max(min_separation, r_safe)`` apart, and so
+  are targets.
 * ``forest``: K agents start on the line x1 = -R, spread ``max(min_separation, r_safe)``
   apart along x2 (centred), and cross to x1 = +R at the same x2, through ``num_obstacles``
   discs of radius ``FOREST_TREE_RADIUS`` (vertical cylinders in 3D) placed uniformly, seeded
@@ -257,7 +258,9 @@ def _place_trees(cfg: Config, half_width: float, half_height: float) -> Tensor:
 
 
 def random_positions(cfg: Config) -> tuple[Tensor, Tensor]:
-    """Seeded random starts and targets in ``[-circle_radius, circle_radius]^D``.
+    """Seeded random starts and targets in ``[-circle_radius, circle_radius]^D``, or, with a
+    ``workspace``, inside it (kept ``r_safe / 2`` from its faces: the classic random-transition
+    test at the density ``num_agents`` / the workspace's volume).
 
     Starts are pairwise at least ``max(min_separation, r_safe)`` apart, and so are
     targets (rejection sampling, at most ``_RANDOM_BATCH * _RANDOM_BATCHES`` tries per agent).
@@ -275,13 +278,28 @@ def random_positions(cfg: Config) -> tuple[Tensor, Tensor]:
     return starts, targets
 
 
+def _sampling_box(cfg: Config) -> tuple[Tensor, Tensor]:
+    """Lower and upper corners (D,) of the region ``random`` scenarios draw from."""
+    if cfg.workspace is None:
+        upper = torch.full((cfg.position_dim,), cfg.circle_radius, dtype=torch.float64)
+        return -upper, upper
+    lower = torch.tensor(cfg.workspace.lower, dtype=torch.float64) + cfg.r_safe / 2
+    upper = torch.tensor(cfg.workspace.upper, dtype=torch.float64) - cfg.r_safe / 2
+    if bool((lower >= upper).any()):
+        raise GpmpcError(f"scenario 'random': the workspace {cfg.workspace.to_table()} leaves no room for an agent "
+                         f"of radius r_safe/2 = {cfg.r_safe / 2:g}; enlarge it")
+    return lower, upper
+
+
 def _sample_separated(cfg: Config, sep: float, gen: torch.Generator, what: str) -> Tensor:
-    """K points uniform in the box, pairwise >= ``sep`` apart -> (K, D)."""
-    box = cfg.circle_radius
+    """K points uniform in the sampling box, pairwise >= ``sep`` apart -> (K, D)."""
+    lower, upper = _sampling_box(cfg)
     points = torch.empty(0, cfg.position_dim, dtype=torch.float64)
     for k in range(cfg.num_agents):
         for _ in range(_RANDOM_BATCHES):
-            cand = (torch.rand(_RANDOM_BATCH, cfg.position_dim, generator=gen, dtype=torch.float64) * 2 - 1) * box
+            unit = torch.rand(_RANDOM_BATCH, cfg.position_dim, generator=gen, dtype=torch.float64)
+            # without a workspace, the historical expression (bit for bit: earlier results stay reproducible)
+            cand = (unit * 2 - 1) * upper if cfg.workspace is None else lower + unit * (upper - lower)
             if points.shape[0] == 0:
                 ok = torch.ones(_RANDOM_BATCH, dtype=torch.bool)
             else:
@@ -292,8 +310,8 @@ def _sample_separated(cfg: Config, sep: float, gen: torch.Generator, what: str) 
         else:
             raise GpmpcError(
                 f"scenario 'random': could not place the {what} of agent {k} at least {sep:g} from the "
-                f"other {what}s in [-{box:g}, {box:g}]^{cfg.position_dim} within {_RANDOM_BATCH * _RANDOM_BATCHES} "
-                f"tries; lower min_separation (or r_safe) or num_agents, or raise circle_radius"
+                f"other {what}s in the box {lower.tolist()} .. {upper.tolist()} within {_RANDOM_BATCH * _RANDOM_BATCHES} "
+                f"tries; lower min_separation (or r_safe) or num_agents, or raise circle_radius (or the workspace)"
             )
     return points
 
