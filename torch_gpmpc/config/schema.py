@@ -20,7 +20,7 @@ from torch_gpmpc.config.obstacles import ObstacleField, forest_extent
 from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.config.settings import (
     CONTROLLER_CHOICES, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings, check_risk_mode,
-    controller_keys, resolve_uncertainty,
+    controller_keys, parse_world, resolve_uncertainty,
 )
 from torch_gpmpc.errors import GpmpcError
 
@@ -185,10 +185,7 @@ class Config:
     def __post_init__(self) -> None:
         if isinstance(self.model, dict):  # an inline model table (a config file's [model])
             object.__setattr__(self, "model", parse_model(self.model, "config key 'model'"))
-        if self.workspace is not None and not isinstance(self.workspace, Workspace):
-            object.__setattr__(self, "workspace", Workspace.parse(self.workspace, "config key 'workspace'"))
-        if self.obstacles is not None and not isinstance(self.obstacles, ObstacleField):
-            object.__setattr__(self, "obstacles", ObstacleField.parse(self.obstacles, "config key 'obstacles'"))
+        parse_world(self, "config key")
         validate(self, RULES)
         check_risk_mode(self.risk_mode, self.method, self.pair_margin, "config key")
         if isinstance(self.model, str):

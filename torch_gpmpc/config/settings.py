@@ -131,10 +131,7 @@ class ControllerSettings:
     obstacle_rows: int = 4
 
     def __post_init__(self) -> None:
-        if self.workspace is not None and not isinstance(self.workspace, Workspace):
-            object.__setattr__(self, "workspace", Workspace.parse(self.workspace, "controller setting 'workspace'"))
-        if self.obstacles is not None and not isinstance(self.obstacles, ObstacleField):
-            object.__setattr__(self, "obstacles", ObstacleField.parse(self.obstacles, "controller setting 'obstacles'"))
+        parse_world(self, "controller setting")
         validate(self, RULES)
         check_risk_mode(self.risk_mode, self.method, self.pair_margin, "controller setting")
 
@@ -148,6 +145,15 @@ class ControllerSettings:
 
 
 RULES = Rules("controller setting", "", CONTROLLER_CHOICES, CONTROLLER_RANGES)
+
+
+def parse_world(obj, what: str) -> None:
+    """Turn the tables of a frozen dataclass's ``workspace`` and ``obstacles`` fields (from a file or
+    ``--set``) into :class:`Workspace` and :class:`ObstacleField`, naming ``<what> '<field>'`` on error."""
+    for name, kind in (("workspace", Workspace), ("obstacles", ObstacleField)):
+        value = getattr(obj, name)
+        if value is not None and not isinstance(value, kind):
+            object.__setattr__(obj, name, kind.parse(value, f"{what} '{name}'"))
 
 #: The methods with chance margins (the ones a mission budget can be spent on).
 CHANCE_METHODS = tuple(name for name in METHOD_NAMES if name.endswith("-chance"))

@@ -141,6 +141,14 @@ def as_nominal(model: NominalModel | ModelSpec) -> NominalModel:
     return model if isinstance(model, NominalModel) else NominalModel(model)
 
 
+def on_positions(normals_p: Tensor, position: list[int], state_dim: int) -> Tensor:
+    """Row normals on the positions (..., P) as normals on the state (..., n): the rows act on the
+    position states only."""
+    normals = normals_p.new_zeros(*normals_p.shape[:-1], state_dim)
+    normals[..., position] = normals_p
+    return normals
+
+
 def _reported_variances(state: ADMMState, slot_edge: Tensor, side: Tensor, own: Tensor) -> Tensor:
     """The neighbours' last reported projected variances per slot (B, M, T); the agent's own
     where none has been reported yet (a symmetric first guess)."""
@@ -294,10 +302,8 @@ class LocalStep:
         slot_nbr = graph.slot_nbr[rows]
         agent_ids = torch.arange(graph.num_agents)[rows]
         pos = self.nominal.position
-        normals_p = collision_normals(xbar[..., pos], state.plans[slot_nbr][..., pos], agent_ids,
-                                      slot_nbr)[:, :, 1:]
-        normals = normals_p.new_zeros(*normals_p.shape[:3], xbar.shape[-1])
-        normals[..., pos] = normals_p  # collision rows act on the position states only
+        normals = on_positions(collision_normals(xbar[..., pos], state.plans[slot_nbr][..., pos], agent_ids,
+                                                 slot_nbr)[:, :, 1:], pos, xbar.shape[-1])
         own_var = sigma = None
         if self.method.chance:
             sigma = state_covariances(self.uncertainty, lin.var, lin.dyn_A, self.feedback)[:, 1:]
@@ -313,8 +319,7 @@ class LocalStep:
         pos = self.nominal.position
         normals_p, bounds = obstacle_rows(self.settings.obstacles, xbar[:, 1:, pos], self.settings.r_safe / 2,
                                           self.num_obstacle_rows)
-        normals = normals_p.new_zeros(*normals_p.shape[:3], xbar.shape[-1])
-        normals[..., pos] = normals_p
+        normals = on_positions(normals_p, pos, xbar.shape[-1])
         if sigma is not None:
             quantile = chance_quantile(torch.as_tensor(self.settings.obstacle_eps, dtype=bounds.dtype))
             bounds = bounds + quantile * safe_sqrt(projected_variances(normals, sigma))

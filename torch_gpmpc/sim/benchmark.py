@@ -48,9 +48,8 @@ def benchmark_tasks(cfg: Config, scenarios: Sequence[str], agents: Sequence[int]
     for name in scenarios:
         if Path(name).suffix in (".json", ".toml"):
             size = make_scenario(cfg, name).num_agents  # validates the file before any run starts
-            config = {**cfg.to_dict(), "num_agents": size,
-                      "scenario": "circle" if cfg.scenario == "paper" and size != 3 else cfg.scenario}
-            out += [(Path(name).stem, size, Task("bench", cfg.method, cfg.seed + s, cfg.rho, config, cache_dir,
+            # the file's team overrides num_agents, as in ``gpmpc run --scenario``
+            out += [(Path(name).stem, size, Task("bench", cfg.method, cfg.seed + s, cfg.rho, cfg.to_dict(), cache_dir,
                                                  scenario_file=str(name))) for s in range(seeds)]
             continue
         for k in agents:

@@ -241,20 +241,31 @@ def _place_trees(cfg: Config, half_width: float, half_height: float) -> Tensor:
     gen = torch.Generator().manual_seed(cfg.seed)
     spacing = 2 * FOREST_TREE_RADIUS + cfg.r_safe + FOREST_GAP_EXTRA
     scale = torch.tensor([half_width, half_height], dtype=torch.float64)
-    trees = torch.empty(0, 2, dtype=torch.float64)
-    for _ in range(cfg.num_obstacles):
-        for _ in range(_RANDOM_BATCHES):
-            cand = (torch.rand(_RANDOM_BATCH, 2, generator=gen, dtype=torch.float64) * 2 - 1) * scale
-            ok = (torch.cdist(cand, trees) >= spacing).all(dim=1) if trees.shape[0] else \
-                torch.ones(_RANDOM_BATCH, dtype=torch.bool)
-            if ok.any():
-                trees = torch.cat([trees, cand[ok.nonzero()[0]]], dim=0)
-                break
-        else:  # pragma: no cover - the band is sized to leave room (FOREST_FILL)
-            raise GpmpcError(f"scenario 'forest': could not place tree {trees.shape[0]} of {cfg.num_obstacles} "
-                             f"{spacing:g} from the others in the band {2 * half_width:g} x {2 * half_height:g}; "
-                             "lower num_obstacles")
+    trees = _separated_points(
+        cfg.num_obstacles, 2, spacing, lambda: (torch.rand(_RANDOM_BATCH, 2, generator=gen, dtype=torch.float64) * 2 - 1) * scale)
+    if trees.shape[0] < cfg.num_obstacles:  # pragma: no cover - the band is sized to leave room (FOREST_FILL)
+        raise GpmpcError(f"scenario 'forest': could not place tree {trees.shape[0]} of {cfg.num_obstacles} "
+                         f"{spacing:g} from the others in the band {2 * half_width:g} x {2 * half_height:g}; "
+                         "lower num_obstacles")
     return trees
+
+
+def _separated_points(count: int, dim: int, sep: float, draw) -> Tensor:
+    """Up to ``count`` points pairwise >= ``sep`` apart by rejection sampling: each point is the first
+    acceptable candidate of ``draw()`` ((N, dim) float64 candidates), at most ``_RANDOM_BATCHES``
+    draws per point; stops at the first point it cannot place -> (<= count, dim)."""
+    points = torch.empty(0, dim, dtype=torch.float64)
+    for _ in range(count):
+        for _ in range(_RANDOM_BATCHES):
+            cand = draw()
+            ok = (torch.cdist(cand, points) >= sep).all(dim=1) if points.shape[0] else \
+                torch.ones(cand.shape[0], dtype=torch.bool)
+            if ok.any():
+                points = torch.cat([points, cand[ok.nonzero()[0]]], dim=0)
+                break
+        else:
+            break
+    return points
 
 
 def random_positions(cfg: Config) -> tuple[Tensor, Tensor]:
@@ -294,25 +305,19 @@ def _sampling_box(cfg: Config) -> tuple[Tensor, Tensor]:
 def _sample_separated(cfg: Config, sep: float, gen: torch.Generator, what: str) -> Tensor:
     """K points uniform in the sampling box, pairwise >= ``sep`` apart -> (K, D)."""
     lower, upper = _sampling_box(cfg)
-    points = torch.empty(0, cfg.position_dim, dtype=torch.float64)
-    for k in range(cfg.num_agents):
-        for _ in range(_RANDOM_BATCHES):
-            unit = torch.rand(_RANDOM_BATCH, cfg.position_dim, generator=gen, dtype=torch.float64)
-            # without a workspace, the historical expression (bit for bit: earlier results stay reproducible)
-            cand = (unit * 2 - 1) * upper if cfg.workspace is None else lower + unit * (upper - lower)
-            if points.shape[0] == 0:
-                ok = torch.ones(_RANDOM_BATCH, dtype=torch.bool)
-            else:
-                ok = (torch.cdist(cand, points) >= sep).all(dim=1)
-            if ok.any():
-                points = torch.cat([points, cand[ok.nonzero()[0]]], dim=0)
-                break
-        else:
-            raise GpmpcError(
-                f"scenario 'random': could not place the {what} of agent {k} at least {sep:g} from the "
-                f"other {what}s in the box {lower.tolist()} .. {upper.tolist()} within {_RANDOM_BATCH * _RANDOM_BATCHES} "
-                f"tries; lower min_separation (or r_safe) or num_agents, or raise circle_radius (or the workspace)"
-            )
+
+    def draw() -> Tensor:
+        unit = torch.rand(_RANDOM_BATCH, cfg.position_dim, generator=gen, dtype=torch.float64)
+        # without a workspace, the historical expression (bit for bit: earlier results stay reproducible)
+        return (unit * 2 - 1) * upper if cfg.workspace is None else lower + unit * (upper - lower)
+
+    points = _separated_points(cfg.num_agents, cfg.position_dim, sep, draw)
+    if points.shape[0] < cfg.num_agents:
+        raise GpmpcError(
+            f"scenario 'random': could not place the {what} of agent {points.shape[0]} at least {sep:g} from the "
+            f"other {what}s in the box {lower.tolist()} .. {upper.tolist()} within {_RANDOM_BATCH * _RANDOM_BATCHES} "
+            f"tries; lower min_separation (or r_safe) or num_agents, or raise circle_radius (or the workspace)"
+        )
     return points
 
 
