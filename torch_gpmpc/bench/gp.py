@@ -9,6 +9,9 @@ Workloads (synthetic data from the paper recipe, one agent, seed 0):
   forced via ``max_cholesky_size``) plus the Jacobian by ``torch.autograd`` (one
   backward pass per output dimension). Both run warm (caches built by a first call).
 * ``fit``: L-BFGS, 50 iterations, N = 100.
+* online GP (:mod:`~torch_gpmpc.gp.online`): one new row into a full window (exact N = 200;
+  SGPR M = 512 on N = 2000), against factoring the window afresh; ``team_of_4_per_step_ms`` is
+  what a K = 4 team pays per control step.
 * ``linearize`` of the same 42 points with the sparse (SGPR) model of
   :mod:`~torch_gpmpc.gp.sparse` (512 inducing points) on N = 1000, 5000 and 10000 rows,
   against the exact model on the same rows (the exact N = 10000 model is skipped: its
@@ -117,6 +120,34 @@ def _sparse_rows(base: ResidualGP, xq: torch.Tensor, quick: bool) -> list[dict]:
     return rows
 
 
+def _online_rows(base: ResidualGP, xq: torch.Tensor, quick: bool) -> list[dict]:
+    """One new row into a full window (drop the oldest, add the newest; :mod:`~torch_gpmpc.gp.online`)
+    against factoring the same window afresh (``refresh``); the per-step cost of a K = 4 team is 4 of
+    them. ``max_abs_diff``: the two posteriors' linearization at the query points."""
+    from torch_gpmpc.gp.online import OnlineGP
+
+    rows = []
+    for label, n, sparse in (("exact N=200", 200, False), (f"SGPR M={NUM_INDUCING} N=2000", 2000, True)):
+        X, Y = _data(n + 50, seed=3)
+        online = OnlineGP(_reuse_hyperparameters(base, X[:n], Y[:n], sparse=sparse), budget=n)
+        new = iter(range(n, n + 50))
+
+        def add_one():
+            i = next(new)
+            online.add(X[i:i + 1], Y[i:i + 1])
+
+        t_add, _ = _median_time(add_one, 5 if quick else 40)
+        updated = [t.clone() for t in online.linearize(xq)]
+        t_refit, _ = _median_time(lambda: online.gp.refresh(), 2 if quick else 10)
+        refreshed = online.gp.linearize(xq)
+        diff = max(float((a - b).abs().max()) for a, b in zip(updated, refreshed, strict=True))
+        rows.append({"workload": f"online GP: add 1 row to a full window, {label} (baseline: refactor)",
+                     "ours_ms": 1e3 * t_add, "gpytorch_ms": None, "refactor_ms": 1e3 * t_refit,
+                     "ratio": t_refit / t_add, "max_abs_diff": diff,
+                     "team_of_4_per_step_ms": 4e3 * t_add})
+    return rows
+
+
 def _reps(n: int, quick: bool) -> tuple[int, int]:
     """(ours, baseline) repetitions for N = n."""
     table = {100: (200, 30), 1000: (30, 5), 5000: (5, 2)}
@@ -169,6 +200,7 @@ def _run(quick: bool, default_threads: int) -> dict:
                      "gpytorch_ms": 1e3 * t_base, "ratio": t_base / t_ours, "max_abs_diff": diff})
     rows.append(_default_threads_row(base, xq, quick, default_threads))
     rows += _sparse_rows(base, xq, quick)
+    rows += _online_rows(base, xq, quick)
     return {
         "table": rows,
         "threads": 1,

@@ -37,6 +37,11 @@ def _validate(args) -> None:
 def main(args) -> int:
     """Collect ``--agents x --samples`` transitions and write them to ``--out``."""
     _validate(args)
+    if args.plant == "rotorpy":
+        return _collect_flights(args)
+    if args.set:
+        raise GpmpcError("--set configures the RotorPy flights; add --plant rotorpy (the model plant "
+                         "takes --noise-std, --wind-scale, --dt and --u-max)")
     spec = resolve_model(args.model, args.dim, args.dt, args.u_max)
     system = make_system(spec, noise_std=args.noise_std, wind_scale=args.wind_scale)
     data = collect_transitions(system, num_agents=args.agents, samples=args.samples, seed=args.seed, box=args.box)
@@ -45,4 +50,24 @@ def main(args) -> int:
     print(f"wrote {args.out}: {data.num_samples} transitions ({args.agents} agents x {args.samples}), "
           f"model {spec.name} (D={spec.state_dim}, Du={spec.input_dim}), noise_std={args.noise_std:g}, "
           f"{bound}, box={args.box:g}, seed={args.seed}")
+    return 0
+
+
+def _collect_flights(args) -> int:
+    """``--plant rotorpy``: excitation flights (:func:`~torch_gpmpc.data.flights.collect_flights`)."""
+    from torch_gpmpc.config import load_config, parse_overrides
+    from torch_gpmpc.data.flights import collect_flights
+    from torch_gpmpc.dynamics.rotorpy_plant import PlantSettings, check_planning_model, require_rotorpy
+    from torch_gpmpc.dynamics.systems import NominalModel
+
+    require_rotorpy()
+    spec = resolve_model(args.model, args.dim, args.dt, args.u_max)
+    check_planning_model(spec)
+    cfg = load_config(None, {**parse_overrides(args.set), "plant": "rotorpy", "seed": args.seed})
+    settings = PlantSettings.from_config(cfg, seed=args.seed)
+    data = collect_flights(NominalModel(spec), settings, num_agents=args.agents, samples=args.samples, box=args.box)
+    data.save(args.out)
+    print(f"wrote {args.out}: {data.num_samples} transitions ({args.agents} {settings.vehicle} flights x "
+          f"{args.samples} steps of {spec.dt:g} s), model {spec.name}, wind {settings.wind} "
+          f"{list(settings.wind_speed)} m/s, {settings.rate_hz:g} Hz, seed={args.seed}")
     return 0

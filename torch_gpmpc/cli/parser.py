@@ -44,6 +44,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--u-max", type=float, default=2.0,
                    help="input norm bound of the built-in models (default 2; a model file has its own)")
     p.add_argument("--box", type=float, default=4.0, help="positions uniform in [-box, box]^P (default 4)")
+    p.add_argument("--plant", choices=("model", "rotorpy"), default="model",
+                   help="model: the model's true system (default); rotorpy: excitation flights of RotorPy "
+                        "vehicles (a 3D double-integrator --model; vehicle and wind by --set plant_*=...)")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="--plant rotorpy: config keys plant_vehicle, plant_wind, plant_wind_speed, plant_rate_hz, "
+                        "plant_sensor_noise (e.g. --set plant_wind=constant --set plant_wind_speed=[1,0,0])")
 
     p = sub.add_parser("fit-gp", help="fit one residual GP per state dimension")
     p.add_argument("--transitions", required=True, help="transitions file (.npz or .csv)")
@@ -74,6 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", help="nominal, nominal-chance, nonlinear, nonlinear-chance, gp, gp-chance")
     p.add_argument("--seed", type=int)
     p.add_argument("--gp-model", help="a model file from fit-gp (used by every agent)")
+    p.add_argument("--plant", choices=("model", "rotorpy"),
+                   help="what the loop steps (the config key plant): model (default) or rotorpy vehicles")
     p.add_argument("--backend", choices=("inprocess", "distributed"), default="inprocess")
     p.add_argument("--agents-per-process", type=int, default=1,
                    help="distributed backend: agents hosted by one process (default 1)")

@@ -22,6 +22,8 @@ def config_from_args(args):
         overrides["method"] = args.method
     if getattr(args, "seed", None) is not None:
         overrides["seed"] = args.seed
+    if getattr(args, "plant", None):
+        overrides["plant"] = args.plant
     return load_config(args.config, overrides)
 
 

@@ -94,6 +94,9 @@ def _coerce(typ: Any, value: Any) -> Any:
     allowed = typing.get_args(typ) or (typ,)
     if float in allowed and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
+    if typing.get_origin(typ) is tuple and isinstance(value, list):  # a TOML/JSON list
+        item = typing.get_args(typ)[0]
+        return tuple(_coerce(item, v) for v in value)
     return value
 
 

@@ -18,6 +18,7 @@ from torch_gpmpc.config.fields import Rules, build, validate
 from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, parse_model, resolve_model
 from torch_gpmpc.config.obstacles import ObstacleField, forest_extent
 from torch_gpmpc.config.workspace import Workspace
+from torch_gpmpc.config.plant import PLANTS, VEHICLES, WINDS
 from torch_gpmpc.config.settings import (
     CONTROLLER_CHOICES, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings, check_risk_mode,
     controller_keys, parse_world, resolve_uncertainty,
@@ -122,6 +123,19 @@ class Config:
         num_obstacles: the cylinders (discs in 2D) of ``scenario = forest``.
         deadlock_detour: an agent stuck behind a neighbour (no progress for 10 steps) detours
             round it on a fixed side (:class:`~torch_gpmpc.sim.detours.DeadlockBreaker`).
+        plant: what the closed loop steps: ``model`` (the model's true system, the paper's world)
+            or ``rotorpy`` (simulated multirotors tracking the plans,
+            :mod:`~torch_gpmpc.dynamics.rotorpy_plant`; needs a 3D double-integrator model).
+        plant_vehicle: RotorPy's ``crazyflie`` or ``hummingbird`` parameters.
+        plant_wind: ``none``, ``constant``, ``sine`` or ``dryden``; ``plant_wind_speed`` is its
+            velocity [wx, wy, wz] in m/s (the amplitude of ``sine``, the mean of ``dryden``).
+        plant_rate_hz: the rate of RotorPy's tracking controller and simulator.
+        plant_sensor_noise: standard deviation of the measured position (m) and velocity (m/s).
+        wind_change_step: the control step from which the plant's wind is turned 90 degrees about
+            the vertical axis (null: never).
+        gp_online: each agent adds its own observed transitions to its GP during the run
+            (:mod:`~torch_gpmpc.gp.online`); ``gp_online_budget`` points per agent (the oldest
+            leave first), hyperparameters re-fitted every ``gp_online_refit_every`` steps (0: never).
 
     Example:
         >>> from torch_gpmpc import Config
@@ -181,11 +195,24 @@ class Config:
     obstacle_rows: int = 4
     num_obstacles: int = 20
     deadlock_detour: bool = True
+    plant: str = "model"
+    plant_vehicle: str = "crazyflie"
+    plant_wind: str = "none"
+    plant_wind_speed: tuple[float, ...] = (0.0, 0.0, 0.0)
+    plant_rate_hz: float = 100.0
+    plant_sensor_noise: float = 0.0
+    wind_change_step: int | None = None
+    gp_online: bool = False
+    gp_online_budget: int = 200
+    gp_online_refit_every: int = 0
 
     def __post_init__(self) -> None:
         if isinstance(self.model, dict):  # an inline model table (a config file's [model])
             object.__setattr__(self, "model", parse_model(self.model, "config key 'model'"))
         parse_world(self, "config key")
+        if isinstance(self.plant_wind_speed, (list, tuple)):  # [1, 0, 0] from Python, TOML or --set
+            object.__setattr__(self, "plant_wind_speed", tuple(
+                float(v) if isinstance(v, int) and not isinstance(v, bool) else v for v in self.plant_wind_speed))
         validate(self, RULES)
         check_risk_mode(self.risk_mode, self.method, self.pair_margin, "config key")
         if isinstance(self.model, str):
@@ -296,6 +323,9 @@ _CHOICES = {
     "reference": REFERENCES,
     "gp_inputs": ("state", "state_input"),
     "gp_optimizer": ("lbfgs", "adam"),
+    "plant": PLANTS,
+    "plant_vehicle": VEHICLES,
+    "plant_wind": WINDS,
 }
 
 # (predicate, description of the allowed range); checked in __post_init__.
@@ -319,6 +349,12 @@ _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "gp_iters": (lambda v: v >= 1, "an integer >= 1"),
     "wind_scale": (lambda v: v >= 0, "a number >= 0"),
     "dt": (lambda v: 0 < v <= 10, "a number in (0, 10]"),
+    "plant_wind_speed": (lambda v: len(v) == 3 and all(abs(w) <= 50 for w in v), "3 numbers [wx, wy, wz] in m/s, each within 50"),
+    "plant_rate_hz": (lambda v: 1 <= v <= 10_000, "a number in [1, 10000]"),
+    "plant_sensor_noise": (lambda v: v >= 0, "a number >= 0"),
+    "wind_change_step": (lambda v: v is None or v >= 0, "an integer >= 0 or null (never)"),
+    "gp_online_budget": (lambda v: 2 <= v <= 5000, "an integer in [2, 5000]"),
+    "gp_online_refit_every": (lambda v: v >= 0, "an integer >= 0 (0: never re-fit)"),
 }
 
 

@@ -289,15 +289,36 @@ def fit_agent_gp(settings: GPFitSettings | Config, system, k: int) -> ResidualGP
         system: the :class:`~torch_gpmpc.dynamics.systems.TrueSystem` that generates the data.
         k: agent id.
     """
+    flights = _flight_settings(settings)
     settings = _fit_settings(settings)
+    if flights is not None:
+        return _fit_rows(settings, system, _flight_data(settings, flights, system, range(k, k + 1)), k)
     return _fit_rows(settings, system, _recipe_data(settings, system, k + 1), k)
 
 
 def fit_agent_gps(settings: GPFitSettings | Config, system, agents: int) -> list[ResidualGP]:
     """Every agent's residual GP (:func:`fit_agent_gp` for ``k = 0..agents-1``, one data draw)."""
+    flights = _flight_settings(settings)
     settings = _fit_settings(settings)
-    data = _recipe_data(settings, system, agents)
+    data = _recipe_data(settings, system, agents) if flights is None \
+        else _flight_data(settings, flights, system, range(agents))
     return [_fit_rows(settings, system, data, k) for k in range(agents)]
+
+
+def _flight_settings(settings: GPFitSettings | Config):
+    """With ``plant = rotorpy`` the GPs learn from excitation flights of the run's vehicles in its wind
+    (seed ``2 seed + 1``, like the model plant's data), else ``None``."""
+    if not isinstance(settings, Config) or settings.plant != "rotorpy":
+        return None
+    from torch_gpmpc.dynamics.rotorpy_plant import PlantSettings
+
+    return PlantSettings.from_config(settings, seed=2 * settings.seed + 1)
+
+
+def _flight_data(settings: GPFitSettings, flights, system, agents: range):
+    from torch_gpmpc.data.flights import collect_flights
+
+    return collect_flights(system.nominal, flights, samples=settings.samples, box=settings.box, agents=agents)
 
 
 def _fit_settings(settings: GPFitSettings | Config) -> GPFitSettings:
@@ -324,3 +345,13 @@ def gp_input_label(nominal) -> str:
     """The model file's name for a GP's inputs: ``state`` for the paper's model, else the columns."""
     cols = list(nominal.spec.gp_inputs)
     return "state" if cols == [f"x{i}" for i in range(nominal.dim)] else ",".join(cols)
+
+
+def refit_hyperparameters(gp: ResidualGP, iters: int = 10, optimizer: str = "lbfgs") -> ResidualGP:
+    """Re-optimize a fitted GP's hyperparameters on its current rows, from their current values
+    (an online GP's periodic refit); the standardization stays. Returns ``gp`` with its cache rebuilt.
+
+    A sparse GP's hyperparameters are re-fitted on its rows by exact marginal likelihood, as at its fit.
+    """
+    _optimize(gp, optimizer, int(iters), None, None)
+    return gp.refresh()

@@ -226,6 +226,28 @@ class ResidualGP(torch.nn.Module):
         self._cache_key = parameter_values(self.model)
         return self
 
+    def prediction_cache(self) -> PredictionCache:
+        """The prediction cache of the current rows and hyperparameters (built if needed)."""
+        return self._get_cache()
+
+    def set_rows(self, inputs: Tensor, y: Tensor, cache: PredictionCache | None = None) -> "ResidualGP":
+        """Replace the training rows (raw units, (N, Din) and (N, D)); the standardization, the
+        hyperparameters and the inducing points stay.
+
+        Args:
+            cache: the factorization of exactly these rows at the current hyperparameters (an online
+                update, :mod:`~torch_gpmpc.gp.online`); ``None``: rebuilt on the next prediction.
+        """
+        inputs, y = check_training_data(inputs, y)
+        self.train_inputs_raw, self.train_y_raw = inputs, y
+        s = self.standardization
+        z = s.inputs(inputs).expand(self.output_dim, *inputs.shape)
+        self.model.set_train_data(z, s.outputs(y).T.contiguous(), strict=False)
+        self.model.prediction_strategy = None
+        self._cache = cache
+        self._cache_key = None if cache is None else parameter_values(self.model)
+        return self
+
     def enable_hyperparameter_gradients(self, enabled: bool = True) -> "ResidualGP":
         """Opt in (or out) of gradients from :meth:`predict` / :meth:`linearize` to the
         hyperparameters (lengthscales, outputscales, noise). While enabled and autograd is on,

@@ -29,8 +29,10 @@ from torch_gpmpc.coordination.graph import Graph, communication_graph
 from torch_gpmpc.coordination.state import ADMMState, StepResult
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.config.model_spec import ModelSpec
+from torch_gpmpc.dynamics.plants import Plant, plant_from_config
 from torch_gpmpc.dynamics.systems import TrueSystem, project_input, system_from_config
 from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.gp.online import OnlineLearning, online_gps
 from torch_gpmpc.sim.detours import DeadlockBreaker, detour_reference
 from torch_gpmpc.sim.recorder import StepInfo, StepRecorder, log_step
 from torch_gpmpc.sim.rollout import Rollout
@@ -131,8 +133,14 @@ def simulate(
     if needs_gp(cfg.method):
         gps = check_gps(gps, num_agents, cfg.model_spec()) if gps is not None \
             else fit_agent_gps(cfg, system, num_agents)
+    learning = None
+    if gps is not None:
+        if cfg.gp_online:
+            gps = online_gps(gps, cfg.gp_online_budget, cfg.gp_online_refit_every)
+        learning = OnlineLearning(gps, system.nominal, cfg.gp_online)
+    plant = plant_from_config(cfg, system)
     planner = ADMMPlanner(make_controller(cfg, system, gps))
-    return run_closed_loop(cfg, scenario, system, planner, on_step, tb)
+    return run_closed_loop(cfg, scenario, plant, planner, on_step, tb, learning)
 
 
 def reference_window(cfg: Config, scenario: Scenario, t: int) -> Tensor:
@@ -153,24 +161,31 @@ def deadlock_breaker(cfg: Config, scenario: Scenario) -> DeadlockBreaker | None:
     return DeadlockBreaker(scenario.starts, scenario.targets, cfg.r_safe, cfg.goal_tol, speed)
 
 
-def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem, planner: Planner,
-                    on_step: StepCallback | None = None, tb=None) -> Rollout:
-    """The closed loop of ``scenario`` on ``system`` with any :class:`Planner`.
+def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem | Plant, planner: Planner,
+                    on_step: StepCallback | None = None, tb=None, learning: OnlineLearning | None = None) -> Rollout:
+    """The closed loop of ``scenario`` with any :class:`Planner` on a
+    :class:`~torch_gpmpc.dynamics.plants.Plant` (a :class:`TrueSystem` is stepped as
+    ``plant_from_config(cfg, system)``).
+
+    The planner sees the plant's measured states; the rollout records its true states (what
+    arrival, collisions and metrics are judged on). With ``learning``, every agent's GP predicts
+    each transition it makes (and with ``gp_online`` learns from it) before the next step's plan.
 
     Returns:
         The :class:`Rollout`.
     """
+    plant = plant_from_config(cfg, system) if isinstance(system, TrueSystem) else system
     num_agents = scenario.num_agents
     noise = noise_sequence(cfg, num_agents)
     recorder = StepRecorder(cfg, num_agents)
     breaker = deadlock_breaker(cfg, scenario)
     start_time = time.perf_counter()
-    nominal = system.nominal
-    x = nominal.states_at(scenario.starts)
-    states = [x]
+    nominal = plant.nominal
+    x = plant.reset(scenario.starts)
+    states = [plant.true_states]
     with torch.no_grad():
         for t in range(cfg.max_steps):
-            if bool(((nominal.positions(x) - scenario.targets).norm(dim=1) < cfg.goal_tol).all()):
+            if bool(((nominal.positions(states[-1]) - scenario.targets).norm(dim=1) < cfg.goal_tol).all()):
                 break
             positions = nominal.positions(x)
             graph = communication_graph(positions, cfg.comm_radius)
@@ -183,9 +198,12 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem, planner
             if res is None:
                 break
             u = project_input(res.inputs[:, 0], nominal.spec)
-            x = system.step(x, u, noise=noise[t])
-            states.append(x)
-            info = recorder.record(t, res, graph.adjacency(), u, x)
+            x_prev, x = x, plant.step(t, x, u, noise=noise[t])
+            states.append(plant.true_states)
+            if learning is not None:
+                error, var = learning.observe(x_prev, u, x)
+                recorder.record_prediction(t, error, var, learning.update_seconds[-1], tb)
+            info = recorder.record(t, res, graph.adjacency(), u, states[-1])
             if tb is not None:
                 log_step(tb, t, info, res)
             if on_step is not None:

@@ -145,7 +145,8 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
     their collision rows require: the honest safety report of the planner; collision slack
     says nothing, because copies of neighbours' plans are free variables). With obstacles:
     ``obstacle_violations`` and ``min_obstacle_distance`` (:func:`obstacle_metrics`); and
-    ``deadlock_steps`` (:func:`deadlock_steps`).
+    ``deadlock_steps`` (:func:`deadlock_steps`); ``plan_tracking_rmse`` (:func:`plan_tracking_rmse`);
+    with GPs, their one-step prediction during the run (:func:`prediction_metrics`).
 
     Args:
         rollout: the run, with ``states`` (S+1, K, D) and ``targets`` (K, D).
@@ -201,7 +202,52 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
         **risk_metrics(rollout),
         **obstacle_metrics(states, cfg.get("obstacles"), r_safe),
         "deadlock_steps": deadlock_steps(states, targets, goal_tol, r_safe),
+        "plan_tracking_rmse": plan_tracking_rmse(rollout),
+        **prediction_metrics(rollout, cfg.get("wind_change_step")),
     }
+
+
+#: Steps after (and before) ``wind_change_step`` that the ``*_after_change`` (``*_before_change``)
+#: prediction metrics cover.
+CHANGE_WINDOW = 50
+
+
+def prediction_metrics(rollout: Rollout, change_step: int | None) -> dict[str, Any]:
+    """The GPs' one-step prediction during the run (frozen or ``gp_online``; empty without GPs):
+    ``online_prediction_rmse`` over all steps, agents and residual rows; ``online_coverage95`` (share
+    of rows within 1.96 predictive standard deviations); ``gp_update_s_per_step``; with
+    ``wind_change_step`` c, the same two over steps [c, c + 50) (``*_after_change``) and
+    [c - 50, c) (``*_before_change``), ``None`` where the run has no such steps."""
+    error = getattr(rollout, "prediction_error", None)
+    if error is None:
+        return {}
+    error, var = np.asarray(error), np.asarray(rollout.prediction_var)
+
+    def rmse(sl):
+        return float(np.sqrt(np.mean(error[sl] ** 2))) if error[sl].size else None
+
+    def coverage(sl):
+        return float(np.mean(np.abs(error[sl]) <= 1.96 * np.sqrt(var[sl]))) if error[sl].size else None
+
+    out = {"online_prediction_rmse": rmse(slice(None)), "online_coverage95": coverage(slice(None)),
+           "gp_update_s_per_step": _mean(np.asarray(rollout.gp_update_time, dtype=np.float64))}
+    if change_step is not None:
+        c = int(change_step)
+        after, before = slice(c, c + CHANGE_WINDOW), slice(max(0, c - CHANGE_WINDOW), c)
+        out.update({"online_prediction_rmse_after_change": rmse(after),
+                    "online_coverage95_after_change": coverage(after),
+                    "online_prediction_rmse_before_change": rmse(before)})
+    return out
+
+
+def plan_tracking_rmse(rollout: Rollout) -> float | None:
+    """RMSE between every agent's planned next state (the plan at tau = 1) and the true state the plant
+    reached, over steps, agents and state entries (``None`` for a run with zero steps): how well the
+    planning model (nominal plus learned residual) predicts the plant one step ahead."""
+    plans, flown = np.asarray(rollout.plans), np.asarray(rollout.states)
+    if plans.shape[0] == 0:
+        return None
+    return float(np.sqrt(np.mean((plans[:, :, 1] - flown[1:]) ** 2)))
 
 
 def deadlock_steps(positions: np.ndarray, targets: np.ndarray, goal_tol: float, r_safe: float,

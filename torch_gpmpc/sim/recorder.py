@@ -88,6 +88,21 @@ class StepRecorder:
         self.position = list(cfg.model_spec().position)
         self.violations_total = 0
         self.risk_spent = 0.0
+        self.predictions: dict[str, list] = {"error": [], "var": [], "update_s": []}
+
+    def record_prediction(self, t: int, error: Tensor, var: Tensor, update_s: float, tb=None) -> None:
+        """Step t's one-step GP prediction errors and predictive variances (K, R) and the time of the
+        GP updates; to TensorBoard as ``gp/online_prediction_error`` (RMS over agents and rows) and
+        ``gp/online_coverage95`` (the share of rows within 1.96 predictive standard deviations so far)."""
+        p = self.predictions
+        p["error"].append(error.numpy())
+        p["var"].append(var.numpy())
+        p["update_s"].append(update_s)
+        if tb is not None:
+            tb.scalar("gp/online_prediction_error", float(error.square().mean().sqrt()), t)
+            inside = [np.abs(e) <= 1.96 * np.sqrt(v) for e, v in zip(p["error"], p["var"])]
+            tb.scalar("gp/online_coverage95", float(np.mean(inside)), t)
+            tb.scalar("perf/gp_update_ms", 1000.0 * update_s, t)
 
     def record(self, t: int, res: StepResult, adjacency: Tensor, u: Tensor, x_next: Tensor) -> StepInfo:
         """Record step t: its ADMM result, graph (K, K), applied inputs (K, Du), next states (K, D)."""
@@ -148,6 +163,7 @@ class StepRecorder:
             primal[i, : len(p)] = p
             dual[i, : len(d)] = d
         T, D, Du = cfg.horizon, cfg.state_dim, cfg.input_dim
+        pred = self.predictions
 
         def stack(name, shape, dtype=float):
             return np.asarray(r[name], dtype=dtype) if steps else np.zeros(shape, dtype=dtype)
@@ -180,4 +196,7 @@ class StepRecorder:
             pair_required=stack("pair_required", (0, len(self.pairs[0]))),
             pair_risk=stack("pair_risk", (0, len(self.pairs[0]))),
             position=None if position is None or position == list(range(D)) else list(position),
+            prediction_error=np.asarray(pred["error"]) if pred["error"] else None,
+            prediction_var=np.asarray(pred["var"]) if pred["var"] else None,
+            gp_update_time=np.asarray(pred["update_s"]) if pred["update_s"] else None,
         )

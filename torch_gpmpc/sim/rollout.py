@@ -60,6 +60,10 @@ class Rollout:
             in contact or methods without margins (``None`` in older files).
         (The last four are ``None`` in files written before they existed.)
         position: the state indices of the position (P of them); ``None``: every state.
+        prediction_error: each agent's one-step GP prediction error of the residual it observed, shape
+            (S, K, R) (``None`` without GPs; :class:`~torch_gpmpc.gp.online.OnlineLearning`).
+        prediction_var: the GP's predictive variance (latent + noise) of the same, shape (S, K, R).
+        gp_update_time: seconds of the online GP updates per step, shape (S,) (0 for a frozen GP).
 
     Example:
         >>> from torch_gpmpc import Config, compute_metrics, simulate
@@ -95,6 +99,9 @@ class Rollout:
     position: list[int] | None = None
     state_slack_max: np.ndarray | None = None
     pair_risk: np.ndarray | None = None
+    prediction_error: np.ndarray | None = None
+    prediction_var: np.ndarray | None = None
+    gp_update_time: np.ndarray | None = None
 
     @property
     def num_steps(self) -> int:
@@ -129,7 +136,8 @@ class Rollout:
             )
         }
         for name in ("messages_per_iteration", "failed_solves", "failed_solves_by_kind", "fallback",
-                     "unsafe_plan", "pair_separation", "pair_required", "state_slack_max", "pair_risk"):
+                     "unsafe_plan", "pair_separation", "pair_required", "state_slack_max", "pair_risk",
+                     "prediction_error", "prediction_var", "gp_update_time"):
             if getattr(self, name) is not None:
                 arrays[name] = np.asarray(getattr(self, name))
         meta = {"method": self.method, "seed": self.seed, "wall_time_s": self.wall_time_s,

@@ -1,0 +1,78 @@
+"""The Plant protocol: today's true system as a plant, and a stub plant through the closed loop."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from torch_gpmpc import Config, compute_metrics
+from torch_gpmpc.coordination.controller import make_controller
+from torch_gpmpc.dynamics.plants import ModelPlant, Plant, plant_from_config
+from torch_gpmpc.dynamics.systems import make_system, system_from_config
+from torch_gpmpc.sim.closed_loop import ADMMPlanner, run_closed_loop
+from torch_gpmpc.sim.scenarios import make_scenario
+
+
+class DriftPlant:
+    """The nominal model plus a constant drift; the planner is shown the true state plus a bias."""
+
+    def __init__(self, nominal, drift, bias):
+        self.nominal, self.drift, self.bias = nominal, drift, bias
+        self.seen = []
+
+    @property
+    def true_states(self):
+        return self._x
+
+    def reset(self, starts):
+        self._x = self.nominal.states_at(starts)
+        return self._x + self.bias
+
+    def step(self, t, x, u, noise=None):
+        self.seen.append(x.clone())
+        self._x = self.nominal(self._x, u) + self.drift
+        return self._x + self.bias
+
+
+def _run(cfg, plant):
+    system = system_from_config(cfg)
+    return run_closed_loop(cfg, make_scenario(cfg), plant, ADMMPlanner(make_controller(cfg, system, None)))
+
+
+def test_model_plant_is_the_true_system():
+    system = make_system(2, noise_std=0.1, wind_scale=0.1)
+    plant = ModelPlant(system)
+    assert isinstance(plant, Plant)
+    x0 = plant.reset(torch.tensor([[0.5, -1.0], [2.0, 0.3]], dtype=torch.float64))
+    u = torch.tensor([[1.0, 0.0], [0.0, -1.0]], dtype=torch.float64)
+    w = torch.randn(2, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    assert torch.equal(plant.step(0, x0, u, noise=w), system.step(x0, u, noise=w))
+    assert torch.equal(plant.true_states, system.step(x0, u, noise=w))
+
+
+def test_closed_loop_on_a_true_system_or_its_plant_is_identical():
+    cfg = Config(method="nominal", max_steps=4)
+    system = system_from_config(cfg)
+    a = _run(cfg, system)
+    b = _run(cfg, plant_from_config(cfg, system))
+    np.testing.assert_array_equal(a.states, b.states)
+
+
+def test_stub_plant_through_the_closed_loop():
+    """Rollout states are the plant's true states, the planner sees the measured ones, and
+    plan_tracking_rmse is the drift's RMS (the nominal plan predicts no drift)."""
+    cfg = Config(method="nominal", max_steps=5, noise_std=0.0)
+    nominal = system_from_config(cfg).nominal
+    drift = torch.tensor([0.01, 0.0], dtype=torch.float64)
+    bias = torch.tensor([0.0, 0.02], dtype=torch.float64)
+    plant = DriftPlant(nominal, drift, bias)
+    rollout = _run(cfg, plant)
+    S = rollout.num_steps
+    assert S == 5
+    np.testing.assert_allclose(rollout.states[-1], plant.true_states.numpy())
+    np.testing.assert_allclose(rollout.plans[:, :, 0], torch.stack(plant.seen).numpy())  # plans start at x
+    np.testing.assert_allclose(rollout.states[1:] - rollout.plans[:, :, 1] + bias.numpy(), np.broadcast_to(
+        drift.numpy(), rollout.states[1:].shape), atol=1e-12)
+    # planned next state = A (x_true + bias) + B u; flown = A x_true + B u + drift
+    expected = np.sqrt(np.mean((drift.numpy() - bias.numpy()) ** 2))
+    assert abs(compute_metrics(rollout)["plan_tracking_rmse"] - expected) < 1e-12
