@@ -31,3 +31,16 @@ def test_importing_the_package_leaves_torch_defaults_alone():
             "assert torch.get_default_dtype() == torch.float32")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd="/")
     assert out.returncode == 0, out.stderr
+
+
+def test_rotorpy_study_runs_short(tmp_path):
+    """The short version of eval/rotorpy_flights.py: every study, two steps a run."""
+    pytest.importorskip("rotorpy")
+    out = subprocess.run([sys.executable, str(ROOT / "eval" / "rotorpy_flights.py"), "--seeds", "0", "--workers", "1",
+                          "--change-step", "1", "--holdout-samples", "20", "--set", "max_steps=2",
+                          "--set", "gp_samples=15", "--set", "gp_iters=2", "--out", str(tmp_path)],
+                         capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "swap/gp-chance" in (tmp_path / "table.md").read_text()
+    assert (tmp_path / "figures" / "rotorpy_online_gp.png").is_file()
+    assert (tmp_path / "figures" / "rotorpy_swap_3d.png").is_file()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from torch_gpmpc import Config, compute_metrics
+from torch_gpmpc import Config, compute_metrics, simulate
 from torch_gpmpc.coordination.controller import make_controller
 from torch_gpmpc.dynamics.plants import ModelPlant, Plant, plant_from_config
 from torch_gpmpc.dynamics.systems import make_system, system_from_config
@@ -76,3 +76,26 @@ def test_stub_plant_through_the_closed_loop():
     # planned next state = A (x_true + bias) + B u; flown = A x_true + B u + drift
     expected = np.sqrt(np.mean((drift.numpy() - bias.numpy()) ** 2))
     assert abs(compute_metrics(rollout)["plan_tracking_rmse"] - expected) < 1e-12
+
+
+def test_model_plant_turns_its_wind_at_the_change_step():
+    system = make_system(3, noise_std=0.0, wind_scale=0.1)
+    plant = ModelPlant(system, wind_change_step=2)
+    x = plant.reset(torch.tensor([[0.7, -0.4, 0.2]], dtype=torch.float64))
+    u = torch.zeros(1, 3, dtype=torch.float64)
+    x1 = plant.step(1, x, u)
+    assert torch.equal(x1, system.step(x, u, noise=torch.zeros(1, 3, dtype=torch.float64)))
+    g = system.residual(x1)
+    x2 = plant.step(2, x1, u)
+    torch.testing.assert_close(x2 - x1, torch.stack([-g[:, 1], g[:, 0], g[:, 2]], dim=-1), rtol=0, atol=1e-15)
+
+
+def test_online_gp_learns_the_turned_wind_and_the_frozen_one_does_not():
+    """The short end-to-end version of the wind-change case: the paper's agents, the vortex turned at
+    step 5; the online GPs' one-step prediction error after the change is well below the frozen GPs'."""
+    base = Config(max_steps=30, wind_change_step=5, wind_scale=0.3, noise_std=0.01, gp_iters=10)
+    frozen = compute_metrics(simulate(base))
+    online = compute_metrics(simulate(base.replace(gp_online=True, gp_online_budget=100)))
+
+    assert online["online_prediction_rmse_after_change"] < 0.7 * frozen["online_prediction_rmse_after_change"]
+    assert online["gp_update_s_per_step"] > 0 and frozen["gp_update_s_per_step"] == 0

@@ -131,8 +131,8 @@ class Config:
             velocity [wx, wy, wz] in m/s (the amplitude of ``sine``, the mean of ``dryden``).
         plant_rate_hz: the rate of RotorPy's tracking controller and simulator.
         plant_sensor_noise: standard deviation of the measured position (m) and velocity (m/s).
-        wind_change_step: the control step from which the plant's wind is turned 90 degrees about
-            the vertical axis (null: never).
+        wind_change_step: the control step from which the plant's wind (RotorPy's, or the model
+            plant's vortex) is turned 90 degrees about the vertical axis (null: never).
         gp_online: each agent adds its own observed transitions to its GP during the run
             (:mod:`~torch_gpmpc.gp.online`); ``gp_online_budget`` points per agent (the oldest
             leave first), hyperparameters re-fitted every ``gp_online_refit_every`` steps (0: never).
@@ -306,6 +306,10 @@ def warn_ignored_keys(cfg: Config) -> None:
                     for key in _BUILTIN_MODEL_KEYS if getattr(cfg, key) != defaults[key]]
     elif cfg.model == "single-integrator" and cfg.dt != defaults["dt"]:
         ignored.append(("dt", "model", "the single integrator has the paper's B = 0.1 I"))
+    if cfg.plant == "model":
+        ignored += [(key, "plant", "it configures the RotorPy plant") for key in
+                    ("plant_vehicle", "plant_wind", "plant_wind_speed", "plant_rate_hz", "plant_sensor_noise")
+                    if getattr(cfg, key) != defaults[key]]
     if cfg.admm_stop == "primal" and cfg.admm_rel_tol != defaults["admm_rel_tol"]:
         ignored.append(("admm_rel_tol", "admm_stop", "the paper's primal rule has absolute tolerances only"))
     for key, by, why in ignored:

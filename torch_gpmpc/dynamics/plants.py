@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from typing import Protocol, runtime_checkable
 
+import torch
 from torch import Tensor
 
 from torch_gpmpc.dynamics.systems import NominalModel, TrueSystem
@@ -62,10 +63,13 @@ class ModelPlant:
     Args:
         system: the :class:`~torch_gpmpc.dynamics.systems.TrueSystem` (nominal model, vortex wind,
             noise level).
+        wind_change_step: from this control step on, the wind is turned 90 degrees about the
+            vertical axis (``(g_1, g_2, g_3) -> (-g_2, g_1, g_3)``; ``None``: never).
     """
 
-    def __init__(self, system: TrueSystem) -> None:
+    def __init__(self, system: TrueSystem, wind_change_step: int | None = None) -> None:
         self.system = system
+        self.wind_change_step = wind_change_step
         self.nominal = system.nominal
         #: (K, D), what :meth:`reset` or :meth:`step` returned last (``None`` before :meth:`reset`)
         self.true_states: Tensor | None = None
@@ -77,7 +81,15 @@ class ModelPlant:
 
     def step(self, t: int, x: Tensor, u: Tensor, noise: Tensor | None = None) -> Tensor:
         """``x' = A x + B u + g(p) + s w`` from the true states (the measured ones are the same)."""
-        self.true_states = self.system.step(self.true_states, u, noise=noise)
+        x = self.true_states
+        if self.wind_change_step is None or t < self.wind_change_step:
+            self.true_states = self.system.step(x, u, noise=noise)
+            return self.true_states
+        g = self.system.residual(x)
+        turned = torch.cat([-g[..., 1:2], g[..., 0:1], g[..., 2:]], dim=-1)
+        E = self.nominal.residual_embedding(x.dtype, x.device)
+        w = torch.randn(g.shape, dtype=g.dtype, device=g.device) if noise is None else noise
+        self.true_states = self.nominal(x, u) + (turned + self.system.noise_std * w) @ E.T
         return self.true_states
 
 
@@ -85,7 +97,7 @@ def plant_from_config(cfg, system: TrueSystem) -> Plant:
     """The plant of a run: ``plant = model`` steps ``system``; ``plant = rotorpy`` flies RotorPy
     vehicles (:class:`~torch_gpmpc.dynamics.rotorpy_plant.RotorPyPlant`) under ``system``'s planning model."""
     if cfg.plant == "model":
-        return ModelPlant(system)
+        return ModelPlant(system, cfg.wind_change_step)
     from torch_gpmpc.dynamics.rotorpy_plant import PlantSettings, RotorPyPlant
 
     return RotorPyPlant(system.nominal, PlantSettings.from_config(cfg))

@@ -266,7 +266,8 @@ def plot_trajectories_3d(rollout: Rollout, path: str | Path) -> Path:
 
 def save_run_figures(rollout: Rollout, outdir: str | Path, reference_paths: Any = None) -> list[Path]:
     """Write ``trajectories.png``, ``distances.png`` and ``admm_residuals.png`` into ``outdir``
-    (and ``trajectories_3d.png`` for 3D positions; ``trajectories.png`` shows the x-y plane).
+    (and ``trajectories_3d.png`` for 3D positions; ``trajectories.png`` shows the x-y plane; with GPs
+    ``gp_prediction.png``, their one-step prediction over the run).
 
     Args:
         rollout: the run.
@@ -284,6 +285,11 @@ def save_run_figures(rollout: Rollout, outdir: str | Path, reference_paths: Any 
     ]
     if np.asarray(rollout.positions).shape[-1] == 3:
         written.append(plot_trajectories_3d(rollout, outdir / "trajectories_3d.png"))
+    if getattr(rollout, "prediction_error", None) is not None and rollout.num_steps > 0:
+        from torch_gpmpc.report.gp_figures import plot_prediction_error
+
+        written.append(plot_prediction_error({rollout.method: rollout}, outdir / "gp_prediction.png",
+                                             (rollout.config or {}).get("wind_change_step")))
     return written
 
 

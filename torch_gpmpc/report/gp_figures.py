@@ -116,3 +116,52 @@ def plot_holdout_residuals(gp, inputs: Tensor, y: Tensor, residual: list[int], p
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110)
+
+
+def plot_prediction_error(runs, path: str | Path, change_step: int | None = None, window: int = 10) -> Path:
+    """The GPs' one-step prediction during runs (learning curves): per step, the RMS prediction error
+    over agents and residual rows (solid) and the RMS predictive standard deviation (dotted); below,
+    the share of rows within 1.96 predictive standard deviations over a sliding ``window`` of steps.
+
+    Args:
+        runs: label -> :class:`~torch_gpmpc.sim.rollout.Rollout` with ``prediction_error`` (S, K, R).
+        path: PNG file to write.
+        change_step: draws the wind change there.
+
+    Raises:
+        GpmpcError: a run without GP predictions.
+    """
+    import numpy as np
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7.0, 5.2))
+    FigureCanvasAgg(fig)
+    ax_err, ax_cov = fig.subplots(2, 1, sharex=True)
+    for i, (label, rollout) in enumerate(runs.items()):
+        if getattr(rollout, "prediction_error", None) is None:
+            raise GpmpcError(f"run {label!r} has no GP predictions (a method without GPs?)")
+        err, var = np.asarray(rollout.prediction_error), np.asarray(rollout.prediction_var)
+        steps = np.arange(err.shape[0])
+        color = f"C{i}"
+        ax_err.plot(steps, np.sqrt((err ** 2).mean(axis=(1, 2))), "-", color=color, lw=1.2, label=f"{label}: error")
+        ax_err.plot(steps, np.sqrt(var.mean(axis=(1, 2))), ":", color=color, lw=1.2, label=f"{label}: predicted std")
+        inside = (np.abs(err) <= 1.96 * np.sqrt(var)).mean(axis=(1, 2))
+        w = max(1, min(window, len(steps)))  # a run shorter than the window: one point
+        ax_cov.plot(steps[w - 1:], np.convolve(inside, np.ones(w) / w, mode="valid"), "-", color=color, label=label)
+    for ax in (ax_err, ax_cov):
+        if change_step is not None:
+            ax.axvline(change_step, color="k", lw=0.8, ls="--")
+    ax_cov.axhline(0.95, color="grey", lw=0.8)
+    ax_err.set_ylabel("one-step residual, RMS")
+    ax_cov.set_ylabel(f"95% coverage ({window}-step window)")
+    ax_cov.set_xlabel("control step")
+    ax_cov.set_ylim(0, 1.05)
+    ax_err.legend(fontsize=7)
+    ax_cov.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    return path
