@@ -10,25 +10,25 @@ from torch_gpmpc.gp.cholesky_update import cholesky_append, cholesky_drop_first,
 from torch_gpmpc.gp.fit import fit_residual_gp
 from torch_gpmpc.gp.online import OnlineGP, OnlineLearning, online_gps
 
-torch.set_default_dtype(torch.float64)
+F64 = torch.float64
 
 
 def _data(n, seed, shift=0.0):
     g = torch.Generator().manual_seed(seed)
-    x = 4 * torch.rand(n, 3, generator=g) - 2
-    y = torch.stack([torch.sin(x[:, 0]) + shift, x[:, 1] * x[:, 2]], 1) + 0.05 * torch.randn(n, 2, generator=g)
+    x = 4 * torch.rand(n, 3, generator=g, dtype=F64) - 2
+    y = torch.stack([torch.sin(x[:, 0]) + shift, x[:, 1] * x[:, 2]], 1) + 0.05 * torch.randn(n, 2, generator=g, dtype=F64)
     return x, y
 
 
 def _spd(n, seed):
     g = torch.Generator().manual_seed(seed)
-    a = torch.randn(2, n, n, generator=g)
-    return a @ a.mT + n * torch.eye(n)
+    a = torch.randn(2, n, n, generator=g, dtype=F64)
+    return a @ a.mT + n * torch.eye(n, dtype=F64)
 
 
 def test_rank_one_update_and_downdate_match_a_new_factorization():
     K = _spd(6, 0)
-    v = torch.randn(2, 6, generator=torch.Generator().manual_seed(1))
+    v = torch.randn(2, 6, generator=torch.Generator().manual_seed(1), dtype=F64)
     L = torch.linalg.cholesky(K)
     up = cholesky_rank_one(L, v, 1.0)
     torch.testing.assert_close(up, torch.linalg.cholesky(K + v[..., None] * v[:, None]), rtol=0, atol=1e-12)
@@ -108,11 +108,11 @@ def test_learning_reduces_the_prediction_error_after_a_shift():
 
     nominal = NominalModel(ModelSpec.double_integrator(dim=2, dt=0.1, u_max=2.0))   # GP inputs: positions
     g = torch.Generator().manual_seed(0)
-    x = torch.randn(40, 4, generator=g)
-    u = torch.zeros(40, 2)
+    x = torch.randn(40, 4, generator=g, dtype=F64)
+    u = torch.zeros(40, 2, dtype=F64)
     shifted = nominal(x, u).clone()
     shifted[:, 2:] += 0.5
-    base = fit_residual_gp(nominal.gp_input(x, u), torch.zeros(40, 2) + 0.01 * torch.randn(40, 2, generator=g),
+    base = fit_residual_gp(nominal.gp_input(x, u), 0.01 * torch.randn(40, 2, generator=g, dtype=F64),
                            iters=3, gp_inputs=",".join(nominal.spec.gp_inputs))
     frozen = OnlineLearning([base], nominal, online=False)
     online = OnlineLearning(online_gps([base], budget=30, refit_every=0), nominal, online=True)

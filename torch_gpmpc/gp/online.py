@@ -123,6 +123,7 @@ class OnlineGP:
         return ((x - c.x_mean) / c.x_std) / c.ls
 
     def _noise_std_units(self) -> Tensor:
+        # in the hyperparameters' own dtype: the batch factorization promotes it the same way
         return self.gp.likelihood.noise.reshape(self.output_dim).detach()
 
     def _standardized(self, y: Tensor) -> Tensor:
@@ -136,7 +137,7 @@ class OnlineGP:
             X, Y, S, chol = X[1:], Y[1:], S[:, 1:], cholesky_drop_first(chol)
         s_new = self._scaled(c, x)  # (D, 1, Din)
         k = c.outputscale[:, None] * torch.exp(-0.5 * squared_distances(S, s_new)).squeeze(-1)
-        chol = cholesky_append(chol, k, c.outputscale + self._noise_std_units())
+        chol = cholesky_append(chol, k, c.outputscale.to(k) + self._noise_std_units().to(k))
         S, X, Y = torch.cat([S, s_new], 1), torch.cat([X, x]), torch.cat([Y, y])
         alpha = torch.cholesky_solve(self._standardized(Y).unsqueeze(-1), chol).squeeze(-1)
         cols = tuple(S[:, None, :, i].contiguous() for i in range(S.shape[-1]))
@@ -154,7 +155,7 @@ class OnlineGP:
     def _add_sparse(self, x: Tensor, y: Tensor) -> None:
         c = self.gp.prediction_cache()
         X, Y, chol, kuf_y = self.gp.train_inputs_raw, self.gp.train_y_raw, c.chol_add, self._kuf_y
-        noise_sd = self._noise_std_units().sqrt()[:, None]
+        noise_sd = self._noise_std_units().sqrt().to(chol)[:, None]
         if X.shape[0] >= self.budget:
             k_old = self._k_u(c, X[:1]).squeeze(-1)
             chol = cholesky_rank_one(chol, k_old / noise_sd, -1.0)
@@ -221,7 +222,7 @@ class OnlineLearning:
             for k, gp in enumerate(self.gps):
                 gp.add(inputs[k:k + 1], y[k:k + 1])
                 gp.end_step()
-        self.update_seconds.append(time.perf_counter() - start)
+        self.update_seconds.append(time.perf_counter() - start if self.online else 0.0)
         return torch.stack(errors), torch.stack(variances)
 
 
