@@ -94,10 +94,18 @@ def _coerce(typ: Any, value: Any) -> Any:
     allowed = typing.get_args(typ) or (typ,)
     if float in allowed and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
-    if typing.get_origin(typ) is tuple and isinstance(value, list):  # a TOML/JSON list
+    if typing.get_origin(typ) is tuple and isinstance(value, (list, tuple)):  # a TOML/JSON/Python list
         item = typing.get_args(typ)[0]
         return tuple(_coerce(item, v) for v in value)
     return value
+
+
+def coerce_lists(obj: Any) -> None:
+    """Turn every list given for a ``tuple[...]`` field of the frozen dataclass ``obj`` into a tuple
+    (ints as floats for float items), as ``build`` does for flat mappings; call before :func:`validate`."""
+    for name, typ in field_types(type(obj)).items():
+        if typing.get_origin(typ) is tuple:
+            object.__setattr__(obj, name, _coerce(typ, getattr(obj, name)))
 
 
 def _is(base: Any, value: Any) -> bool:

@@ -14,7 +14,7 @@ import typing
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from torch_gpmpc.config.fields import Rules, build, validate
+from torch_gpmpc.config.fields import Rules, build, coerce_lists, validate
 from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, parse_model, resolve_model
 from torch_gpmpc.config.obstacles import ObstacleField, forest_extent
 from torch_gpmpc.config.workspace import Workspace
@@ -210,9 +210,7 @@ class Config:
         if isinstance(self.model, dict):  # an inline model table (a config file's [model])
             object.__setattr__(self, "model", parse_model(self.model, "config key 'model'"))
         parse_world(self, "config key")
-        if isinstance(self.plant_wind_speed, (list, tuple)):  # [1, 0, 0] from Python, TOML or --set
-            object.__setattr__(self, "plant_wind_speed", tuple(
-                float(v) if isinstance(v, int) and not isinstance(v, bool) else v for v in self.plant_wind_speed))
+        coerce_lists(self)  # plant_wind_speed = [1, 0, 0] from Python, TOML or --set
         validate(self, RULES)
         check_risk_mode(self.risk_mode, self.method, self.pair_margin, "config key")
         if isinstance(self.model, str):

@@ -1,14 +1,16 @@
 """Transitions logged from simulated flights (``gpmpc collect --plant rotorpy``).
 
-Each agent flies its own RotorPy vehicle alone, on an excitation trajectory: a PD pull toward
-random waypoints plus a random acceleration, projected onto the planning model's input bound and
-scaled so that the commanded velocity stays under its speed limit. Every control step logs the
+Each agent flies its own RotorPy vehicle alone, on an excitation trajectory: random velocity
+setpoints under the planning model's speed limit, reached under its input bound and a jerk limit
+(:func:`fly_excitation`). Every control step logs the
 measured planning state x, the commanded acceleration u and the next measured state: the rows of
 the planning model (a 3D double integrator) that ``fit-gp`` and the run's GPs learn the residual
 ``x' - (A x + B u)`` from (drag, wind, tracking lag).
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import torch
 from torch import Tensor
@@ -28,12 +30,6 @@ TAU_V = 0.5
 JERK = 10.0
 #: Vertical half-range of the flights (m); the horizontal one is ``box``.
 Z_RANGE = 1.0
-
-
-def input_scale(nominal: NominalModel) -> float:
-    """A typical acceleration of the model's input bound (the box's smallest side or the norm)."""
-    spec = nominal.spec
-    return float(min(spec.input_box)) if spec.input_box is not None else float(spec.input_norm)
 
 
 def limit_speed(v: Tensor, a: Tensor, dt: float, v_max: float | None) -> Tensor:
@@ -100,7 +96,7 @@ def collect_flights(nominal: NominalModel, settings: PlantSettings, num_agents: 
         settings: vehicle, wind and rate of the flights (the wind does not change during them).
         num_agents: K (the ``agent`` ids run over ``agents``, default ``range(K)``).
         samples: N control steps per agent.
-        box: horizontal half-width of the waypoint region (m).
+        box: horizontal half-width of the flight region (m).
 
     Returns:
         Transitions with N rows per agent (agent order).
@@ -110,8 +106,7 @@ def collect_flights(nominal: NominalModel, settings: PlantSettings, num_agents: 
     agents = range(int(num_agents)) if agents is None else agents
     xs, us, xns, ids = [], [], [], []
     for k in agents:
-        own = PlantSettings(settings.vehicle, settings.wind, settings.wind_speed, settings.rate_hz,
-                            settings.sensor_noise, None, settings.seed + k)
+        own = dataclasses.replace(settings, wind_change_step=None, seed=settings.seed + k)
         gen = torch.Generator().manual_seed(settings.seed + k)
         x, u, xn = fly_excitation(nominal, own, int(samples), box, gen)
         xs.append(x)

@@ -15,9 +15,9 @@ Shapes: K vehicles, D planning states, Du inputs, P positions, R residual rows.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Protocol, runtime_checkable
 
-import torch
 from torch import Tensor
 
 from torch_gpmpc.dynamics.systems import NominalModel, TrueSystem
@@ -69,6 +69,7 @@ class ModelPlant:
 
     def __init__(self, system: TrueSystem, wind_change_step: int | None = None) -> None:
         self.system = system
+        self.turned = dataclasses.replace(system, turned=True)
         self.wind_change_step = wind_change_step
         self.nominal = system.nominal
         #: (K, D), what :meth:`reset` or :meth:`step` returned last (``None`` before :meth:`reset`)
@@ -81,15 +82,8 @@ class ModelPlant:
 
     def step(self, t: int, x: Tensor, u: Tensor, noise: Tensor | None = None) -> Tensor:
         """``x' = A x + B u + g(p) + s w`` from the true states (the measured ones are the same)."""
-        x = self.true_states
-        if self.wind_change_step is None or t < self.wind_change_step:
-            self.true_states = self.system.step(x, u, noise=noise)
-            return self.true_states
-        g = self.system.residual(x)
-        turned = torch.cat([-g[..., 1:2], g[..., 0:1], g[..., 2:]], dim=-1)
-        E = self.nominal.residual_embedding(x.dtype, x.device)
-        w = torch.randn(g.shape, dtype=g.dtype, device=g.device) if noise is None else noise
-        self.true_states = self.nominal(x, u) + (turned + self.system.noise_std * w) @ E.T
+        changed = self.wind_change_step is not None and t >= self.wind_change_step
+        self.true_states = (self.turned if changed else self.system).step(self.true_states, u, noise=noise)
         return self.true_states
 
 

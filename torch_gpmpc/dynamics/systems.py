@@ -229,6 +229,8 @@ class TrueSystem:
         nominal: the known model f.
         wind: the unknown residual g.
         noise_std: standard deviation of each noise component (on the residual rows).
+        turned: the wind turned 90 degrees about the vertical axis, ``(g_1, g_2, g_3) ->
+            (-g_2, g_1, g_3)`` (``wind_change_step``; :class:`~torch_gpmpc.dynamics.plants.ModelPlant`).
 
     Example:
         >>> import torch
@@ -242,6 +244,7 @@ class TrueSystem:
     nominal: NominalModel
     wind: VortexWind
     noise_std: float = 0.1
+    turned: bool = False
 
     @property
     def wind_gain(self) -> float:
@@ -252,7 +255,10 @@ class TrueSystem:
         """The true (noise-free) residual on the residual rows: states (..., n) -> (..., R)."""
         if self.wind.scale == 0.0:
             return x.new_zeros(*x.shape[:-1], len(self.nominal.residual))
-        return self.wind_gain * self.wind(self.nominal.positions(x))
+        g = self.wind_gain * self.wind(self.nominal.positions(x))
+        if self.turned:
+            g = torch.cat([-g[..., 1:2], g[..., 0:1], g[..., 2:]], dim=-1)
+        return g
 
     def step(self, x: Tensor, u: Tensor, noise: Tensor | None = None,
              generator: torch.Generator | None = None) -> Tensor:

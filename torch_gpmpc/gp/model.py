@@ -534,14 +534,20 @@ def _check_inducing(points: Tensor | None, input_dim: int) -> Tensor | None:
     return points.detach().clone()
 
 
-def check_training_data(inputs: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+def check_training_data(inputs: Tensor, y: Tensor, min_rows: int = 2) -> tuple[Tensor, Tensor]:
+    """Float64 copies of GP rows ``inputs`` (N, Din) and ``y`` (N, D) with N >= ``min_rows`` (a fit
+    needs 2; an online update adds 1), non-empty dimensions and finite values.
+
+    Raises:
+        GpmpcError: naming the shapes or the non-finite values.
+    """
     inputs = torch.as_tensor(inputs, dtype=torch.float64)
     y = torch.as_tensor(y, dtype=torch.float64)
     if inputs.ndim != 2 or y.ndim != 2 or inputs.shape[0] != y.shape[0]:
         raise GpmpcError(f"GP training data: inputs must be (N, Din) and y (N, D) with the same N, "
                          f"got {tuple(inputs.shape)} and {tuple(y.shape)}")
-    if inputs.shape[0] < 2 or inputs.shape[1] < 1 or y.shape[1] < 1:
-        raise GpmpcError(f"GP training data: need N >= 2 points and non-empty dimensions, "
+    if inputs.shape[0] < min_rows or inputs.shape[1] < 1 or y.shape[1] < 1:
+        raise GpmpcError(f"GP training data: need N >= {min_rows} points and non-empty dimensions, "
                          f"got inputs {tuple(inputs.shape)}, y {tuple(y.shape)}")
     if not (torch.isfinite(inputs).all() and torch.isfinite(y).all()):
         raise GpmpcError("GP training data contains NaN or inf; clean the transitions first")

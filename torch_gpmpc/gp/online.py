@@ -33,7 +33,7 @@ from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.gp.cache import PredictionCache, squared_distances
 from torch_gpmpc.gp.cholesky_update import cholesky_append, cholesky_drop_first, cholesky_rank_one
 from torch_gpmpc.gp.fit import refit_hyperparameters
-from torch_gpmpc.gp.model import ResidualGP
+from torch_gpmpc.gp.model import ResidualGP, check_training_data
 from torch_gpmpc.gp.sparse import sparse_posterior
 
 #: L-BFGS steps of a periodic hyperparameter refit.
@@ -175,14 +175,11 @@ class OnlineGP:
 
 
 def _check_rows(inputs: Tensor, y: Tensor, gp: ResidualGP) -> tuple[Tensor, Tensor]:
-    inputs = torch.as_tensor(inputs, dtype=torch.float64)
-    y = torch.as_tensor(y, dtype=torch.float64)
-    if (inputs.ndim != 2 or y.ndim != 2 or inputs.shape[0] != y.shape[0] or inputs.shape[1] != gp.input_dim
-            or y.shape[1] != gp.output_dim):
+    """New rows for ``gp``: checked like training data (one row is enough), in its dimensions."""
+    inputs, y = check_training_data(inputs, y, min_rows=1)
+    if inputs.shape[1] != gp.input_dim or y.shape[1] != gp.output_dim:
         raise GpmpcError(f"online GP rows must be (n, {gp.input_dim}) inputs and (n, {gp.output_dim}) residuals, "
                          f"got {tuple(inputs.shape)} and {tuple(y.shape)}")
-    if not (torch.isfinite(inputs).all() and torch.isfinite(y).all()):
-        raise GpmpcError("online GP row contains NaN or inf")
     return inputs, y
 
 

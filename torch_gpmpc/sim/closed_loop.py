@@ -138,9 +138,8 @@ def simulate(
         if cfg.gp_online:
             gps = online_gps(gps, cfg.gp_online_budget, cfg.gp_online_refit_every)
         learning = OnlineLearning(gps, system.nominal, cfg.gp_online)
-    plant = plant_from_config(cfg, system)
     planner = ADMMPlanner(make_controller(cfg, system, gps))
-    return run_closed_loop(cfg, scenario, plant, planner, on_step, tb, learning)
+    return run_closed_loop(cfg, scenario, system, planner, on_step, tb, learning)
 
 
 def reference_window(cfg: Config, scenario: Scenario, t: int) -> Tensor:
