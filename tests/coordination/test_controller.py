@@ -68,6 +68,34 @@ def test_controller_step_is_the_admm_step_and_reaches_the_centralized_optimum():
     assert ctrl.warm is None
 
 
+def test_input_rate_term_uses_the_applied_input_and_admm_reaches_the_centralized_optimum():
+    """With ``input_rate_weight`` the second step's problems carry the first step's applied inputs
+    as U_{-1}, and ADMM stops at the centralized optimum of that cost (1e-3)."""
+    model = ModelSpec.double_integrator(dim=2)
+    settings = ControllerSettings(method="nominal", horizon=8, admm_max_iter=300, admm_tol=1e-5,
+                                  admm_rel_tol=0.0, input_rate_weight=0.5)
+    x0, xref = swap(model, 8)
+    ctrl = Controller(model, settings=settings)
+    first = ctrl.step(x0, xref)
+    assert first.problem.u_prev is None  # a cold start: U_{-1} = 0
+    x1 = x0 @ model_matrix(model, "A").T + first.inputs[:, 0] @ model_matrix(model, "B").T
+    second = ctrl.step(x1, xref)
+    torch.testing.assert_close(second.problem.u_prev, first.inputs[:, 0], rtol=0, atol=0)
+    graph = communication_graph(x1[:, :2], None)
+    central = solve_centralized(second.problem, graph, ctrl.model, input_rate_weight=0.5)
+    cost = plan_cost(second.plans, second.inputs, xref, settings.alpha, 0.5, first.inputs[:, 0])
+    assert second.converged
+    assert cost == pytest.approx(plan_cost(central.plans, central.inputs, xref, settings.alpha, 0.5,
+                                           first.inputs[:, 0]), rel=1e-3)
+    plain = Controller(model, settings=settings.replace(input_rate_weight=0.0))
+    plain.step(x0, xref)
+    assert float((plain.step(x1, xref).inputs - second.inputs).abs().max()) > 1e-3
+
+
+def model_matrix(model: ModelSpec, name: str) -> torch.Tensor:
+    return torch.tensor(getattr(model, name), dtype=F64)
+
+
 def test_iterate_is_pure_and_the_step_is_its_loop():
     model = ModelSpec.single_integrator(2)
     settings = ControllerSettings(method="nominal", horizon=6, admm_max_iter=7, admm_tol=1e-9)

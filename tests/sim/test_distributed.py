@@ -30,12 +30,15 @@ from torch_gpmpc.dynamics.systems import make_system
 QUICK = {"method": "gp-chance", "max_steps": 3, "admm_max_iter": 5, "gp_iters": 5}
 
 
-def test_agent_controllers_reproduce_batched_admm_bit_for_bit():
+@pytest.mark.parametrize("input_rate_weight", [0.0, 0.3])
+def test_agent_controllers_reproduce_batched_admm_bit_for_bit(input_rate_weight):
     """No processes: K AgentControllers exchanging copies by hand give ADMM.solve_step's
-    residuals and inputs exactly (the local step is the batched step's row k)."""
+    residuals and inputs exactly (the local step is the batched step's row k; with an input-rate
+    weight each agent's second step uses its own applied input)."""
     # clarabel solves each problem alone, so batch 3 and batch 1 agree bit for bit; the fast
     # solver iterates a batch until all of it converges (last bits depend on the batch)
-    cfg = load_config(None, {"method": "nominal", "max_steps": 2, "admm_max_iter": 4, "solver": "clarabel"})
+    cfg = load_config(None, {"method": "nominal", "max_steps": 2, "admm_max_iter": 4, "solver": "clarabel",
+                             "input_rate_weight": input_rate_weight})
     sc = make_scenario(cfg)
     K = sc.num_agents
     system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)

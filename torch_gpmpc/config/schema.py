@@ -42,6 +42,9 @@ class Config:
         risk_split: share of ``eps`` taken by the lower-indexed agent of each pair, in (0, 1).
         u_max: bound on the Euclidean norm of each input.
         alpha: control-effort weight in the cost.
+        input_rate_weight: weight beta of the input changes ``beta sum_t ||U_t - U_{t-1}||^2`` in
+            the cost (``U_{-1}``: the input applied at the previous step); smooth plans for
+            vehicles whose acceleration cannot jump (quadrotors: tilt and motor lag). 0: off.
         noise_std: standard deviation s of the process noise w ~ N(0, s^2 I).
         admm_tol: absolute tolerance of the per-edge primal residual ||y - z||.
         admm_dual_tol: absolute tolerance of the per-edge dual residual rho ||z - z_prev||
@@ -153,6 +156,7 @@ class Config:
     risk_split: float = 0.5
     u_max: float = 2.0
     alpha: float = 1e-3
+    input_rate_weight: float = 0.0
     noise_std: float = 0.1
     admm_tol: float = 1e-3
     admm_dual_tol: float | None = None

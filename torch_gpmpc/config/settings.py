@@ -51,6 +51,7 @@ CONTROLLER_RANGES: dict[str, tuple[typing.Callable[[typing.Any], bool], str]] = 
     "eps": (lambda v: 0 < v < 1, "a number in (0, 1)"),
     "risk_split": (lambda v: 0 < v < 1, "a number in (0, 1)"),
     "alpha": (lambda v: v >= 0, "a number >= 0"),
+    "input_rate_weight": (lambda v: v >= 0, "a number >= 0 (0: no input-rate term)"),
     "admm_tol": (lambda v: v > 0, "a number > 0"),
     "admm_dual_tol": (lambda v: v is None or v > 0, "a number > 0 or null"),
     "admm_rel_tol": (lambda v: 0 <= v < 1, "a number in [0, 1)"),
@@ -76,6 +77,8 @@ class ControllerSettings:
         method: the controller method (one of :data:`METHOD_NAMES`).
         horizon: MPC horizon T.
         alpha: control-effort weight. slack_penalty: exact-penalty weight on slacks.
+        input_rate_weight: weight beta of the input changes ``sum_t ||U_t - U_{t-1}||^2`` (with
+            ``U_{-1}`` the input applied last; 0: not in the cost).
         solver: ``fast`` (compiled interior point), ``clarabel`` or ``reference`` (cvxpylayers).
         r_safe, eps, risk_split: safety radius, pair risk, lower-indexed agent's share.
         risk_mode, risk_budget, risk_pacing: ``pair_step`` (every pair may fail with probability
@@ -105,6 +108,7 @@ class ControllerSettings:
     method: str = "gp-chance"
     horizon: int = 13
     alpha: float = 1e-3
+    input_rate_weight: float = 0.0
     slack_penalty: float = 1e4
     solver: str = "fast"
     r_safe: float = 0.5

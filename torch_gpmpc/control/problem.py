@@ -58,6 +58,9 @@ class LocalProblemData:
             faces on the positions), shape (B, L, T, D); ``None`` = none. A row with normal 0 and
             bound <= 0 is inert. The solver's ``num_halfspaces`` fixes L.
         halfspace_bounds: their right-hand sides, shape (B, L, T).
+        u_prev: the input applied at the previous step, ``U_{-1}`` of the input-rate term
+            ``beta sum_t ||U_t - U_{t-1}||^2`` (solvers with ``input_rate_weight`` beta > 0),
+            shape (B, Du); ``None`` = 0.
 
     Example:
         >>> from torch_gpmpc.control.examples import crossing_instance
@@ -82,6 +85,7 @@ class LocalProblemData:
     dyn_B: Tensor | None = None
     halfspace_normals: Tensor | None = None
     halfspace_bounds: Tensor | None = None
+    u_prev: Tensor | None = None
 
     def validate(self, horizon: int, dim: int, num_neighbors: int, input_dim: int | None = None,
                  num_halfspaces: int = 0) -> int:
@@ -99,6 +103,7 @@ class LocalProblemData:
             "lam_own": (batch, M, T + 1, D), "lam_nbr": (batch, M, T + 1, D),
             "dyn_B": (batch, T, D, input_dim if input_dim is not None else -1),
             "halfspace_normals": (batch, num_halfspaces, T, D), "halfspace_bounds": (batch, num_halfspaces, T),
+            "u_prev": (batch, input_dim if input_dim is not None else -1),
         }
         if (self.halfspace_normals is None) != (self.halfspace_bounds is None):
             raise GpmpcError("LocalProblemData: give halfspace_normals and halfspace_bounds together (or neither)")
@@ -107,10 +112,12 @@ class LocalProblemData:
                              f"halfspace_normals {(batch, num_halfspaces, T, D)} and halfspace_bounds")
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name in ("rho_nbr", "dyn_B", "halfspace_normals", "halfspace_bounds") and value is None:
+            if f.name in ("rho_nbr", "dyn_B", "halfspace_normals", "halfspace_bounds", "u_prev") and value is None:
                 continue
             if f.name == "dyn_B" and input_dim is None:
                 expected["dyn_B"] = (batch, T, D, value.shape[-1])
+            if f.name == "u_prev" and input_dim is None:
+                expected["u_prev"] = (batch, value.shape[-1])
             if f.name in ("rho", "rho_nbr"):
                 if value.dim() != 0 and tuple(value.shape) != (batch, M):
                     raise GpmpcError(f"LocalProblemData.{f.name} must be a scalar or have shape {(batch, M)}, "
@@ -134,7 +141,8 @@ class LocalSolution:
         slack_active: some collision slack of the agent exceeds 1e-6 (a softened row), shape (B,).
         ok: finite solution, no solver error, constraints met, shape (B,); rows with
             ``ok = False`` are NaN.
-        cost: planned tracking + control cost ``||X - Xref||^2 + alpha ||U||^2``, shape (B,).
+        cost: planned tracking + control cost ``||X - Xref||^2 + alpha ||U||^2`` (+ the input-rate
+            term ``beta sum_t ||U_t - U_{t-1}||^2`` when beta > 0), shape (B,).
         failure: why a row was rejected, int64 shape (B,): 0 if ``ok``, else ``1 + i`` for
             ``FAILURE_KINDS[i]`` (exception, non-finite, inaccurate); ``None`` if unknown.
         failure_detail: the first solver exception message of the batch, if any.
@@ -162,6 +170,14 @@ class LocalSolution:
     failure: Tensor | None = None
     failure_detail: str | None = None
     state_slack: Tensor | None = None
+
+
+def input_rate_cost(U: Tensor, u_prev: Tensor | None, beta: float) -> Tensor:
+    """``beta sum_t ||U_t - U_{t-1}||^2`` per problem, U (B, T, Du), u_prev (B, Du) or ``None`` (0)."""
+    if beta == 0.0:
+        return U.new_zeros(U.shape[0])
+    prev = torch.zeros_like(U[:, :1]) if u_prev is None else u_prev[:, None].to(U)
+    return beta * (torch.diff(U, dim=1, prepend=prev) ** 2).sum(dim=(1, 2))
 
 
 def mask_inactive_rows(normals: Tensor, bounds: Tensor, active: Tensor) -> tuple[Tensor, Tensor]:

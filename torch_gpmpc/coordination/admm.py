@@ -102,6 +102,8 @@ class StepContext:
         tol: absolute primal tolerance of the stopping test.
         linearization: the dynamics linearization at ``lin_plans`` once computed (reused by
             every iteration of the step: it is most of an iteration's cost).
+        u_prev: (K, m) the inputs applied at the previous step (the input-rate term's
+            ``U_{-1}``), from the warm start; ``None``: 0 (a cold start).
     """
 
     x0: Tensor
@@ -116,6 +118,7 @@ class StepContext:
     layer: nn.Module
     tol: float
     linearization: Any = None
+    u_prev: Tensor | None = None
 
 
 class ADMM:
@@ -242,7 +245,8 @@ class ADMM:
             state = dataclasses.replace(state, rho=starting_penalties(state.rho, rho_t, graph.num_edges))
         lin_plans, lin_inputs = (None, None) if s.relinearize else (state.plans, state.inputs)
         ctx = StepContext(x0, xref, graph, rho_t, eps_self, eps_nbr, eps_edge, lin_plans, lin_inputs,
-                          self.agent_step.solver(graph.num_slots), s.admm_tol if tol is None else tol)
+                          self.agent_step.solver(graph.num_slots), s.admm_tol if tol is None else tol,
+                          u_prev=None if warm is None else warm.applied)
         return ctx, state
 
     def iterate(self, ctx: StepContext, state: ADMMState) -> tuple[ADMMState, IterationStats]:
@@ -255,7 +259,7 @@ class ADMM:
         rho_now = state.rho if adaptive else ctx.rho
         rho_slots = state.rho[graph.slot_edge] if adaptive and graph.num_edges else ctx.rho
         assembled = step.assemble(ctx.x0, ctx.xref, lin_state, graph, rho_slots, ctx.eps_self,
-                                  linearization=ctx.linearization, eps_nbr=ctx.eps_nbr)
+                                  linearization=ctx.linearization, eps_nbr=ctx.eps_nbr, u_prev=ctx.u_prev)
         if ctx.lin_plans is not None:
             ctx.linearization = assembled.linearization
         data = assembled.data

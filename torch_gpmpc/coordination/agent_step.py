@@ -225,6 +225,7 @@ class LocalStep:
                 horizon=s.horizon, dim=self.nominal.dim, num_neighbors=num_slots, nominal=self.nominal,
                 u_max=None, alpha=s.alpha, slack_penalty=s.slack_penalty, solver=s.solver,
                 constraints=self.constraints, num_halfspaces=self.num_obstacle_rows,
+                input_rate_weight=s.input_rate_weight,
             )
         return self._solvers[num_slots]
 
@@ -241,6 +242,7 @@ class LocalStep:
     def assemble(
         self, x0: Tensor, xref: Tensor, state: ADMMState, graph: Graph, rho: Tensor, eps_self: Tensor,
         rows: slice = slice(None), linearization: Any = None, eps_nbr: Tensor | None = None,
+        u_prev: Tensor | None = None,
     ) -> Assembled:
         """Linearize around the current plans and assemble the local problems of agents ``rows``.
 
@@ -262,6 +264,8 @@ class LocalStep:
                 compute it.
             eps_nbr: (B, M) the neighbour's risk per slot (default ``settings.eps - eps_self``:
                 the pair's risk is ``eps``; a mission budget gives both ends their own).
+            u_prev: (B, m) the selected agents' inputs applied at the previous step (the
+                input-rate term's ``U_{-1}``; ``None``: 0).
         """
         cfg = self.settings
         conv = linearization if isinstance(linearization, Convexification) else \
@@ -284,7 +288,7 @@ class LocalStep:
             bounds=cfg.r_safe + margins, active=active, rho=rho,
             z_own=z_slot[r, c, side], z_nbr=z_slot[r, c, 1 - side],
             lam_own=lam_mine[r, c, side], lam_nbr=lam_mine[r, c, 1 - side],
-            halfspace_normals=conv.obstacle_normals, halfspace_bounds=conv.obstacle_bounds,
+            halfspace_normals=conv.obstacle_normals, halfspace_bounds=conv.obstacle_bounds, u_prev=u_prev,
         )
         max_margin = margins[active].max() if bool(active.any()) else margins.new_zeros(())
         return Assembled(data, max_margin, own_var, conv)

@@ -5,7 +5,7 @@ problem directly, with cvxpy, from the same per-agent data the local solvers get
 (:class:`~torch_gpmpc.control.problem.LocalProblemData`), with every neighbour copy
 ``Y_{k,j}`` replaced by agent j's own plan ``X_j``::
 
-    minimize    sum_k ||X_k - Xref_k||^2 + alpha ||U_k||^2 + slack_penalty sum(s)
+    minimize    sum_k ||X_k - Xref_k||^2 + alpha ||U_k||^2 [+ beta sum_t ||U_k,t - U_k,t-1||^2] + slack_penalty sum(s)
     subject to  X_k,0 = x0_k,  X_k,tau+1 = dyn_A X_k,tau + dyn_B U_k,tau + dyn_c
                 input bounds, soft state constraints (:mod:`torch_gpmpc.control.constraints`)
                 n_{k,m,tau}^T (X_k,tau - X_j,tau) + s_{k,m,tau} >= bound_{k,m,tau},  s >= 0
@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.control.constraints import LocalConstraints
-from torch_gpmpc.control.problem import LocalProblemData
+from torch_gpmpc.control.problem import LocalProblemData, input_rate_cost
 from torch_gpmpc.control.solvers.conic import state_constraints
 from torch_gpmpc.coordination.admm import ADMM
 from torch_gpmpc.coordination.agent_step import LocalStep, edge_variances, slot_risks
@@ -50,18 +50,21 @@ class CentralizedSolution:
     cost: float
 
 
-def plan_cost(plans: Tensor, inputs: Tensor, xref: Tensor, alpha: float) -> float:
-    """The agents' summed MPC cost ``sum_k ||X_k - Xref_k||^2 + alpha ||U_k||^2`` (no slack).
+def plan_cost(plans: Tensor, inputs: Tensor, xref: Tensor, alpha: float, input_rate_weight: float = 0.0,
+              u_prev: Tensor | None = None) -> float:
+    """The agents' summed MPC cost ``sum_k ||X_k - Xref_k||^2 + alpha ||U_k||^2`` (no slack), plus
+    ``beta sum_t ||U_k,t - U_k,t-1||^2`` with ``beta = input_rate_weight``.
 
     Args:
-        plans: (K, T+1, n); inputs: (K, T, m); xref: (K, T+1, n).
+        plans: (K, T+1, n); inputs: (K, T, m); xref: (K, T+1, n); u_prev: (K, m) ``U_{-1}`` (``None``: 0).
     """
-    return float(((plans - xref) ** 2).sum() + alpha * (inputs ** 2).sum())
+    rate = input_rate_cost(inputs, u_prev, input_rate_weight).sum()
+    return float(((plans - xref) ** 2).sum() + alpha * (inputs ** 2).sum() + rate)
 
 
 def solve_centralized(data: LocalProblemData, graph: Graph, nominal: NominalModel, u_max: float | None = None,
                       alpha: float = 1e-3, slack_penalty: float = 1e4,
-                      constraints: LocalConstraints | None = None) -> CentralizedSolution:
+                      constraints: LocalConstraints | None = None, input_rate_weight: float = 0.0) -> CentralizedSolution:
     """Solve the joint problem (module docstring) with Clarabel.
 
     Args:
@@ -71,6 +74,7 @@ def solve_centralized(data: LocalProblemData, graph: Graph, nominal: NominalMode
         u_max: input norm bound (``None``: the model's; ignored if the model has only a box).
         alpha, slack_penalty: the local problems' weights.
         constraints: input bounds and soft state constraints (``None``: the model's with ``u_max``).
+        input_rate_weight: beta of the input-rate term (``U_{-1}`` is ``data.u_prev``).
 
     Raises:
         GpmpcError: the solver did not find an optimum.
@@ -84,8 +88,12 @@ def solve_centralized(data: LocalProblemData, graph: Graph, nominal: NominalMode
     X = [cp.Variable((T + 1, n)) for _ in range(K)]
     U = [cp.Variable((T, m)) for _ in range(K)]
     cost, cons = 0, []
+    u_prev = np.zeros((K, m)) if data.u_prev is None else npy(data.u_prev)
     for k in range(K):
         cost += cp.sum_squares(X[k] - xref[k]) + alpha * cp.sum_squares(U[k])
+        if input_rate_weight:
+            cost += input_rate_weight * (cp.sum_squares(U[k][0] - u_prev[k])
+                                         + (cp.sum_squares(U[k][1:] - U[k][:-1]) if T > 1 else 0))
         cons.append(X[k][0] == x0[k])
         cons += [X[k][t + 1] == dyn_A[k, t] @ X[k][t] + dyn_B[k, t] @ U[k][t] + dyn_c[k, t] for t in range(T)]
         halfspaces = [] if data.halfspace_normals is None else \
@@ -144,9 +152,10 @@ class CentralizedPlanner:
         rho = torch.as_tensor(cfg.rho, dtype=x.dtype)
         with torch.no_grad():
             for _ in range(self.relinearizations):
-                assembled = local.assemble(x, xref, state, graph, rho, eps_self)
+                assembled = local.assemble(x, xref, state, graph, rho, eps_self,
+                                           u_prev=None if self.warm is None else self.warm.applied)
                 sol = solve_centralized(assembled.data, graph, local.nominal, None, cfg.alpha, cfg.slack_penalty,
-                                        local.constraints)
+                                        local.constraints, cfg.input_rate_weight)
                 pvar = state.pvar if assembled.own_variance is None else \
                     edge_variances(assembled.own_variance, graph, state.pvar)
                 z = sol.plans[graph.edges] if graph.num_edges else state.z

@@ -34,6 +34,8 @@ class ADMMState:
             step's starting rho on every edge.
         risk_left: (K,) each agent's unspent mission risk (``risk_mode = mission``), carried
             from step to step; ``None``: not in use, or a fresh mission.
+        applied: (K, m) each agent's first planned input of the step before :meth:`shifted` (the
+            input it applied last: ``U_{-1}`` of the input-rate term); ``None``: not known.
 
     Example:
         >>> import torch
@@ -55,16 +57,19 @@ class ADMMState:
     pvar: Tensor | None = None
     rho: Tensor | None = None
     risk_left: Tensor | None = None
+    applied: Tensor | None = None
 
     def detached(self) -> "ADMMState":
         """The same iterate with every tensor detached from the autograd graph."""
         return ADMMState(self.plans.detach(), self.inputs.detach(), self.edges, self.z.detach(), self.lam.detach(),
                          None if self.pvar is None else self.pvar.detach(),
                          None if self.rho is None else self.rho.detach(),
-                         None if self.risk_left is None else self.risk_left.detach())
+                         None if self.risk_left is None else self.risk_left.detach(),
+                         None if self.applied is None else self.applied.detach())
 
     def shifted(self) -> "ADMMState":
-        """Shift everything one step forward in time (drop the first point, hold the last)."""
+        """Shift everything one step forward in time (drop the first point, hold the last); the
+        dropped first inputs become ``applied``."""
         return ADMMState(
             plans=shift_in_time(self.plans, dim=1),
             inputs=shift_in_time(self.inputs, dim=1),
@@ -74,6 +79,7 @@ class ADMMState:
             pvar=None if self.pvar is None else shift_in_time(self.pvar, dim=2),
             rho=self.rho,
             risk_left=self.risk_left,
+            applied=self.inputs[:, 0],
         )
 
 
@@ -235,4 +241,4 @@ def adapt_state(state: ADMMState, graph: Graph) -> ADMMState:
                 pvar[i] = state.pvar[old[tuple(e)]]
             if rho is not None:
                 rho = rho.index_put((torch.tensor(i),), state.rho[old[tuple(e)]])
-    return ADMMState(state.plans, state.inputs, graph.edges, z, lam, pvar, rho, state.risk_left)
+    return ADMMState(state.plans, state.inputs, graph.edges, z, lam, pvar, rho, state.risk_left, state.applied)

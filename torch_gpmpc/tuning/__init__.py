@@ -27,7 +27,7 @@ with, at the last iteration (``E`` edges, ``a`` the two ends of an edge),
   residuals of the paper's stopping rule; smooth, unlike their max);
 * ``r_d = rho sqrt(mean_e ||z_e - z_e^prev||^2)`` (the dual residual; the primal
   residual alone rewards ever larger rho, the dual one penalizes it);
-* ``J_k = ||X_k - Xref_k||_F^2 + alpha ||U_k||_F^2`` of agent k's final local plan;
+* ``J_k = ||X_k - Xref_k||_F^2 + alpha ||U_k||_F^2`` (+ the input-rate term with ``input_rate_weight``) of agent k's final local plan;
 * ``d_kj^tau = ||X_k^tau - X_j^tau||`` for ``tau = 1..T`` between the agents' *own*
   plans (not the copies): a consensus that is not reached shows up here.
 

@@ -23,13 +23,14 @@ def _random_problem(seed: int, T: int = 5, D: int = 2, M: int = 2):
     return (G, h, 1.7, l_x, rho_y, w_y, normals, bounds), u, w, z
 
 
-def _setup(canonical, alpha: float):
+def _setup(canonical, alpha: float, beta: float = 0.0, g_u=None):
     G, h, _, _, _, _, normals, _ = canonical
     M, T, D = normals.shape
     n, K = h.shape[0], M * T
     H, g0, A = np.empty((n, n)), np.empty(n), np.empty((K, n))
     bt, rho, N, wy = np.empty(K), np.empty(K), np.empty((K, D)), np.empty((K, D))
-    ipm_residuals.setup(*canonical, np.ones(M), alpha, H, g0, A, bt, rho, N, wy)
+    g_u = np.zeros(n) if g_u is None else g_u
+    ipm_residuals.setup(*canonical, g_u, np.ones(M), alpha, beta, H, g0, A, bt, rho, N, wy)
     return H, g0, A, bt, rho, N, wy
 
 
@@ -49,6 +50,20 @@ def test_setup_matches_the_condensed_problem_written_out():
             assert rho[k] == rho_y[j] and (N[k] == normals[j, t]).all() and (wy[k] == w_y[j, t]).all()
 
 
+def test_setup_adds_the_input_rate_weight_as_first_differences():
+    """beta sum_t ||U_t - U_{t-1}||^2 (U_{-1} in g_u): H gains 2 beta D^T D with D the
+    first-difference map of the T blocks of Du inputs, g0 gains g_u."""
+    canonical, *_ = _random_problem(1)
+    G, h, c_x, l_x, _, _, normals, _ = canonical
+    M, T, D = normals.shape
+    n = T * D
+    g_u = np.random.default_rng(3).standard_normal(n)
+    H, g0, *_ = _setup(canonical, alpha=0.3, beta=0.7, g_u=g_u)
+    Dm = np.eye(n) - np.eye(n, k=-D)  # rows: U_0 - U_{-1} (its U_{-1} part is g_u), U_t - U_{t-1}
+    np.testing.assert_allclose(H, 2 * c_x * G.T @ G + 0.6 * np.eye(n) + 1.4 * Dm.T @ Dm, atol=1e-12)
+    np.testing.assert_allclose(g0, G.T @ (2 * c_x * h - l_x) + g_u, atol=1e-12)
+
+
 @pytest.mark.parametrize("heavy_row", [False, True])
 @pytest.mark.parametrize("seed", range(5))
 def test_schur_cholesky_solve_matches_dense_augmented_solve(seed, heavy_row):
@@ -62,7 +77,7 @@ def test_schur_cholesky_solve_matches_dense_augmented_solve(seed, heavy_row):
     couple = np.array([1.0, 1.0, 0.0 if heavy_row else 1.0])
     H, g0, A = np.empty((n, n)), np.empty(n), np.empty((K, n))
     bt, rho, N, wy = np.empty(K), np.empty(K), np.empty((K, D)), np.empty((K, D))
-    ipm_residuals.setup(*canonical, couple, 0.1, H, g0, A, bt, rho, N, wy)
+    ipm_residuals.setup(*canonical, np.zeros(n), couple, 0.1, 0.0, H, g0, A, bt, rho, N, wy)
     Rc = ipm_residuals.coupled_rows(couple, T)
     heavy = 2 * T
     if heavy_row:

@@ -26,13 +26,16 @@ def make_local_solver(
     solver: str = "fast",
     constraints: LocalConstraints | None = None,
     num_halfspaces: int = 0,
+    input_rate_weight: float = 0.0,
 ) -> nn.Module:
     """A new batched local-problem module for (T, n, M, model, constants, backend).
 
     ``u_max`` overrides the model's norm input bound (``None``: the model's bound).
     ``constraints`` are the input bounds and soft state constraints (``None``: the model's,
     :meth:`~torch_gpmpc.control.constraints.LocalConstraints.of`; give one to add a workspace);
-    ``num_halfspaces`` is the number L of per-problem half-space rows the data carries.
+    ``num_halfspaces`` is the number L of per-problem half-space rows the data carries;
+    ``input_rate_weight`` (beta >= 0) adds ``beta sum_t ||U_t - U_{t-1}||^2`` to the cost, with
+    ``U_{-1}`` the data's ``u_prev`` (smooth plans for vehicles that cannot jump their acceleration).
 
     ``solver='fast'`` (the default, as in the run configuration) gives the compiled interior
     point :class:`~torch_gpmpc.control.solvers.interior_point.InteriorPointMPC`; ``clarabel`` and
@@ -56,9 +59,10 @@ def make_local_solver(
 
         return InteriorPointMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max),
                                 float(alpha), float(slack_penalty), constraints=constraints,
-                                num_halfspaces=num_halfspaces)
+                                num_halfspaces=num_halfspaces, input_rate_weight=float(input_rate_weight))
     # cvxpy and cvxpylayers are imported only when a cvxpylayers path is asked for
     from torch_gpmpc.control.solvers.conic import CvxpyLayerMPC
 
     return CvxpyLayerMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max), float(alpha),
-                         float(slack_penalty), solver, constraints=constraints, num_halfspaces=num_halfspaces)
+                         float(slack_penalty), solver, constraints=constraints, num_halfspaces=num_halfspaces,
+                         input_rate_weight=float(input_rate_weight))

@@ -23,6 +23,7 @@ from torch_gpmpc.dynamics.systems import NominalModel
 
 from torch_gpmpc.control.problem import (
     ConsensusTerms, FAIL_EXCEPTION, FAIL_NONE, SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures,
+    input_rate_cost,
 )
 
 logger = logging.getLogger(__name__)
@@ -56,7 +57,8 @@ class CvxpyLayerMPC(nn.Module):
 
     For one agent with horizon T, state dimension D, input dimension Du and M neighbour slots::
 
-        minimize    ||X - Xref||_F^2 + alpha ||U||_F^2 + slack_penalty * sum(s)
+        minimize    ||X - Xref||_F^2 + alpha ||U||_F^2 + beta sum_tau ||U_tau - U_{tau-1}||^2
+                    + slack_penalty * sum(s)
                     + sum_j [ lam_own_j . X + lam_nbr_j . Y_j
                               + rho_j / 2 (||X - z_own_j||_F^2 + ||Y_j - z_nbr_j||_F^2) ]
         over        X (T+1, D), U (T, Du), Y_j (T+1, D) for j < M, s (M, T)
@@ -103,6 +105,7 @@ class CvxpyLayerMPC(nn.Module):
             default diffcp + SCS with tolerances 1e-9).
         constraints: input bounds and soft state constraints (``None``: the model's).
         num_halfspaces: L, the per-problem half-space rows the data carries.
+        input_rate_weight: beta (``U_{-1}`` is ``data.u_prev``; 0: no such term).
 
     Example:
         >>> from torch_gpmpc import CvxpyLayerMPC, NominalModel
@@ -125,6 +128,7 @@ class CvxpyLayerMPC(nn.Module):
         solver: str = "clarabel",
         constraints: LocalConstraints | None = None,
         num_halfspaces: int = 0,
+        input_rate_weight: float = 0.0,
     ) -> None:
         super().__init__()
         if solver not in SOLVER_ARGS:
@@ -135,13 +139,14 @@ class CvxpyLayerMPC(nn.Module):
         if nominal.dim != dim:
             raise GpmpcError(f"nominal model has dim {nominal.dim}, CvxpyLayerMPC dim is {dim}")
         self.constraints = constraints or LocalConstraints.of(nominal.spec, u_max)
-        if alpha <= 0 or slack_penalty <= 0 or num_halfspaces < 0:
-            raise GpmpcError(f"alpha and slack_penalty must be > 0 and num_halfspaces >= 0; got {alpha}, "
-                             f"{slack_penalty}, {num_halfspaces}")
+        if alpha <= 0 or slack_penalty <= 0 or num_halfspaces < 0 or input_rate_weight < 0:
+            raise GpmpcError(f"alpha and slack_penalty must be > 0, num_halfspaces and input_rate_weight >= 0; "
+                             f"got {alpha}, {slack_penalty}, {num_halfspaces}, {input_rate_weight}")
         self.horizon, self.dim, self.num_neighbors = horizon, dim, num_neighbors
         self.num_halfspaces = int(num_halfspaces)
         self.nominal, self.u_max, self.alpha = nominal, self.constraints.input_norm, float(alpha)
         self.slack_penalty, self.solver = float(slack_penalty), solver
+        self.input_rate_weight = float(input_rate_weight)
         self.problem, parameters, variables = self._build_problem()
         #: cvxpy parameters in the order of :meth:`layer_parameters` (for plain cvxpy solves).
         self.cvxpy_parameters = parameters
@@ -168,6 +173,11 @@ class CvxpyLayerMPC(nn.Module):
         objective = cp.sum_squares(scale_x * X - shift_x) + self.alpha * cp.sum_squares(U)
         constraints = [X[0] == x0, X[1:] == drift + drive + dyn_c]
         parameters = [x0, scale_x, shift_x, *a_cols, *b_cols, dyn_c]
+        if self.input_rate_weight:
+            u_prev = cp.Parameter(Du, name="u_prev")
+            changes = cp.sum_squares(U[0] - u_prev) + (cp.sum_squares(U[1:] - U[:-1]) if T > 1 else 0)
+            objective += self.input_rate_weight * changes
+            parameters.append(u_prev)
         L = self.num_halfspaces
         half_normals = [cp.Parameter((T, D), name=f"halfspace{j}") for j in range(L)]
         half_bounds = cp.Parameter((L, T), name="halfspace_bounds") if L else None
@@ -204,7 +214,8 @@ class CvxpyLayerMPC(nn.Module):
             data: the problem inputs (validated by the caller).
 
         Returns:
-            Tensors ``[x0, scale_X, shift_X, A_col_0..A_col_{D-1}, B_col_0..B_col_{Du-1}, dyn_c]``, if L > 0
+            Tensors ``[x0, scale_X, shift_X, A_col_0..A_col_{D-1}, B_col_0..B_col_{Du-1}, dyn_c]``, if beta > 0
+            ``[u_prev]`` (0 when the data has none), if L > 0
             ``[halfspace_0.., halfspace_bounds]`` and, if M > 0, ``[scale_Y, shift_Y_0.., normal_0.., bounds]``
             (see the class docstring).
         """
@@ -216,6 +227,9 @@ class CvxpyLayerMPC(nn.Module):
             self.nominal.B(data.x0.dtype, data.x0.device).expand(data.x0.shape[0], self.horizon, -1, -1)
         params = [data.x0, scale_x, shift_x, *[data.dyn_A[..., e] for e in range(self.dim)],
                   *[dyn_B[..., j] for j in range(self.nominal.input_dim)], data.dyn_c]
+        if self.input_rate_weight:
+            params.append(data.x0.new_zeros(data.x0.shape[0], self.nominal.input_dim) if data.u_prev is None
+                          else data.u_prev)
         if self.num_halfspaces:
             params += [*[data.halfspace_normals[:, j] for j in range(self.num_halfspaces)], data.halfspace_bounds]
         if M > 0:
@@ -304,7 +318,8 @@ class CvxpyLayerMPC(nn.Module):
         if not bool(ok.all()):
             logger.debug("CvxpyLayerMPC: %d of %d local problems returned no valid solution (kinds %s)",
                          int((~ok).sum()), batch, failure.tolist())
-        cost = ((X - data.xref) ** 2).sum(dim=(1, 2)) + self.alpha * (U ** 2).sum(dim=(1, 2))
+        cost = ((X - data.xref) ** 2).sum(dim=(1, 2)) + self.alpha * (U ** 2).sum(dim=(1, 2)) \
+            + input_rate_cost(U, data.u_prev, self.input_rate_weight)
         state_slack = self.constraints.state_violation(X, data.halfspace_normals, data.halfspace_bounds)
         return LocalSolution(X=X, U=U, Y=Y, slack=slack, slack_active=slack_active & ok, ok=ok, cost=cost,
                              failure=failure, failure_detail=detail, state_slack=state_slack)

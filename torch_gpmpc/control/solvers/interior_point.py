@@ -24,6 +24,7 @@ from torch_gpmpc.control.solvers import ipm_kernel as ipm
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.control.problem import (
     ConsensusTerms, FAIL_INACCURATE, FAIL_NONFINITE, SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures,
+    input_rate_cost,
 )
 from torch_gpmpc.dynamics.systems import NominalModel
 
@@ -81,8 +82,11 @@ class CanonicalData:
 
     Objective (up to constants) over ``u = vec(U)``, ``Y_{j,1..T}`` and ``s``::
 
-        c_X ||G u + h||^2 - l_X . (G u + h) + alpha ||u||^2
+        c_X ||G u + h||^2 - l_X . (G u + h) + alpha ||u||^2 + beta ||D u||^2 + g_u . u
         + sum_j (rho_y_j / 2 ||Y_j||^2 - w_y_j . Y_j) + slack_penalty * sum(s)
+
+    (``beta ||D u||^2 + g_u . u`` is the input-rate term ``beta sum_t ||U_t - U_{t-1}||^2`` up to a
+    constant; D takes first differences, ``g_u = -2 beta U_{-1}`` on U_0.)
 
     Attributes:
         G: condensed input-to-state map, shape (B, T*D, T*Du).
@@ -97,6 +101,7 @@ class CanonicalData:
         normals: collision normals (0 inactive), shape (B, M, T, D); after
             :func:`with_state_rows` also the soft state rows, (B, M + L, T, D).
         bounds: collision bounds (-1 inactive), shape (B, M, T) (then (B, M + L, T)).
+        g_u: linear input weight of the input-rate term, shape (B, T*Du).
     """
 
     G: Tensor
@@ -108,6 +113,17 @@ class CanonicalData:
     y0: Tensor
     normals: Tensor
     bounds: Tensor
+    g_u: Tensor
+
+
+def input_rate_linear(data: LocalProblemData, beta: float, horizon: int, input_dim: int) -> Tensor:
+    """``g_u = -2 beta U_{-1}`` on U_0 and 0 after it, shape (B, T*Du): the linear part of
+    ``beta ||U_0 - U_{-1}||^2`` (``data.u_prev`` is U_{-1}; ``None``: 0)."""
+    batch = data.x0.shape[0]
+    g_u = data.x0.new_zeros(batch, horizon * input_dim)
+    if beta != 0.0 and data.u_prev is not None:
+        g_u = torch.cat([-2.0 * beta * data.u_prev, g_u[:, input_dim:]], dim=1)
+    return g_u
 
 
 class CondensedCache:
@@ -131,20 +147,22 @@ class CondensedCache:
         return self._value
 
 
-def canonicalize(data: LocalProblemData, B: Tensor, condense=condense_dynamics) -> CanonicalData:
+def canonicalize(data: LocalProblemData, B: Tensor, condense=condense_dynamics, beta: float = 0.0) -> CanonicalData:
     """Map :class:`LocalProblemData` to :class:`CanonicalData` (differentiable).
 
     Inactive slots get ``rho = 1``, ``w = 0`` (so ``Y_j = 0``), normal 0 and bound -1,
     and contribute nothing to the state cost (as in :class:`~torch_gpmpc.control.solvers.conic.CvxpyLayerMPC`).
     ``B`` (D, Du) is the nominal input matrix, used when ``data.dyn_B`` is ``None``; ``condense``
-    is :func:`condense_dynamics` or a :class:`CondensedCache`.
+    is :func:`condense_dynamics` or a :class:`CondensedCache`; ``beta`` is the input-rate weight.
     """
     terms = ConsensusTerms.of(data)
     l_x = (2.0 * data.xref[:, 1:] + terms.w_own[:, :, 1:].sum(dim=1)).flatten(1)
     G, h = condense(data.x0, data.dyn_A, data.dyn_c, B if data.dyn_B is None else data.dyn_B)
     y0 = terms.w_nbr[:, :, 0] / terms.rho_y[:, :, None]
+    T = data.xref.shape[1] - 1
+    g_u = input_rate_linear(data, beta, T, G.shape[2] // T)
     return CanonicalData(G=G, h=h, c_x=terms.c_x, l_x=l_x, rho_y=terms.rho_y, w_y=terms.w_nbr[:, :, 1:], y0=y0,
-                         normals=terms.normals, bounds=terms.bounds)
+                         normals=terms.normals, bounds=terms.bounds, g_u=g_u)
 
 
 def with_state_rows(canon: CanonicalData, rows: list[tuple[Tensor, Tensor]]) -> CanonicalData:
@@ -164,12 +182,12 @@ def with_state_rows(canon: CanonicalData, rows: list[tuple[Tensor, Tensor]]) -> 
         rho_y=torch.cat([canon.rho_y, canon.rho_y.new_ones(B, L)], dim=1),
         w_y=torch.cat([canon.w_y, canon.w_y.new_zeros(B, L, T, D)], dim=1), y0=canon.y0,
         normals=torch.cat([canon.normals, *[n for n, _ in rows]], dim=1),
-        bounds=torch.cat([canon.bounds, *[b for _, b in rows]], dim=1))
+        bounds=torch.cat([canon.bounds, *[b for _, b in rows]], dim=1), g_u=canon.g_u)
 
 
 # ------------------------------------------------------------------------ differentiation
 def _stationarity_pairing(G: Tensor, h: Tensor, c_x: Tensor, l_x: Tensor, rho_y: Tensor, w_y: Tensor,
-                          normals: Tensor, bounds: Tensor, u: Tensor, y: Tensor, zc: Tensor,
+                          normals: Tensor, bounds: Tensor, g_u: Tensor, u: Tensor, y: Tensor, zc: Tensor,
                           a_u: Tensor, a_y: Tensor, xi: Tensor, norm_idx: list[int], zv: Tensor,
                           xi_v: Tensor) -> Tensor:
     """``a^T grad_v L(v, z; theta) + xi^T g(v; theta)`` summed over the batch (a scalar).
@@ -180,7 +198,7 @@ def _stationarity_pairing(G: Tensor, h: Tensor, c_x: Tensor, l_x: Tensor, rho_y:
     ``(v^2 + 2 v sigma - ||P x_tau||^2) / 2 >= 0`` (``x = G u + h``); the input bounds hold no data.
 
     Shapes: G (B, n, n), h (B, n), c_x (B,), l_x (B, n), rho_y (B, M), w_y (B, M, T, D),
-    normals (B, M, T, D), bounds (B, M, T); u, a_u (B, n); y, a_y (B, R, D); zc, xi (B, R);
+    normals (B, M, T, D), bounds (B, M, T); g_u, u, a_u (B, n); y, a_y (B, R, D); zc, xi (B, R);
     zv, xi_v (B, Ts) (multiplier and adjoint of the state-norm rows, Ts = T or 0).
     """
     B, M, T, D = normals.shape
@@ -191,7 +209,7 @@ def _stationarity_pairing(G: Tensor, h: Tensor, c_x: Tensor, l_x: Tensor, rho_y:
         extra = (zv * (xs * dxs).sum(-1)).sum() - 0.5 * (xi_v * (xs * xs).sum(-1)).sum()
     else:
         extra = x1.new_zeros(())
-    obj = ((2.0 * c_x[:, None] * x1 - l_x) * dx1).sum()
+    obj = ((2.0 * c_x[:, None] * x1 - l_x) * dx1).sum() + (g_u * a_u).sum()
     rho = rho_y[:, :, None].expand(B, M, T).reshape(B, -1, 1)
     obj = obj + ((rho * y - w_y.reshape(B, -1, D)) * a_y).sum()
     N = normals.reshape(B, -1, D)
@@ -263,8 +281,8 @@ class KernelLimits:
         return ov + 2 * Ts, ov, Ts
 
 
-def _polish(arrays: list[np.ndarray], point: _Iterate, kkt_error: np.ndarray, alpha: float, limits: KernelLimits,
-            penalty: float, tol: float) -> tuple[_Iterate, np.ndarray, np.ndarray, np.ndarray]:
+def _polish(arrays: list[np.ndarray], point: _Iterate, kkt_error: np.ndarray, weights: tuple[float, float],
+            limits: KernelLimits, penalty: float, tol: float) -> tuple[_Iterate, np.ndarray, np.ndarray, np.ndarray]:
     """Continue from ``point`` to ``POLISH_FACTOR * tol`` (at most ``POLISH_ITERATIONS`` more
     iterations): gradients are more sensitive than solutions to the barrier perturbation (a
     nearly degenerate row counts as half active).
@@ -276,7 +294,7 @@ def _polish(arrays: list[np.ndarray], point: _Iterate, kkt_error: np.ndarray, al
     B = point.u.shape[0]
     polished = point.copy()
     p_conv, p_iter, p_err = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
-    ipm.solve_batch(*arrays, limits.couple, alpha, *limits.args(), penalty, POLISH_FACTOR * tol, POLISH_ITERATIONS,
+    ipm.solve_batch(*arrays, limits.couple, *weights, *limits.args(), penalty, POLISH_FACTOR * tol, POLISH_ITERATIONS,
                     polished.u, polished.y, polished.w, polished.z, True, p_conv, p_iter, p_err)
     return polished, p_conv | (p_err <= kkt_error), p_iter, p_err
 
@@ -285,26 +303,27 @@ class _LocalQpFunction(torch.autograd.Function):
     """Batched interior-point solve with implicit differentiation of its KKT conditions.
 
     Inputs are the :class:`CanonicalData` tensors (G, h, c_x, l_x, rho_y, w_y, normals,
-    bounds; M' = M + L slots) and a settings tuple; outputs ``(u (B, n), y (B, M', T, D),
+    bounds, g_u; M' = M + L slots) and a settings tuple ``((alpha, beta), limits, penalty, tol,
+    max_iter, stats)``; outputs ``(u (B, n), y (B, M', T, D),
     s (B, M', T), converged (B,))``.
     """
 
     @staticmethod
-    def forward(ctx, G, h, c_x, l_x, rho_y, w_y, normals, bounds, settings):  # noqa: D102
-        alpha, limits, penalty, tol, max_iter, stats = settings
-        arrays = _kernel_arrays((G, h, c_x, l_x, rho_y, w_y, normals, bounds))
+    def forward(ctx, G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, settings):  # noqa: D102
+        weights, limits, penalty, tol, max_iter, stats = settings
+        arrays = _kernel_arrays((G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u))
         B, M, T, D = normals.shape
         R, n = M * T, G.shape[2]
         m, _, _ = limits.sizes(R, n, T)
         point = _Iterate(np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m)))
         converged, iterations, kkt_error = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
-        ipm.solve_batch(*arrays, limits.couple, alpha, *limits.args(), penalty, tol, max_iter,
+        ipm.solve_batch(*arrays, limits.couple, *weights, *limits.args(), penalty, tol, max_iter,
                         point.u, point.y, point.w, point.z, False, converged, iterations, kkt_error)
         # Return (and differentiate at) the polished point: the backward differentiates the exact
         # KKT conditions, and the returned point must be the one they hold at, else a nearly
         # degenerate row (active, multiplier ~1e-3) makes the returned map's derivative differ
         # from the gradient by O(tol / multiplier^2) (measured: 1.6e-4 relative at tol 1e-10).
-        polished, improved, p_iter, p_err = _polish(arrays, point, kkt_error, alpha, limits, penalty, tol)
+        polished, improved, p_iter, p_err = _polish(arrays, point, kkt_error, weights, limits, penalty, tol)
         better = converged & improved
         # an unconverged row (flagged as failed) is returned as solved but differentiated polished
         at = _where_rows(~converged | improved, polished, point)
@@ -312,8 +331,8 @@ class _LocalQpFunction(torch.autograd.Function):
         kkt_error = np.where(better, p_err, kkt_error)
         stats["iterations"] = int((iterations + np.where(better, p_iter, 0)).max(initial=0))
         ctx.at = at
-        ctx.alpha, ctx.limits = alpha, limits
-        ctx.save_for_backward(G, h, c_x, l_x, rho_y, w_y, normals, bounds)
+        ctx.weights, ctx.limits = weights, limits
+        ctx.save_for_backward(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u)
 
         def out(a: np.ndarray, *shape: int) -> Tensor:
             return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=h.dtype, device=h.device).reshape(*shape)
@@ -325,7 +344,7 @@ class _LocalQpFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_u, g_y, g_s, _g_conv):  # noqa: D102
         at = ctx.at  # the polished point (forward)
-        alpha, limits = ctx.alpha, ctx.limits
+        weights, limits = ctx.weights, ctx.limits
         inputs = ctx.saved_tensors  # (autograd checks these were not modified in place)
         arrays = _kernel_arrays(inputs)
         B, R, D = at.y.shape
@@ -344,10 +363,10 @@ class _LocalQpFunction(torch.autograd.Function):
 
         a_u, a_y, xi, xi_v = np.empty((B, n)), np.empty((B, R, D)), np.empty((B, R)), np.empty((B, Ts))
         failed = np.empty(B, dtype=np.bool_)
-        ipm.adjoint_batch(*arrays, limits.couple, alpha, *limits.args(), at.u, at.w, at.z, arr(g_u, B, n),
+        ipm.adjoint_batch(*arrays, limits.couple, *weights, *limits.args(), at.u, at.w, at.z, arr(g_u, B, n),
                           arr(g_y, B, R, D), arr(g_s, B, R), a_u, a_y, xi, xi_v, failed)
         a_u, a_y, xi, xi_v = (ten(np.nan_to_num(a)) for a in (a_u, a_y, xi, xi_v))
-        needs = ctx.needs_input_grad[:8]
+        needs = ctx.needs_input_grad[:9]
         with torch.enable_grad():
             leaves = [t.detach().requires_grad_(n) for t, n in zip(inputs, needs)]
             pairing = _stationarity_pairing(*leaves, ten(at.u), ten(at.y), ten(at.z[:, :R]), a_u, a_y, xi,
@@ -368,7 +387,8 @@ class InteriorPointMPC(nn.Module):
     Solves, for each of B agents with horizon T, dimension D and M neighbour slots, the
     same problem as :class:`torch_gpmpc.control.solvers.conic.CvxpyLayerMPC`::
 
-        minimize    ||X - Xref||_F^2 + alpha ||U||_F^2 + slack_penalty * sum(s)
+        minimize    ||X - Xref||_F^2 + alpha ||U||_F^2 + beta sum_t ||U_t - U_{t-1}||^2
+                    + slack_penalty * sum(s)
                     + sum_{active j} [ lam_own_j . X + lam_nbr_j . Y_j
                                        + rho_j / 2 (||X - z_own_j||^2 + ||Y_j - z_nbr_j||^2) ]
                     + sum_{inactive j} 1/2 ||Y_j||^2
@@ -432,6 +452,8 @@ class InteriorPointMPC(nn.Module):
         constraints: the input bounds and soft state constraints (``None``: the model's,
             :meth:`LocalConstraints.of`); pass one to add a workspace.
         num_halfspaces: L, the per-problem half-space rows the data carries (0: none).
+        input_rate_weight: beta, the weight of the input changes (``U_{-1}`` is ``data.u_prev``,
+            the input applied last; 0: not in the problem).
 
     Example:
         >>> from torch_gpmpc import InteriorPointMPC, NominalModel
@@ -444,7 +466,8 @@ class InteriorPointMPC(nn.Module):
 
     def __init__(self, horizon: int, dim: int, num_neighbors: int, nominal: NominalModel, u_max: float | None,
                  alpha: float, slack_penalty: float = 1e4, tol: float = 1e-10, max_iter: int = 100,
-                 constraints: LocalConstraints | None = None, num_halfspaces: int = 0) -> None:
+                 constraints: LocalConstraints | None = None, num_halfspaces: int = 0,
+                 input_rate_weight: float = 0.0) -> None:
         super().__init__()
         if horizon < 1 or dim < 1 or num_neighbors < 0 or num_halfspaces < 0:
             raise GpmpcError(f"InteriorPointMPC needs horizon >= 1, dim >= 1, num_neighbors >= 0, num_halfspaces >= 0; "
@@ -452,14 +475,15 @@ class InteriorPointMPC(nn.Module):
         if nominal.dim != dim:
             raise GpmpcError(f"nominal model has dim {nominal.dim}, InteriorPointMPC dim is {dim}")
         self.constraints = constraints or LocalConstraints.of(nominal.spec, u_max)
-        if alpha <= 0 or slack_penalty <= 0 or tol <= 0 or max_iter < 1:
-            raise GpmpcError(f"alpha, slack_penalty, tol must be > 0 and max_iter >= 1; got "
-                             f"{alpha}, {slack_penalty}, {tol}, {max_iter}")
+        if alpha <= 0 or slack_penalty <= 0 or tol <= 0 or max_iter < 1 or input_rate_weight < 0:
+            raise GpmpcError(f"alpha, slack_penalty, tol must be > 0, max_iter >= 1 and input_rate_weight >= 0; got "
+                             f"{alpha}, {slack_penalty}, {tol}, {max_iter}, {input_rate_weight}")
         self.horizon, self.dim, self.num_neighbors = horizon, dim, num_neighbors
         self.num_halfspaces = int(num_halfspaces)
         self.nominal, self.input_dim = nominal, nominal.input_dim
         self.u_max = self.constraints.input_norm
         self.alpha, self.slack_penalty = float(alpha), float(slack_penalty)
+        self.input_rate_weight = float(input_rate_weight)
         self.tol, self.max_iter = float(tol), int(max_iter)
         self._limits = KernelLimits.of(self.constraints, num_neighbors, num_halfspaces + self.constraints.num_rows)
         #: Iterations used by the last call (for benchmarks and logging).
@@ -485,12 +509,13 @@ class InteriorPointMPC(nn.Module):
         T, D, M = self.horizon, self.dim, self.num_neighbors
         if self._B is None or self._B.dtype != data.x0.dtype or self._B.device != data.x0.device:
             self._B = self.nominal.B(data.x0.dtype, data.x0.device)  # one object: the cache keys on it
-        canon = with_state_rows(canonicalize(data, self._B, self._condensed), self._state_rows(data, batch))
+        beta = self.input_rate_weight
+        canon = with_state_rows(canonicalize(data, self._B, self._condensed, beta), self._state_rows(data, batch))
         canon, valid = _sanitize(canon)
         stats: dict = {}
-        settings = (self.alpha, self._limits, self.slack_penalty, self.tol, self.max_iter, stats)
+        settings = ((self.alpha, beta), self._limits, self.slack_penalty, self.tol, self.max_iter, stats)
         u, y1, slack, converged = _LocalQpFunction.apply(canon.G, canon.h, canon.c_x, canon.l_x, canon.rho_y,
-                                                         canon.w_y, canon.normals, canon.bounds, settings)
+                                                         canon.w_y, canon.normals, canon.bounds, canon.g_u, settings)
         y1, slack = y1[:, :M], slack[:, :M]  # the state rows' copies are 0; their slacks show in state_slack
         self.last_iterations = stats["iterations"]
         x0 = torch.where(valid[:, None], data.x0, torch.zeros_like(data.x0))
@@ -512,7 +537,8 @@ class InteriorPointMPC(nn.Module):
             logger.debug("InteriorPointMPC: %d of %d local problems rejected (tol %g, %d iterations)",
                          int((~ok).sum()), batch, self.tol, self.max_iter)
         xref = torch.where(valid[:, None, None], data.xref, torch.zeros_like(data.xref))
-        cost = ((X - xref) ** 2).sum(dim=(1, 2)) + self.alpha * (U ** 2).sum(dim=(1, 2))
+        cost = ((X - xref) ** 2).sum(dim=(1, 2)) + self.alpha * (U ** 2).sum(dim=(1, 2)) \
+            + input_rate_cost(U, data.u_prev, beta)
         state_slack = self.constraints.state_violation(X, data.halfspace_normals, data.halfspace_bounds)
         return LocalSolution(X=X, U=U, Y=Y, slack=slack, slack_active=slack_active, ok=ok, cost=cost,
                              failure=failure, state_slack=state_slack)
@@ -539,7 +565,7 @@ def _sanitize(canon: CanonicalData) -> tuple[CanonicalData, Tensor]:
         ``G = 0, h = 0, c_x = 1, l_x = 0, rho_y = 1, w_y = 0``, no collision rows.
     """
     parts = [canon.G.flatten(1), canon.h, canon.c_x[:, None], canon.l_x, canon.rho_y, canon.w_y.flatten(1),
-             canon.y0.flatten(1), canon.normals.flatten(1), canon.bounds.flatten(1)]
+             canon.y0.flatten(1), canon.normals.flatten(1), canon.bounds.flatten(1), canon.g_u]
     total = torch.cat([p.detach() for p in parts], dim=1).sum(1)
     valid = torch.isfinite(total)
     if canon.rho_y.numel():
@@ -554,7 +580,7 @@ def _sanitize(canon: CanonicalData) -> tuple[CanonicalData, Tensor]:
     return CanonicalData(G=keep(canon.G, 0.0), h=keep(canon.h, 0.0), c_x=keep(canon.c_x, 1.0),
                          l_x=keep(canon.l_x, 0.0), rho_y=keep(canon.rho_y, 1.0), w_y=keep(canon.w_y, 0.0),
                          y0=keep(canon.y0, 0.0), normals=keep(canon.normals, 0.0),
-                         bounds=keep(canon.bounds, -1.0)), valid
+                         bounds=keep(canon.bounds, -1.0), g_u=keep(canon.g_u, 0.0)), valid
 
 
 #: The name this backend had before; kept for existing code.

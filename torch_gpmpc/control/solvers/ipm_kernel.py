@@ -12,7 +12,8 @@ after condensing the dynamics, in the variables ``u = vec(U)`` (n = T Du), the c
                 g_v = (v^2 + 2 v sigma_t - ||P x_t||^2) / 2 >= 0   (Ts = T or 0: state norm, x = G u + h)
                 sigma >= 0                                         (Ts)
 
-with ``H = 2 c_x G^T G + 2 alpha I``, ``g0 = G^T (2 c_x h - l_x)``, ``A_k = G_t^T n_k`` and
+with ``H = 2 c_x G^T G + 2 alpha I + 2 beta D^T D`` (D: first differences of the U_t, the input-rate
+weight), ``g0 = G^T (2 c_x h - l_x) + g_u`` (``g_u = -2 beta U_{-1}`` on U_0), ``A_k = G_t^T n_k`` and
 ``bt_k = bound_k - n_k . h_t`` for row ``k = j T + t`` (built by
 :func:`~torch_gpmpc.control.solvers.ipm_residuals.setup`). The first Rc rows are collision rows
 (slot flag ``couple = 1``: ``N = n``); the rest are soft state rows (``N = 0``, ``y = 0``).
@@ -364,16 +365,17 @@ def _iterate(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, pen
 
 # ------------------------------------------------------------------------ batched entry points
 @_jit
-def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, couple, alpha, u_max, box, sbi, v_max, penalty, tol,
-                max_iter, u, y, w, z, warm, converged, iterations, kkt_error) -> None:
+def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, u_max, box, sbi, v_max,
+                penalty, tol, max_iter, u, y, w, z, warm, converged, iterations, kkt_error) -> None:
     """Solve B problems one after another.
 
     Args:
         G (B, nx, n), h (B, nx), c_x (B,), l_x (B, nx), rho_y (B, M), w_y (B, M, T, D),
-        normals (B, M, T, D), bounds (B, M, T): the canonical data (float64, C-contiguous);
+        normals (B, M, T, D), bounds (B, M, T), g_u (B, n): the canonical data (float64,
+            C-contiguous);
         couple (M,): 1 for a neighbour slot (the row has a copy), 0 for a state row; the
             neighbour slots come first.
-        alpha: float. u_max: input norm bound (``inf``: none). box (Du,) or (0,): input box.
+        alpha, beta: floats (effort and input-rate weights). u_max: input norm bound (``inf``: none). box (Du,) or (0,): input box.
         sbi (p,) int64 or (0,): state indices of the soft norm bound ``v_max``.
         penalty, tol: floats; max_iter: int.
         u (B, n), y (B, R, D), w (B, m), z (B, m): the primal-dual iterate, written in
@@ -395,7 +397,7 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, couple, alpha, u_ma
     bt, rho, N, wy = np.empty(R), np.empty(R), np.empty((R, D)), np.empty((R, D))
     xs = np.empty((off[6], sbi.shape[0]))
     for b in range(B):
-        setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], couple, alpha,
+        setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u[b], couple, alpha, beta,
                H, g0, A, bt, rho, N, wy)
         if not warm:
             initial_point(N, bt, rho, wy, G[b], h[b], sbi, D, box, u_max2, v_max, penalty, off,
@@ -406,8 +408,8 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, couple, alpha, u_ma
 
 
 @_jit
-def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, couple, alpha, u_max, box, sbi, v_max,
-                  u, w, z, g_u, g_y, g_s, a_u, a_y, xi, xi_v, failed) -> None:
+def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u_data, couple, alpha, beta, u_max, box, sbi,
+                  v_max, u, w, z, g_u, g_y, g_s, a_u, a_y, xi, xi_v, failed) -> None:
     """Solve the reduced KKT system at each primal-dual point for the right-hand side
     ``(g_u, g_y, g_s)`` (the implicit-function adjoint; the system is symmetric).
 
@@ -433,7 +435,7 @@ def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, couple, alpha, u_
     aug = np.empty(R, dtype=np.int64)
     for b in range(B):
         failed[b] = False
-        setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], couple, alpha,
+        setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u_data[b], couple, alpha, beta,
                H, g0, A, bt, rho, N, wy)
         fill(a_u[b], 0.0)
         fill(rhs2, 0.0)
@@ -483,12 +485,12 @@ def warm_up() -> None:
     B, M, T, D = 1, 1, 1, 1
     R, n, m = M * T, T * D, 2 * M * T + 4 * T
     canonical = (np.eye(n)[None], np.zeros((B, n)), np.ones(B), np.zeros((B, n)), np.ones((B, M)),
-                 np.zeros((B, M, T, D)), np.ones((B, M, T, D)), -np.ones((B, M, T)), np.ones(M))
+                 np.zeros((B, M, T, D)), np.ones((B, M, T, D)), -np.ones((B, M, T)), np.zeros((B, n)), np.ones(M))
     limits = (1.0, np.ones(D), np.zeros(1, dtype=np.int64), 1.0)
     u, y, w, z = np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m))
     flags, counts, errors = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
-    solve_batch(*canonical, 1e-3, *limits, 1e4, 1e-8, 30, u, y, w, z, False, flags, counts, errors)
-    adjoint_batch(*canonical, 1e-3, *limits, u, w, z, np.ones((B, n)), np.ones((B, R, D)), np.ones((B, R)),
+    solve_batch(*canonical, 1e-3, 0.0, *limits, 1e4, 1e-8, 30, u, y, w, z, False, flags, counts, errors)
+    adjoint_batch(*canonical, 1e-3, 0.0, *limits, u, w, z, np.ones((B, n)), np.ones((B, R, D)), np.ones((B, R)),
                   np.empty((B, n)), np.empty((B, R, D)), np.empty((B, R)), np.empty((B, T)), flags)
 
 

@@ -38,13 +38,15 @@ def coupled_rows(couple, T: int) -> int:
 
 
 @_jit
-def setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, couple, alpha, H, g0, A, bt, rho, N, wy) -> None:
+def setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, H, g0, A, bt, rho, N,
+          wy) -> None:
     """Fill the problem arrays of one problem from its canonical data (see module docstring).
 
     Shapes: G (nx, n), h (nx,), l_x (nx,), rho_y (M,), w_y (M, T, D), normals (M, T, D),
-    bounds (M, T), couple (M,) with nx = T D states and n = T Du inputs; outputs H (n, n),
-    g0 (n,), A (R, n), bt (R,), rho (R,), N (R, D) (the copy's coefficient, ``couple_j n_k``),
-    wy (R, D).
+    bounds (M, T), g_u (n,), couple (M,) with nx = T D states and n = T Du inputs; outputs
+    H (n, n), g0 (n,), A (R, n), bt (R,), rho (R,), N (R, D) (the copy's coefficient,
+    ``couple_j n_k``), wy (R, D). ``beta`` weighs the input changes ``sum_t ||U_t - U_{t-1}||^2``
+    (its ``U_{-1}`` part is in ``g_u``): ``H += 2 beta D^T D`` with D the first difference.
     """
     nx, n = G.shape
     M, T, D = normals.shape
@@ -57,8 +59,15 @@ def setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, couple, alpha, H, g0, A, 
             H[i, j] = c2 * v
             H[j, i] = c2 * v
         H[i, i] += 2.0 * alpha
+    if beta != 0.0:
+        Du = n // normals.shape[1]
+        for i in range(n):
+            H[i, i] += 2.0 * beta * (2.0 if i < n - Du else 1.0)
+            if i + Du < n:
+                H[i, i + Du] -= 2.0 * beta
+                H[i + Du, i] -= 2.0 * beta
     for i in range(n):
-        v = 0.0
+        v = g_u[i]
         for r in range(nx):
             v += G[r, i] * (c2 * h[r] - l_x[r])
         g0[i] = v

@@ -132,6 +132,8 @@ class AgentController:
         self.x0 = x0
         nominal = self.local.nominal
         self.xref = nominal.reference_states(reference_window(self.reference, t, cfg.horizon))[None]
+        #: the input this agent applied last (the input-rate term's U_{-1}; None on a cold start)
+        self.u_prev = None if self.state is None or self.state.applied is None else self.state.applied[k:k + 1]
         if self.state is None:  # cold start: the plan is to stay (initial_state's rule)
             D, Du = nominal.dim, nominal.input_dim
             own = initial_state(x0[None], cfg.horizon, graph_from_edges(1, []), Du)
@@ -198,7 +200,8 @@ class AgentController:
             dataclasses.replace(state, plans=self.frozen[0], inputs=self.frozen[1])
         rho = state.rho[self.graph.slot_edge[k:k + 1]] if self.adaptive and self.graph.num_edges else self.rho
         assembled = self.local.assemble(self.x0[None], self.xref, lin_state, self.graph, rho,
-                                        self.eps_self, rows=slice(k, k + 1), linearization=self.linearization)
+                                        self.eps_self, rows=slice(k, k + 1), linearization=self.linearization,
+                                        u_prev=self.u_prev)
         if not cfg.relinearize:
             self.linearization = assembled.linearization
         self.assembled = assembled
