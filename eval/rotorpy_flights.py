@@ -29,6 +29,9 @@ from pathlib import Path
 import numpy as np
 
 CONFIG = "examples/rotorpy/swap.toml"
+#: The wind-change runs are longer than the swap's 150 steps: the change comes at the end of the
+#: crossing and both GPs get 50 steps after it and time to settle at the goals.
+CHANGE_MAX_STEPS = 200
 
 
 def run_one(job: dict) -> dict:
@@ -58,7 +61,7 @@ def jobs(out: str, seeds: list[int], change_step: int, budget: int, sets: dict) 
             out_jobs.append({"study": "swap", "label": method, "seed": seed, "overrides": {**sets, "method": method}})
         for label, extra in (("frozen", {}), ("online", {"gp_online": True, "gp_online_budget": budget})):
             out_jobs.append({"study": "change", "label": label, "seed": seed,
-                             "overrides": {**sets, "wind_change_step": change_step, **extra}})
+                             "overrides": {"max_steps": CHANGE_MAX_STEPS, **sets, "wind_change_step": change_step, **extra}})
     for job in out_jobs:
         job["out"], job["name"] = out, f"{job['study']}_{job['label']}_seed{job['seed']}"
     return out_jobs
@@ -187,7 +190,7 @@ def figures(out: Path, results: list[dict], change_step: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="0,1,2,3,4")
-    parser.add_argument("--change-step", type=int, default=30)
+    parser.add_argument("--change-step", type=int, default=60)
     parser.add_argument("--budget", type=int, default=100, help="gp_online_budget of the online runs")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--holdout-samples", type=int, default=300, help="logged steps of the hold-out study")

@@ -122,3 +122,25 @@ def test_learning_reduces_the_prediction_error_after_a_shift():
     late_o = torch.cat(err_o[-10:]).abs().mean()
     assert late_f > 0.45 and late_o < 0.1
     assert base.num_data == 40   # the frozen GP was not touched by the online copy
+
+
+def test_transitions_with_a_large_input_change_are_not_added():
+    """max_input_change: a row is added only if the agent's input moved by at most that since its
+    previous step (the first step always); the skipped rows are counted per agent."""
+    from torch_gpmpc.config.model_spec import ModelSpec
+    from torch_gpmpc.dynamics.systems import NominalModel
+
+    nominal = NominalModel(ModelSpec.double_integrator(dim=2, dt=0.1, u_max=2.0))
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(2, 6, 4, generator=g, dtype=F64)     # (agents, steps, state)
+    base = fit_residual_gp(torch.randn(20, 2, generator=g, dtype=F64), 0.01 * torch.randn(20, 2, generator=g, dtype=F64),
+                           iters=2, gp_inputs=",".join(nominal.spec.gp_inputs))
+    learning = OnlineLearning(online_gps([base, base], budget=50, refit_every=0), nominal, online=True,
+                              max_input_change=0.15)
+    # agent 0 holds its input; agent 1 changes it by 0.1 then 0.3 then 0.0 then 0.2
+    u = torch.tensor([[[0.5, 0.5], [0.5, 0.5], [0.5, 0.5], [0.5, 0.5], [0.5, 0.5]],
+                      [[0.0, 0.0], [0.1, 0.0], [0.4, 0.0], [0.4, 0.0], [0.4, 0.2]]], dtype=F64)
+    for t in range(5):
+        learning.observe(x[:, t], u[:, t], x[:, t + 1])
+    assert learning.skipped == [0, 2]
+    assert [gp.gp.num_data for gp in learning.gps] == [25, 23]

@@ -138,7 +138,9 @@ class Config:
             plant's vortex) is turned 90 degrees about the vertical axis (null: never).
         gp_online: each agent adds its own observed transitions to its GP during the run
             (:mod:`~torch_gpmpc.gp.online`); ``gp_online_budget`` points per agent (the oldest
-            leave first), hyperparameters re-fitted every ``gp_online_refit_every`` steps (0: never).
+            leave first), hyperparameters re-fitted every ``gp_online_refit_every`` steps (0: never);
+            with ``gp_online_max_input_change`` only transitions whose input changed by at most that
+            (norm, input units) since the agent's previous step are added (null: all).
 
     Example:
         >>> from torch_gpmpc import Config
@@ -209,6 +211,7 @@ class Config:
     gp_online: bool = False
     gp_online_budget: int = 200
     gp_online_refit_every: int = 0
+    gp_online_max_input_change: float | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.model, dict):  # an inline model table (a config file's [model])
@@ -361,6 +364,7 @@ _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "wind_change_step": (lambda v: v is None or v >= 0, "an integer >= 0 or null (never)"),
     "gp_online_budget": (lambda v: 2 <= v <= 5000, "an integer in [2, 5000]"),
     "gp_online_refit_every": (lambda v: v >= 0, "an integer >= 0 (0: never re-fit)"),
+    "gp_online_max_input_change": (lambda v: v is None or v > 0, "a number > 0 or null (add every transition)"),
 }
 
 

@@ -194,14 +194,23 @@ class OnlineLearning:
         gps: one model per agent (the controller's objects: updated in place).
         nominal: the planning model (its residual rows and GP input columns).
         online: add each agent's transitions to its own GP (``OnlineGP`` wrappers).
+        max_input_change: add a transition only if its input differs from the agent's previous one
+            by at most this (Euclidean norm; ``None``: every transition). A vehicle that realizes its
+            command with a lag (a quadrotor tilting first) makes transitions whose residual is mostly
+            that lag while the command changes; the GP's inputs cannot see it, and learning it as a
+            function of the state misleads the next plans.
 
     Attributes:
         update_seconds: wall time of the updates (and refits) of each step.
+        skipped: transitions not added (input change above ``max_input_change``), per agent.
     """
 
-    def __init__(self, gps: list, nominal, online: bool) -> None:
+    def __init__(self, gps: list, nominal, online: bool, max_input_change: float | None = None) -> None:
         self.gps, self.nominal, self.online = gps, nominal, online
+        self.max_input_change = max_input_change
         self.update_seconds: list[float] = []
+        self.skipped = [0] * len(gps)
+        self._u_prev: Tensor | None = None
 
     def observe(self, x: Tensor, u: Tensor, x_next: Tensor) -> tuple[Tensor, Tensor]:
         """One step of every agent: measured states x (K, D), inputs u (K, Du), next measured
@@ -216,11 +225,23 @@ class OnlineLearning:
             variances.append(var[0])
         start = time.perf_counter()
         if self.online:
+            steady = self._steady_inputs(u)
             for k, gp in enumerate(self.gps):
-                gp.add(inputs[k:k + 1], y[k:k + 1])
+                if steady[k]:
+                    gp.add(inputs[k:k + 1], y[k:k + 1])
+                else:
+                    self.skipped[k] += 1
                 gp.end_step()
         self.update_seconds.append(time.perf_counter() - start if self.online else 0.0)
         return torch.stack(errors), torch.stack(variances)
+
+    def _steady_inputs(self, u: Tensor) -> list[bool]:
+        """Per agent, whether its input u (K, Du) changed by at most ``max_input_change`` since the
+        last call (the first call: yes)."""
+        prev, self._u_prev = self._u_prev, u.detach().clone()
+        if self.max_input_change is None or prev is None:
+            return [True] * u.shape[0]
+        return ((u - prev).norm(dim=-1) <= self.max_input_change).tolist()
 
 
 def online_gps(gps: list, budget: int, refit_every: int) -> list[OnlineGP]:

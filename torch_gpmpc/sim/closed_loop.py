@@ -137,7 +137,7 @@ def simulate(
     if gps is not None:
         if cfg.gp_online:
             gps = online_gps(gps, cfg.gp_online_budget, cfg.gp_online_refit_every)
-        learning = OnlineLearning(gps, system.nominal, cfg.gp_online)
+        learning = OnlineLearning(gps, system.nominal, cfg.gp_online, cfg.gp_online_max_input_change)
     planner = ADMMPlanner(make_controller(cfg, system, gps))
     return run_closed_loop(cfg, scenario, system, planner, on_step, tb, learning)
 

@@ -1,18 +1,17 @@
 """The input-rate term ``beta sum_t ||U_t - U_{t-1}||^2`` (``U_{-1} = u_prev``) in both solvers,
-against a direct cvxpy solve of the problem written out, central finite differences, and the
-problem without it."""
+against a direct cvxpy solve of the problem written out (the reference of test_interior_point with
+the term), central finite differences, and the problem without it."""
 
 from __future__ import annotations
 
 import dataclasses
 
-import cvxpy as cp
 import numpy as np
 import pytest
 import torch
 
 from tests.control.solvers.test_interior_point import (
-    ALPHA, B_GAIN, D, NOMINAL, T, U_MAX, _weights, make_data,
+    ALPHA, D, NOMINAL, T, U_MAX, _weights, cvxpy_reference, make_data, objective,
 )
 from torch_gpmpc.control.solvers import make_local_solver
 from torch_gpmpc.errors import GpmpcError
@@ -25,44 +24,6 @@ def with_u_prev(data, seed: int):
     return dataclasses.replace(data, u_prev=torch.randn(data.x0.shape[0], D, generator=g, dtype=torch.float64))
 
 
-def direct_solve(data, beta: float, penalty: float, ours) -> list[tuple[np.ndarray, float, float, str]]:
-    """Each problem written naturally in cvxpy (Clarabel, tight tolerances): its U, its optimal
-    value, the value of that objective at ``ours`` (a LocalSolution) and the solver status."""
-    batch, M = data.active.shape
-    rho = data.rho.expand(batch, M) if data.rho.dim() == 0 else data.rho
-    out = []
-    for b in range(batch):
-        X, U = cp.Variable((T + 1, D)), cp.Variable((T, D))
-        Y = [cp.Variable((T + 1, D)) for _ in range(M)]
-        S = cp.Variable((M, T), nonneg=True) if M else None
-        cons = [X[0] == data.x0[b].numpy(), cp.norm(U, 2, axis=1) <= U_MAX]
-        cons += [X[t + 1] == data.dyn_A[b, t].numpy() @ X[t] + B_GAIN * U[t] + data.dyn_c[b, t].numpy()
-                 for t in range(T)]
-        prev = data.u_prev[b].numpy()
-        changes = cp.sum_squares(U[0] - prev) + sum(cp.sum_squares(U[t] - U[t - 1]) for t in range(1, T))
-        obj = cp.sum_squares(X - data.xref[b].numpy()) + ALPHA * cp.sum_squares(U) + beta * changes
-        for j in range(M):
-            r = float(rho[b, j])
-            obj += cp.sum(cp.multiply(data.lam_own[b, j].numpy(), X)) \
-                + cp.sum(cp.multiply(data.lam_nbr[b, j].numpy(), Y[j])) \
-                + r / 2 * (cp.sum_squares(X - data.z_own[b, j].numpy()) + cp.sum_squares(Y[j] - data.z_nbr[b, j].numpy()))
-            cons += [data.normals[b, j, t - 1].numpy() @ (X[t] - Y[j][t]) + S[j, t - 1] >= float(data.bounds[b, j, t - 1])
-                     for t in range(1, T + 1)]
-        if M:
-            obj += penalty * cp.sum(S)
-        problem = cp.Problem(cp.Minimize(obj), cons)
-        problem.solve(solver=cp.CLARABEL, tol_gap_abs=1e-12, tol_gap_rel=1e-12, tol_feas=1e-12, tol_ktratio=1e-10)
-        assert problem.status in ("optimal", "optimal_inaccurate")
-        U_ref, f_ref = U.value.copy(), problem.value
-        X.value, U.value = ours.X[b].detach().numpy(), ours.U[b].detach().numpy()
-        for j in range(M):
-            Y[j].value = ours.Y[b, j].detach().numpy()
-        if M:
-            S.value = np.maximum(ours.slack[b].detach().numpy(), 0.0)
-        out.append((U_ref, f_ref, float(problem.objective.value), problem.status))
-    return out
-
-
 @pytest.mark.parametrize("solver", ["fast", "clarabel"])
 @pytest.mark.parametrize("M, kwargs, penalty", [(0, dict(push=1.6), 1e4), (1, dict(push=0.6), 1e4),
                                                 (2, dict(push=0.8, bound_extra=1.5), 2.0)])
@@ -73,12 +34,13 @@ def test_plans_match_a_direct_cvxpy_solve(solver, M, kwargs, penalty):
     assert bool(sol.ok.all())
     tol = 1e-6 if solver == "fast" else 1e-4  # cvxpylayers' clarabel path stops earlier
     matched = 0
-    for b, (U_ref, f_ref, f_ours, status) in enumerate(direct_solve(data, BETA, penalty, sol)):
+    for b, ref in enumerate(cvxpy_reference(data, penalty, beta=BETA)):
         # equal within tol, unless Clarabel says it stopped short and our point is better
-        if np.abs(sol.U[b].numpy() - U_ref).max() <= tol:
+        if np.abs(sol.U[b].numpy() - ref["U"]).max() <= tol:
             matched += 1
         else:
-            assert status == "optimal_inaccurate" and f_ours < f_ref, (b, status, f_ours, f_ref)
+            f_ours = objective(data, b, sol.X[b], sol.U[b], sol.Y[b], sol.slack[b], penalty, beta=BETA)
+            assert ref["status"] == "optimal_inaccurate" and f_ours < ref["objective"], (b, ref["status"])
     assert matched >= 2
     # the term changes the plan, and the reported cost contains it
     plain = make_local_solver(T, D, M, NOMINAL, U_MAX, ALPHA, penalty, solver=solver)(data)

@@ -59,8 +59,16 @@ def make_data(batch: int, M: int, seed: int, *, push: float = 1.0, bound_extra: 
                             lam_own=0.3 * randn(batch, M, T + 1, D), lam_nbr=0.3 * randn(batch, M, T + 1, D))
 
 
-def cvxpy_reference(data: LocalProblemData, slack_penalty: float) -> list[dict]:
-    """Each problem written naturally in cvxpy and solved by Clarabel at tight tolerances."""
+def input_changes(U, u_prev):
+    """``sum_t ||U_t - U_{t-1}||^2`` with ``U_{-1} = u_prev`` (cvxpy expressions or tensors)."""
+    if isinstance(U, torch.Tensor):
+        return float(torch.diff(U, dim=0, prepend=torch.as_tensor(u_prev)[None]).pow(2).sum())
+    return cp.sum_squares(U[0] - u_prev) + sum(cp.sum_squares(U[t] - U[t - 1]) for t in range(1, T))
+
+
+def cvxpy_reference(data: LocalProblemData, slack_penalty: float, beta: float = 0.0) -> list[dict]:
+    """Each problem written naturally in cvxpy and solved by Clarabel at tight tolerances (with
+    ``beta``, the input-rate term from ``data.u_prev``)."""
     batch, M = data.active.shape
     rho = data.rho.expand(batch, M) if data.rho.dim() == 0 else data.rho
     out = []
@@ -72,6 +80,8 @@ def cvxpy_reference(data: LocalProblemData, slack_penalty: float) -> list[dict]:
         cons += [X[t + 1] == data.dyn_A[b, t].numpy() @ X[t] + B_GAIN * U[t] + data.dyn_c[b, t].numpy()
                  for t in range(T)]
         obj = cp.sum_squares(X - data.xref[b].numpy()) + ALPHA * cp.sum_squares(U)
+        if beta:
+            obj += beta * input_changes(U, data.u_prev[b].numpy())
         for j in range(M):
             if bool(data.active[b, j]):
                 r = float(rho[b, j])
@@ -94,12 +104,14 @@ def cvxpy_reference(data: LocalProblemData, slack_penalty: float) -> list[dict]:
     return out
 
 
-def objective(data: LocalProblemData, b: int, X, U, Y, S, slack_penalty: float) -> float:
+def objective(data: LocalProblemData, b: int, X, U, Y, S, slack_penalty: float, beta: float = 0.0) -> float:
     """The local objective of problem b at (X, U, Y, S), written out directly."""
     X, U, Y, S = (torch.as_tensor(a, dtype=torch.float64) for a in (X, U, Y, S))
     M = data.active.shape[1]
     rho = data.rho.expand(data.active.shape) if data.rho.dim() == 0 else data.rho
     f = ((X - data.xref[b]) ** 2).sum() + ALPHA * (U ** 2).sum() + slack_penalty * S.sum()
+    if beta:
+        f = f + beta * input_changes(U, data.u_prev[b])
     for j in range(M):
         if data.active[b, j]:
             f = f + (data.lam_own[b, j] * X).sum() + (data.lam_nbr[b, j] * Y[j]).sum() + rho[b, j] / 2 * (
