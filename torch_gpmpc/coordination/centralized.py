@@ -26,7 +26,7 @@ from torch import Tensor
 
 from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.control.problem import LocalProblemData, input_rate_cost
-from torch_gpmpc.control.solvers.conic import state_constraints
+from torch_gpmpc.control.solvers.conic import input_changes, state_constraints
 from torch_gpmpc.coordination.admm import ADMM
 from torch_gpmpc.coordination.agent_step import LocalStep, edge_variances, slot_risks
 from torch_gpmpc.coordination.graph import Graph
@@ -92,8 +92,7 @@ def solve_centralized(data: LocalProblemData, graph: Graph, nominal: NominalMode
     for k in range(K):
         cost += cp.sum_squares(X[k] - xref[k]) + alpha * cp.sum_squares(U[k])
         if input_rate_weight:
-            cost += input_rate_weight * (cp.sum_squares(U[k][0] - u_prev[k])
-                                         + (cp.sum_squares(U[k][1:] - U[k][:-1]) if T > 1 else 0))
+            cost += input_rate_weight * input_changes(U[k], u_prev[k])
         cons.append(X[k][0] == x0[k])
         cons += [X[k][t + 1] == dyn_A[k, t] @ X[k][t] + dyn_B[k, t] @ U[k][t] + dyn_c[k, t] for t in range(T)]
         halfspaces = [] if data.halfspace_normals is None else \

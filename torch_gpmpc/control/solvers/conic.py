@@ -175,8 +175,7 @@ class CvxpyLayerMPC(nn.Module):
         parameters = [x0, scale_x, shift_x, *a_cols, *b_cols, dyn_c]
         if self.input_rate_weight:
             u_prev = cp.Parameter(Du, name="u_prev")
-            changes = cp.sum_squares(U[0] - u_prev) + (cp.sum_squares(U[1:] - U[:-1]) if T > 1 else 0)
-            objective += self.input_rate_weight * changes
+            objective += self.input_rate_weight * input_changes(U, u_prev)
             parameters.append(u_prev)
         L = self.num_halfspaces
         half_normals = [cp.Parameter((T, D), name=f"halfspace{j}") for j in range(L)]
@@ -327,6 +326,13 @@ class CvxpyLayerMPC(nn.Module):
     def _check(self, data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor) -> Tensor:
         """Failure code per problem, (B,): see :func:`acceptance_failures`."""
         return acceptance_failures(data, X, U, Y, slack, self.nominal.B(X.dtype, X.device), self.constraints)
+
+
+def input_changes(U: cp.Expression, u_prev: Any) -> cp.Expression:
+    """``sum_t ||U_t - U_{t-1}||^2`` of a plan's inputs U (T, Du) with ``U_{-1} = u_prev`` (Du,)
+    (a parameter or an array): the input-rate term without its weight."""
+    changes = cp.sum_squares(U[0] - u_prev)
+    return changes + cp.sum_squares(U[1:] - U[:-1]) if U.shape[0] > 1 else changes
 
 
 def state_constraints(X: cp.Expression, U: cp.Expression, constraints: LocalConstraints, slack_penalty: float,
