@@ -41,3 +41,16 @@ def test_python_api_example_as_written():
     result = _example().run()
     _check(result)
     assert result["min_distance"] > 0.45 and result["final_error"] < 0.3
+
+
+def test_rotorpy_forest_config_flies_the_swap_vehicles_in_the_same_wind():
+    """examples/rotorpy/forest.toml differs from swap.toml only in the scenario and the input-rate weight."""
+    import dataclasses
+
+    from torch_gpmpc.config import load_config
+
+    swap = load_config(ROOT / "examples" / "rotorpy" / "swap.toml")
+    forest = load_config(ROOT / "examples" / "rotorpy" / "forest.toml")
+    differ = {f.name for f in dataclasses.fields(swap) if getattr(swap, f.name) != getattr(forest, f.name)}
+    assert differ == {"scenario", "num_obstacles", "input_rate_weight"}
+    assert forest.scenario == "forest" and forest.input_rate_weight > swap.input_rate_weight
