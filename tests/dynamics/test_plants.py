@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+import pytest
 import torch
 
 from torch_gpmpc import Config, compute_metrics, simulate
+from torch_gpmpc.config import load_config
 from torch_gpmpc.coordination.controller import make_controller
 from torch_gpmpc.dynamics.plants import ModelPlant, Plant, plant_from_config
 from torch_gpmpc.dynamics.systems import make_system, system_from_config
+from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.sim.closed_loop import ADMMPlanner, run_closed_loop
 from torch_gpmpc.sim.scenarios import make_scenario
 
@@ -99,3 +104,13 @@ def test_online_gp_learns_the_turned_wind_and_the_frozen_one_does_not():
 
     assert online["online_prediction_rmse_after_change"] < 0.7 * frozen["online_prediction_rmse_after_change"]
     assert online["gp_update_s_per_step"] > 0 and frozen["gp_update_s_per_step"] == 0
+
+
+def test_a_rotorpy_run_does_not_build_the_vortex_wind(tmp_path):
+    """With plant = rotorpy the model's own world is not flown: a model with GPs on more rows than
+    the position (the Crazyflie planner learns positions and velocities) needs no wind_scale = 0."""
+    model = str(Path(__file__).resolve().parents[2] / "examples" / "rotorpy" / "crazyflie.toml")
+    with pytest.raises(GpmpcError, match="wind_scale=0"):
+        system_from_config(load_config(None, {"model": model, "wind_scale": 0.1}))
+    system = system_from_config(load_config(None, {"model": model, "wind_scale": 0.1, "plant": "rotorpy"}))
+    assert system.wind.scale == 0.0 and len(system.nominal.residual) == 6
