@@ -4,11 +4,14 @@ finite differences."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import math
 from pathlib import Path
 
 import pytest
+
+from torch_gpmpc.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,10 +48,6 @@ def test_python_api_example_as_written():
 
 def test_rotorpy_forest_config_flies_the_swap_vehicles_in_the_same_wind():
     """examples/rotorpy/forest.toml differs from swap.toml only in the scenario and the input-rate weight."""
-    import dataclasses
-
-    from torch_gpmpc.config import load_config
-
     swap = load_config(ROOT / "examples" / "rotorpy" / "swap.toml")
     forest = load_config(ROOT / "examples" / "rotorpy" / "forest.toml")
     differ = {f.name for f in dataclasses.fields(swap) if getattr(swap, f.name) != getattr(forest, f.name)}

@@ -107,10 +107,13 @@ def test_online_gp_learns_the_turned_wind_and_the_frozen_one_does_not():
 
 
 def test_a_rotorpy_run_does_not_build_the_vortex_wind(tmp_path):
-    """With plant = rotorpy the model's own world is not flown: a model with GPs on more rows than
-    the position (the Crazyflie planner learns positions and velocities) needs no wind_scale = 0."""
-    model = str(Path(__file__).resolve().parents[2] / "examples" / "rotorpy" / "crazyflie.toml")
+    """With plant = rotorpy the model's own world is not flown: a planning model with GPs on more
+    rows than the position (here the Crazyflie planner learning positions too) needs no wind_scale = 0."""
+    text = (Path(__file__).resolve().parents[2] / "examples" / "rotorpy" / "crazyflie.toml").read_text()
+    assert "residual = [3, 4, 5]" in text
+    model = tmp_path / "crazyflie_all_rows.toml"
+    model.write_text(text.replace("residual = [3, 4, 5]", "residual = [0, 1, 2, 3, 4, 5]"))
     with pytest.raises(GpmpcError, match="wind_scale=0"):
-        system_from_config(load_config(None, {"model": model, "wind_scale": 0.1}))
-    system = system_from_config(load_config(None, {"model": model, "wind_scale": 0.1, "plant": "rotorpy"}))
+        system_from_config(load_config(None, {"model": str(model), "wind_scale": 0.1}))
+    system = system_from_config(load_config(None, {"model": str(model), "wind_scale": 0.1, "plant": "rotorpy"}))
     assert system.wind.scale == 0.0 and len(system.nominal.residual) == 6
