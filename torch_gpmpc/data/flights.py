@@ -28,7 +28,7 @@ TAU_V = 0.5
 #: commanded acceleration only after its attitude and motor lag (about 0.1 s for the Crazyflie), so
 #: abrupt excitation mostly logs that lag, which the planning state cannot explain (measured: at 10
 #: the residuals' std doubles and 400-row GPs predict a wrong-signed residual at hover). 3 is about
-#: the rate of the plans of examples/rotorpy/swap.toml (input_rate_weight 1: rms 2.6 m/s^3).
+#: the rate of smooth plans (examples/rotorpy/swap.toml: rms 2.6 m/s^3 at input_rate_weight 1, 2 at 2).
 JERK = 3.0
 #: Share of the setpoints that are hover (v = 0): every mission ends hovering at its goal, in the wind,
 #: and a GP that saw little slow flight mispredicts there (a steady offset at the goal).
