@@ -47,7 +47,7 @@ def test_python_api_example_as_written():
 
 
 def test_rotorpy_forest_config_flies_the_swap_vehicles_in_the_same_wind():
-    """examples/rotorpy/forest.toml differs from swap.toml only in the scenario and the input-rate weight."""
+    """examples/rotorpy/forest.toml differs from swap.toml only in the scenario (with its trunks) and the input-rate weight."""
     swap = load_config(ROOT / "examples" / "rotorpy" / "swap.toml")
     forest = load_config(ROOT / "examples" / "rotorpy" / "forest.toml")
     differ = {f.name for f in dataclasses.fields(swap) if getattr(swap, f.name) != getattr(forest, f.name)}
