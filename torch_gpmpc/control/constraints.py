@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -99,15 +100,18 @@ class LocalConstraints:
         normals = torch.tensor(self.row_normals, dtype=dtype, device=device).reshape(self.num_rows, dim)
         return normals, torch.tensor(self.row_bounds, dtype=dtype, device=device)
 
-    def input_violation(self, U: Tensor) -> Tensor:
-        """How far inputs (B, T, Du) exceed the input bounds, per problem (B,)."""
-        parts = []
+    def input_violation(self, U: np.ndarray) -> np.ndarray:
+        """How far inputs (B, T, Du) exceed the input bounds, per problem (B,) (NumPy: the
+        acceptance check of a solve, which no gradient passes through)."""
+        batch = U.shape[0]
+        out = np.zeros(batch)
         if self.input_box is not None:
-            box = torch.tensor(self.input_box, dtype=U.dtype, device=U.device)
-            parts.append((U.abs() - box).clamp(min=0).flatten(1).amax(1))
+            box = np.asarray(self.input_box, dtype=U.dtype)
+            out = np.maximum(out, np.clip(np.abs(U) - box, 0.0, None).reshape(batch, -1).max(1, initial=0.0))
         if self.input_norm is not None:
-            parts.append((torch.linalg.vector_norm(U, dim=-1) - self.input_norm).clamp(min=0).amax(1))
-        return parts[0] if len(parts) == 1 else torch.maximum(*parts)
+            excess = np.clip(np.linalg.norm(U, axis=-1) - self.input_norm, 0.0, None)
+            out = np.maximum(out, excess.reshape(batch, -1).max(1, initial=0.0))
+        return out
 
     @property
     def input_scale(self) -> float:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -238,32 +239,40 @@ def acceptance_failures(data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor,
     A finite answer is accepted when the initial condition, the dynamics (``nominal_B`` (D, Du)
     where ``data.dyn_B`` is None), the input bounds, ``slack >= 0`` and the (softened) collision
     rows of active slots hold within :data:`FEASIBILITY_TOL` relative to the plan's scale. The
-    soft state constraints hold by construction (their slacks are free).
+    soft state constraints hold by construction (their slacks are free). Computed in NumPy on
+    detached copies: a check of a few small arrays, where torch's per-call overhead would cost
+    more than the compiled solve it checks.
     """
-    finite = torch.isfinite(X).flatten(1).all(1) & torch.isfinite(U).flatten(1).all(1) \
-        & torch.isfinite(slack).flatten(1).all(1) & torch.isfinite(Y).flatten(1).all(1)
-    Xs, Us = torch.nan_to_num(X), torch.nan_to_num(U)
-    scale = 1.0 + Xs.abs().flatten(1).amax(1)
+    def arr(t: Tensor) -> np.ndarray:
+        return t.detach().cpu().numpy()
+
+    Xr, Ur, Yr, Sr = arr(X), arr(U), arr(Y), arr(slack)
+    batch = Xr.shape[0]
+    finite = np.isfinite(Xr.reshape(batch, -1)).all(1) & np.isfinite(Ur.reshape(batch, -1)).all(1) \
+        & np.isfinite(Sr.reshape(batch, -1)).all(1) & np.isfinite(Yr.reshape(batch, -1)).all(1)
+    clean = bool(finite.all())  # the usual case: no copies needed
+    Xs, Us, Ss, Ys = (a if clean else np.nan_to_num(a) for a in (Xr, Ur, Sr, Yr))
+    scale = 1.0 + np.abs(Xs.reshape(batch, -1)).max(1, initial=0.0)
     if data.dyn_B is None:
-        drive = Us @ nominal_B.to(X.dtype).T
+        drive = Us @ arr(nominal_B).astype(Xs.dtype).T
     else:
-        drive = (data.dyn_B.detach() @ Us[..., None]).squeeze(-1)
-    pred = (data.dyn_A.detach() @ Xs[:, :-1, :, None]).squeeze(-1) + drive + data.dyn_c.detach()
-    dyn_res = (Xs[:, 1:] - pred).abs().flatten(1).amax(1)
-    init_res = (Xs[:, 0] - data.x0.detach()).abs().amax(1)
+        drive = (arr(data.dyn_B) @ Us[..., None])[..., 0]
+    pred = (arr(data.dyn_A) @ Xs[:, :-1, :, None])[..., 0] + drive + arr(data.dyn_c)
+    dyn_res = np.abs(Xs[:, 1:] - pred).reshape(batch, -1).max(1, initial=0.0)
+    init_res = np.abs(Xs[:, 0] - arr(data.x0)).max(1, initial=0.0)
     u_res = constraints.input_violation(Us)
-    s_res = (-torch.nan_to_num(slack)).clamp(min=0).flatten(1).amax(1) if slack.numel() else torch.zeros_like(u_res)
-    if Y.shape[1] > 0 and slack.numel():
+    s_res = np.clip(-Ss, 0.0, None).reshape(batch, -1).max(1, initial=0.0)
+    c_res = np.zeros(batch)
+    if Yr.shape[1] > 0 and Sr.size:
         # collision rows n^T (X_tau - Y_j,tau) + s_j,tau >= bound_j,tau, tau = 1..T, active slots only
-        gap = (data.normals.detach() * (Xs[:, None, 1:] - torch.nan_to_num(Y)[:, :, 1:])).sum(-1)
-        viol = (data.bounds.detach() - gap - torch.nan_to_num(slack)).clamp(min=0)
-        viol = torch.where(data.active.to(torch.bool)[:, :, None], viol, torch.zeros_like(viol))
-        c_res = viol.flatten(1).amax(1)
-    else:
-        c_res = torch.zeros_like(u_res)
+        gap = (arr(data.normals) * (Xs[:, None, 1:] - Ys[:, :, 1:])).sum(-1)
+        viol = np.clip(arr(data.bounds) - gap - Ss, 0.0, None)
+        viol = np.where(arr(data.active).astype(bool)[:, :, None], viol, 0.0)
+        c_res = viol.reshape(batch, -1).max(1, initial=0.0)
     tol = FEASIBILITY_TOL
     feasible = (dyn_res <= tol * scale) & (init_res <= tol * scale) \
         & (u_res <= tol * (1 + constraints.input_scale)) & (s_res <= tol * scale) & (c_res <= tol * scale)
-    code = torch.full(finite.shape, FAIL_NONE, dtype=torch.int64)
-    code = torch.where(feasible, code, torch.full_like(code, FAIL_INACCURATE))
-    return torch.where(finite, code, torch.full_like(code, FAIL_NONFINITE))
+    code = np.where(feasible, FAIL_NONE, FAIL_INACCURATE)
+    code = np.where(finite, code, FAIL_NONFINITE).astype(np.int64)
+    return torch.from_numpy(code).to(X.device)
+
