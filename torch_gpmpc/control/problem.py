@@ -275,4 +275,3 @@ def acceptance_failures(data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor,
     code = np.where(feasible, FAIL_NONE, FAIL_INACCURATE)
     code = np.where(finite, code, FAIL_NONFINITE).astype(np.int64)
     return torch.from_numpy(code).to(X.device)
-
