@@ -15,6 +15,7 @@ def test_noise_free_seed_1_fits_with_finite_hyperparameters(caplog):
     system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
     gps = fit_agent_gps(cfg, system, 3)
     assert "produced NaN" in caplog.text  # the failure this guards against really happens here
+    assert "noise ~ 0" in caplog.text  # and the warning names the hyperparameter at its bound
     x = torch.zeros(4, 2, dtype=torch.float64)
     for gp in gps:
         mean, var = gp.predict(x)

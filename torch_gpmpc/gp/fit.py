@@ -183,9 +183,11 @@ def _optimize(gp: ResidualGP, optimizer: str, iters: int, callback: Callback | N
                 log.debug("GP fit step %d failed: %s", step, exc)
             if not (math.isfinite(float(loss.detach())) and _finite_state(model)):
                 # an optimizer step into NaN (seen with noise-free data, where the noise runs to its
-                # bound): keep the last finite hyperparameters and end the fit there
-                log.warning("GP fit: step %d produced NaN; keeping the hyperparameters of step %d", step, step - 1)
+                # bound, and with rows whose signal the data cannot resolve, where the outputscale
+                # runs to 0 or the lengthscales to infinity): keep the last finite hyperparameters
                 model.load_state_dict(last_good)
+                log.warning("GP fit: step %d produced NaN; keeping the hyperparameters of step %d (%s)", step,
+                            step - 1, _degenerate_rows(gp))
                 with torch.no_grad():
                     loss = _neg_mll(model, mll)
                 if callback is not None:
@@ -204,6 +206,23 @@ def _optimize(gp: ResidualGP, optimizer: str, iters: int, callback: Callback | N
                              "fewer --iters or check the data")
         if callback is not None:
             callback(step, value, hp)
+
+
+def _degenerate_rows(gp: ResidualGP) -> str:
+    """The output rows whose hyperparameters sit at a bound, which is where an L-BFGS line
+    search steps into NaN: outputscale ~ 0 (no signal the data resolve), noise ~ 0 (noise-free
+    data), a lengthscale of 100 or more (an input the row does not vary with, e.g. the wind's
+    x component with respect to x)."""
+    hp = gp.hyperparameters()
+    notes = []
+    for r, (ls, scale, noise) in enumerate(zip(hp["lengthscale"], hp["outputscale"], hp["noise"])):
+        ls = ls if isinstance(ls, list) else [ls]
+        long = [i for i, v in enumerate(ls) if v >= 100.0]
+        parts = (["outputscale ~ 0"] if scale < 1e-6 else []) + (["noise ~ 0"] if noise < 1e-5 else []) \
+            + ([f"lengthscale >= 100 on input(s) {long}"] if long else [])
+        if parts:
+            notes.append(f"output {r}: {', '.join(parts)}")
+    return "; ".join(notes) if notes else "no hyperparameter at a bound"
 
 
 def _line_search_stalled(opt: torch.optim.Optimizer, param: Tensor) -> bool:
