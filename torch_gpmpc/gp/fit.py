@@ -210,16 +210,19 @@ def _optimize(gp: ResidualGP, optimizer: str, iters: int, callback: Callback | N
 
 def _degenerate_rows(gp: ResidualGP) -> str:
     """The output rows whose hyperparameters sit at a bound, which is where an L-BFGS line
-    search steps into NaN: outputscale ~ 0 (no signal the data resolve), noise ~ 0 (noise-free
-    data), a lengthscale of 100 or more (an input the row does not vary with, e.g. the wind's
-    x component with respect to x)."""
-    hp = gp.hyperparameters()
+    search steps into NaN, judged in the data's own units (the GP is fitted to standardized
+    data): outputscale below 1e-6 of the row's variance (no signal the data resolve), noise
+    within 2x of GPyTorch's 1e-4 floor (noise-free data), a lengthscale of 100 input standard
+    deviations or more (an input the row does not vary with, e.g. the wind's x component with
+    respect to x)."""
+    var = gp.y_std ** 2
+    scales, noises = (gp.outputscales / var).tolist(), (gp.noise.detach() / var).tolist()
+    lengths = (gp.lengthscales / gp.x_std).tolist()
     notes = []
-    for r, (ls, scale, noise) in enumerate(zip(hp["lengthscale"], hp["outputscale"], hp["noise"])):
-        ls = ls if isinstance(ls, list) else [ls]
+    for r, (ls, scale, noise) in enumerate(zip(lengths, scales, noises)):
         long = [i for i, v in enumerate(ls) if v >= 100.0]
-        parts = (["outputscale ~ 0"] if scale < 1e-6 else []) + (["noise ~ 0"] if noise < 1e-5 else []) \
-            + ([f"lengthscale >= 100 on input(s) {long}"] if long else [])
+        parts = (["outputscale ~ 0"] if scale < 1e-6 else []) + (["noise ~ 0"] if noise < 2e-4 else []) \
+            + ([f"lengthscale >= 100 std on input(s) {long}"] if long else [])
         if parts:
             notes.append(f"output {r}: {', '.join(parts)}")
     return "; ".join(notes) if notes else "no hyperparameter at a bound"
