@@ -12,7 +12,14 @@ def test_bench_local_short(monkeypatch):
     import torch_gpmpc.bench.local as bench_local
 
     monkeypatch.setattr(bench_local, "BATCHES", (2, 4))
+    monkeypatch.setattr(bench_local, "THREAD_BATCHES", (8,))
+    monkeypatch.setattr(bench_local, "available_cores", lambda: 2)
     result = bench_local.run(quick=True)
+    threads = result["threads"]["table"]
+    assert [(r["workload"], r["pass"]) for r in threads] == [
+        ("fast, all", "forward"), ("fast, all", "forward+backward"),
+        ("fast, crossing", "forward"), ("fast, crossing", "forward+backward")]
+    assert all(r["same_plans"] and r["threads"] == 2 and r["speedup_vs_one_thread"] > 0 for r in threads)
     paths = {(r["path"], r["batch"], r["pass"]) for r in result["table"]}
     for path in ("fast", "cvxpylayers-default", "clarabel"):
         for batch in (2, 4):
@@ -32,11 +39,16 @@ def test_bench_cli_scale_short(tmp_path, monkeypatch):
     import torch_gpmpc.bench.scale as bench_scale
 
     monkeypatch.setattr(bench_scale, "TEAM_SIZES", (3, 6))
+    monkeypatch.setattr(bench_scale, "QUICK_CROWD_AGENTS", 4)
+    monkeypatch.setattr(bench_scale, "QUICK_CROWD_STEPS", 3)
     assert main(["bench", "--sections", "scale", "--quick", "--out", str(tmp_path)]) == 0
     result = json.loads((tmp_path / "bench.json").read_text())
     rows = result["sections"]["scale"]["table"]
     assert [r["agents"] for r in rows] == [3, 6]
     assert all(r["ms_per_step_per_agent"] > 0 for r in rows)
+    runs = result["sections"]["scale"]["whole_runs"]
+    assert [(r["method"], r["agents"], r["steps"]) for r in runs] == [("gp-chance", 4, 3), ("nonlinear", 4, 3)]
+    assert all(0 < r["step_s_median"] <= r["step_s_max"] and r["step_s_mean"] <= r["step_s_max"] for r in runs)
     assert (tmp_path / "figures" / "bench_scale.png").stat().st_size > 0
 
 

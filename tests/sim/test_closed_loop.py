@@ -59,6 +59,9 @@ def test_paper_scenario_smoke_every_method(tmp_path, method):
     assert m["method"] == method and m["steps"] == 2 and m["num_agents"] == 3
     with np.load(out / "rollout.npz", allow_pickle=False) as r:
         assert r["states"].shape == (3, 3, 2) and r["plans"].shape == (2, 3, 14, 2)
+        # each step's planning contains its local solves, and the steps fit in the run
+        assert r["step_time"].shape == (2,) and np.all(r["solve_time"] <= r["step_time"])
+        assert r["step_time"].sum() <= m["wall_time_s"] and m["step_time_s_max"] == r["step_time"].max()
 
 
 def _free_port() -> int:

@@ -193,6 +193,18 @@ def test_risk_spent_sums_the_pair_bounds_and_survives_a_round_trip(hand_rollout,
     assert m["risk_spent"] == pytest.approx(0.012) and m["risk_mode"] == "mission" and m["risk_budget"] == 0.05
 
 
+def test_step_times_are_summarized_by_hand_and_survive_a_round_trip(hand_rollout, tmp_path):
+    """Mean, median and worst of the recorded control-step times (4 steps, hand values);
+    ``None`` where a run did not record them (the distributed backend, older files)."""
+    assert compute_metrics(hand_rollout)["step_time_s_max"] is None
+    hand_rollout.step_time = np.array([0.01, 0.04, 0.02, 0.03])
+    path = tmp_path / "r.npz"
+    hand_rollout.save(path)
+    m = compute_metrics(Rollout.load(path))
+    assert m["step_time_s_mean"] == pytest.approx(0.025)
+    assert m["step_time_s_median"] == pytest.approx(0.025) and m["step_time_s_max"] == pytest.approx(0.04)
+
+
 def test_obstacle_metrics_by_hand():
     import numpy as np
 

@@ -156,6 +156,7 @@ def run(quick: bool = False, out: Path | str | None = None) -> dict:
     finally:
         torch.set_num_threads(threads)
     result["families"] = run_families(quick)
+    result["threads"] = run_threads(quick)
     return result
 
 
@@ -321,3 +322,49 @@ def run_families(quick: bool = False) -> dict:
                          "cvxpylayers default (diffcp + SCS) one run"}
     finally:
         torch.set_num_threads(threads)
+
+
+# ------------------------------------------------------------------ threads
+#: Batches of the threads comparison: a 64-problem batch and a 100-agent team's.
+THREAD_BATCHES = (64, 100)
+
+
+def available_cores() -> int:
+    """Cores this process may run on."""
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def run_threads(quick: bool = False) -> dict:
+    """``fast`` on one thread and on every core (:mod:`~torch_gpmpc.control.solvers.ipm_threads`),
+    same problems (the ``all`` family and the 2D crossing), forward and forward+backward; the
+    plans must be the same bits."""
+    threads, cores = torch.get_num_threads(), available_cores()
+    nominal, constraints, _ = family_problem("all", 1)
+    layers = {"all": InteriorPointMPC(HORIZON, 6, NEIGHBORS, nominal, None, ALPHA, constraints=constraints,
+                                      num_halfspaces=_HALFSPACES),
+              "crossing": InteriorPointMPC(HORIZON, DIM, NEIGHBORS, NominalModel(DIM), U_MAX, ALPHA)}
+    rows = []
+    try:
+        for name, layer in layers.items():
+            for batch in THREAD_BATCHES[:1] if quick else THREAD_BATCHES:
+                data = family_problem("all", batch, seed=batch)[2] if name == "all" else \
+                    crossing_instances(batch, seed=batch)
+                for backward in (False, True):
+                    seconds, plans = {}, {}
+                    for n in sorted({1, cores}):
+                        torch.set_num_threads(n)
+                        with torch.no_grad():
+                            plans[n] = layer(data).X
+                        seconds[n] = _time(_solve_layer(layer), data, backward, 2 if quick else 5)
+                    rows.append({"workload": f"fast, {name}", "batch": batch,
+                                 "pass": "forward+backward" if backward else "forward", "threads": cores,
+                                 "ms_per_problem_1_thread": 1e3 * seconds[1] / batch,
+                                 "ms_per_problem": 1e3 * seconds[cores] / batch,
+                                 "speedup_vs_one_thread": seconds[1] / seconds[cores],
+                                 "same_plans": bool(torch.equal(plans[1], plans[cores]))})
+                    logger.info("local threads %s", rows[-1])
+    finally:
+        torch.set_num_threads(threads)
+    return {"table": rows, "cores": cores}

@@ -61,6 +61,8 @@ def main(args) -> int:
         _print_table(name, section.get("table", []))
         _print_table(f"{name}: agent models", section.get("models", []))
         _print_table(f"{name}: default ADMM stopping", section.get("default_stopping", []))
+        _print_table(f"{name}: whole runs of a crowd", section.get("whole_runs", []))
+        _print_table(f"{name}: one thread vs every core", section.get("threads", {}).get("table", []))
         _print_table(f"{name}: constraint families", section.get("families", {}).get("table", []))
     write_json(out / "bench.json", result)
     print(f"\nwrote {out / 'bench.json'}")

@@ -186,6 +186,7 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem | Plant,
         for t in range(cfg.max_steps):
             if bool(((nominal.positions(states[-1]) - scenario.targets).norm(dim=1) < cfg.goal_tol).all()):
                 break
+            step_start = time.perf_counter()
             positions = nominal.positions(x)
             graph = communication_graph(positions, cfg.comm_radius)
             window = reference_window(cfg, scenario, t)
@@ -196,13 +197,14 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem | Plant,
             res = planner.plan(t, x, xref, graph)
             if res is None:
                 break
+            step_s = time.perf_counter() - step_start
             u = project_input(res.inputs[:, 0], nominal.spec)
             x_prev, x = x, plant.step(t, x, u, noise=noise[t])
             states.append(plant.true_states)
             if learning is not None:
                 error, var = learning.observe(x_prev, u, x)
                 recorder.record_prediction(t, error, var, learning.update_seconds[-1], tb)
-            info = recorder.record(t, res, graph.adjacency(), u, states[-1])
+            info = recorder.record(t, res, graph.adjacency(), u, states[-1], step_s)
             if tb is not None:
                 log_step(tb, t, info, res)
             if on_step is not None:

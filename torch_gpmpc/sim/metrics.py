@@ -145,7 +145,8 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
     their collision rows require: the honest safety report of the planner; collision slack
     says nothing, because copies of neighbours' plans are free variables). With obstacles:
     ``obstacle_violations`` and ``min_obstacle_distance`` (:func:`obstacle_metrics`); and
-    ``deadlock_steps`` (:func:`deadlock_steps`); ``plan_tracking_rmse`` (:func:`plan_tracking_rmse`);
+    ``deadlock_steps`` (:func:`deadlock_steps`); the control steps' wall time
+    (:func:`step_time_metrics`); ``plan_tracking_rmse`` (:func:`plan_tracking_rmse`);
     with GPs, their one-step prediction during the run (:func:`prediction_metrics`).
 
     Args:
@@ -185,6 +186,7 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
         "converged_fraction": _mean(np.asarray(rollout.converged, dtype=np.float64)),
         "wall_time_s": _scalar(rollout.wall_time_s),
         "solve_time_s_per_step": _mean(np.asarray(rollout.solve_time, dtype=np.float64)),
+        **step_time_metrics(getattr(rollout, "step_time", None)),
         "infeasible_local_solves": int(np.sum(rollout.infeasible_solves)),
         "noise_std": noise_std,
         "r_safe": r_safe,
@@ -205,6 +207,17 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
         "plan_tracking_rmse": plan_tracking_rmse(rollout),
         **prediction_metrics(rollout, cfg.get("wind_change_step")),
     }
+
+
+def step_time_metrics(step_time: Any) -> dict[str, float | None]:
+    """``step_time_s_mean``, ``step_time_s_median`` and ``step_time_s_max``: the wall-clock
+    seconds of the run's control steps (:attr:`Rollout.step_time`, shape (S,)); ``None`` where
+    not recorded or the run has no steps."""
+    times = None if step_time is None else np.asarray(step_time, dtype=np.float64)
+    if times is None or not times.size:
+        return {"step_time_s_mean": None, "step_time_s_median": None, "step_time_s_max": None}
+    return {"step_time_s_mean": float(times.mean()), "step_time_s_median": float(np.median(times)),
+            "step_time_s_max": float(times.max())}
 
 
 #: Steps after (and before) ``wind_change_step`` that the ``*_after_change`` (``*_before_change``)

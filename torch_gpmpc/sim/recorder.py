@@ -83,7 +83,7 @@ class StepRecorder:
             "inputs", "plans", "adjacency", "admm_iterations", "converged", "primal", "dual",
             "slack_max", "state_slack_max", "infeasible_solves", "solve_time", "chance_margin", "messages",
             "failed_solves", "failed_by_kind", "fallback", "unsafe_plan", "pair_separation", "pair_required",
-            "pair_risk")}
+            "pair_risk", "step_time")}
         self.pairs = torch.triu_indices(num_agents, num_agents, 1).unbind()
         self.position = list(cfg.model_spec().position)
         self.violations_total = 0
@@ -106,9 +106,12 @@ class StepRecorder:
             tb.scalar("gp/online_coverage95", self.coverage_sum / len(p["error"]), t)
             tb.scalar("perf/gp_update_ms", 1000.0 * update_s, t)
 
-    def record(self, t: int, res: StepResult, adjacency: Tensor, u: Tensor, x_next: Tensor) -> StepInfo:
-        """Record step t: its ADMM result, graph (K, K), applied inputs (K, Du), next states (K, D)."""
+    def record(self, t: int, res: StepResult, adjacency: Tensor, u: Tensor, x_next: Tensor,
+               step_s: float | None = None) -> StepInfo:
+        """Record step t: its ADMM result, graph (K, K), applied inputs (K, Du), next states (K, D)
+        and the wall-clock seconds its planning took."""
         r = self.rows
+        r["step_time"].append(step_s)
         r["inputs"].append(u.numpy())
         r["plans"].append(res.plans.numpy())
         r["adjacency"].append(adjacency.numpy())
@@ -201,4 +204,5 @@ class StepRecorder:
             prediction_error=np.asarray(pred["error"]) if pred["error"] else None,
             prediction_var=np.asarray(pred["var"]) if pred["var"] else None,
             gp_update_time=np.asarray(pred["update_s"]) if pred["update_s"] else None,
+            step_time=None if any(v is None for v in r["step_time"]) else stack("step_time", (0,)),
         )

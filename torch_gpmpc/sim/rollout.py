@@ -64,6 +64,9 @@ class Rollout:
             (S, K, R) (``None`` without GPs; :class:`~torch_gpmpc.gp.online.OnlineLearning`).
         prediction_var: the GP's predictive variance (latent + noise) of the same, shape (S, K, R).
         gp_update_time: seconds of the online GP updates per step, shape (S,) (0 for a frozen GP).
+        step_time: wall-clock seconds of each control step's planning (graph, reference and
+            ADMM with its local solves and safety checks; not the plant), shape (S,) (``None`` for
+            the distributed backend and in files written before it was recorded).
 
     Example:
         >>> from torch_gpmpc import Config, compute_metrics, simulate
@@ -102,6 +105,7 @@ class Rollout:
     prediction_error: np.ndarray | None = None
     prediction_var: np.ndarray | None = None
     gp_update_time: np.ndarray | None = None
+    step_time: np.ndarray | None = None
 
     @property
     def num_steps(self) -> int:
@@ -137,7 +141,7 @@ class Rollout:
         }
         for name in ("messages_per_iteration", "failed_solves", "failed_solves_by_kind", "fallback",
                      "unsafe_plan", "pair_separation", "pair_required", "state_slack_max", "pair_risk",
-                     "prediction_error", "prediction_var", "gp_update_time"):
+                     "prediction_error", "prediction_var", "gp_update_time", "step_time"):
             if getattr(self, name) is not None:
                 arrays[name] = np.asarray(getattr(self, name))
         meta = {"method": self.method, "seed": self.seed, "wall_time_s": self.wall_time_s,

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from torch_gpmpc.control.constraints import LocalConstraints
-from torch_gpmpc.control.solvers import ipm_kernel as ipm
+from torch_gpmpc.control.solvers import ipm_threads
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.control.problem import (
     ConsensusTerms, FAIL_INACCURATE, FAIL_NONFINITE, SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures,
@@ -294,8 +294,8 @@ def _polish(arrays: list[np.ndarray], point: _Iterate, kkt_error: np.ndarray, we
     B = point.u.shape[0]
     polished = point.copy()
     p_conv, p_iter, p_err = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
-    ipm.solve_batch(*arrays, limits.couple, *weights, *limits.args(), penalty, POLISH_FACTOR * tol, POLISH_ITERATIONS,
-                    polished.u, polished.y, polished.w, polished.z, True, p_conv, p_iter, p_err)
+    ipm_threads.solve_batch(*arrays, limits.couple, *weights, *limits.args(), penalty, POLISH_FACTOR * tol,
+                            POLISH_ITERATIONS, polished.u, polished.y, polished.w, polished.z, True, p_conv, p_iter, p_err)
     return polished, p_conv | (p_err <= kkt_error), p_iter, p_err
 
 
@@ -317,8 +317,8 @@ class _LocalQpFunction(torch.autograd.Function):
         m, _, _ = limits.sizes(R, n, T)
         point = _Iterate(np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m)))
         converged, iterations, kkt_error = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
-        ipm.solve_batch(*arrays, limits.couple, *weights, *limits.args(), penalty, tol, max_iter,
-                        point.u, point.y, point.w, point.z, False, converged, iterations, kkt_error)
+        ipm_threads.solve_batch(*arrays, limits.couple, *weights, *limits.args(), penalty, tol, max_iter,
+                                point.u, point.y, point.w, point.z, False, converged, iterations, kkt_error)
         # Return (and differentiate at) the polished point: the backward differentiates the exact
         # KKT conditions, and the returned point must be the one they hold at, else a nearly
         # degenerate row (active, multiplier ~1e-3) makes the returned map's derivative differ
@@ -363,8 +363,8 @@ class _LocalQpFunction(torch.autograd.Function):
 
         a_u, a_y, xi, xi_v = np.empty((B, n)), np.empty((B, R, D)), np.empty((B, R)), np.empty((B, Ts))
         failed = np.empty(B, dtype=np.bool_)
-        ipm.adjoint_batch(*arrays, limits.couple, *weights, *limits.args(), at.u, at.w, at.z, arr(g_u, B, n),
-                          arr(g_y, B, R, D), arr(g_s, B, R), a_u, a_y, xi, xi_v, failed)
+        ipm_threads.adjoint_batch(*arrays, limits.couple, *weights, *limits.args(), at.u, at.w, at.z,
+                                  arr(g_u, B, n), arr(g_y, B, R, D), arr(g_s, B, R), a_u, a_y, xi, xi_v, failed)
         a_u, a_y, xi, xi_v = (ten(np.nan_to_num(a)) for a in (a_u, a_y, xi, xi_v))
         needs = ctx.needs_input_grad[:9]
         with torch.enable_grad():

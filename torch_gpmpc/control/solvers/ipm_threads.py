@@ -1,0 +1,84 @@
+"""Run the compiled interior-point kernel on several cores: contiguous blocks of the batch, one
+per thread.
+
+The kernel's entry points solve their B problems one after another and release the GIL
+(``nogil=True``), and every problem reads and writes only its own rows of the per-problem
+arrays. So splitting the batch into blocks and calling the kernel on each block from its own
+thread gives the same bits as one call, in about 1/threads of the time when the batch is
+large enough (the 100 agents of a crowd, the families' batch of 64). The thread count follows
+``torch.get_num_threads()`` (``gpmpc --threads N``; the command line's default is 1), so
+processes that already run in parallel (``--workers``) do not oversubscribe the cores.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Sequence
+
+import torch
+
+from torch_gpmpc.control.solvers import ipm_kernel as ipm
+
+#: Argument positions of :func:`~.ipm_kernel.solve_batch` that are per-problem arrays (first
+#: axis B): the nine canonical arrays, the iterate ``u, y, w, z`` and the outputs
+#: ``converged, iterations, kkt_error``; the rest (``couple``, weights, limits, tolerances,
+#: ``warm``) are shared by every problem.
+SOLVE_ROWS = frozenset(range(9)) | {19, 20, 21, 22, 24, 25, 26}
+#: The same for :func:`~.ipm_kernel.adjoint_batch`: the canonical arrays, the point
+#: ``u, w, z``, the right-hand side ``g_u, g_y, g_s`` and the outputs.
+ADJOINT_ROWS = frozenset(range(9)) | frozenset(range(16, 27))
+#: Fewest problems worth a thread of their own (a problem takes ~0.3-1 ms; a hand-off ~20 us).
+MIN_ROWS_PER_THREAD = 4
+
+_pools: dict[int, ThreadPoolExecutor] = {}
+
+
+def solve_batch(*args) -> None:
+    """:func:`~.ipm_kernel.solve_batch` (same arguments, outputs written in place) on the
+    available threads."""
+    run_in_blocks(ipm.solve_batch, args, SOLVE_ROWS)
+
+
+def adjoint_batch(*args) -> None:
+    """:func:`~.ipm_kernel.adjoint_batch` (same arguments, outputs written in place) on the
+    available threads."""
+    run_in_blocks(ipm.adjoint_batch, args, ADJOINT_ROWS)
+
+
+def block_bounds(rows: int, threads: int) -> list[tuple[int, int]]:
+    """Contiguous ``[lo, hi)`` blocks covering ``rows`` problems, at most ``threads`` of them and
+    each at least ``MIN_ROWS_PER_THREAD`` long (one block when the batch is small)."""
+    parts = max(1, min(threads, rows // MIN_ROWS_PER_THREAD))
+    edges = [rows * i // parts for i in range(parts + 1)]
+    return list(zip(edges[:-1], edges[1:]))
+
+
+def run_in_blocks(kernel: Callable, args: Sequence, batched: frozenset[int],
+                  threads: int | None = None) -> None:
+    """Call ``kernel`` on row blocks of the arguments at the positions ``batched`` (views, so the
+    outputs land in the caller's arrays), the first block in this thread.
+
+    Args:
+        kernel: a compiled entry point that writes its outputs into its arguments.
+        args: its arguments; those at ``batched`` have the batch on axis 0 (B rows).
+        batched: the positions of the per-problem arrays.
+        threads: how many threads at most (default ``torch.get_num_threads()``).
+    """
+    rows = args[min(batched)].shape[0]
+    blocks = block_bounds(rows, torch.get_num_threads() if threads is None else threads)
+    if len(blocks) == 1:
+        kernel(*args)
+        return
+
+    def block(lo: int, hi: int) -> list:
+        return [a[lo:hi] if i in batched else a for i, a in enumerate(args)]
+
+    pool = _pools.get(len(blocks) - 1)
+    if pool is None:
+        pool = _pools[len(blocks) - 1] = ThreadPoolExecutor(len(blocks) - 1, thread_name_prefix="gpmpc-ipm")
+    others = [pool.submit(kernel, *block(lo, hi)) for lo, hi in blocks[1:]]
+    try:
+        kernel(*block(*blocks[0]))
+    finally:
+        for future in others:
+            future.result()
