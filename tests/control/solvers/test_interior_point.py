@@ -348,3 +348,32 @@ def test_solving_on_several_threads_gives_the_same_bits_forward_and_backward(fam
     assert bool(results[0][4].all())
     for one, three in zip(*results):
         assert torch.equal(one, three)
+
+
+
+def _fill_rows_on_two_threads() -> None:
+    import numpy as np
+
+    from torch_gpmpc.control.solvers.ipm_threads import run_in_blocks
+
+    def kernel(out, value):  # a stand-in with the kernel's contract: writes its own rows
+        out[:] = value
+
+    out = np.zeros(8)
+    run_in_blocks(kernel, (out, 1.0), frozenset({0}), threads=2)
+    assert np.all(out == 1.0)
+
+
+def test_a_forked_process_gets_worker_threads_of_its_own():
+    """A process forked after the parent ran blocks on two threads gets its own worker threads
+    (a copied pool's threads do not survive a fork, and waiting on them would hang). Torch's
+    own multi-threaded ops cannot run in such a child at all, so the stand-in kernel is numpy."""
+    import multiprocessing
+
+    _fill_rows_on_two_threads()  # the parent's pool exists now
+    child = multiprocessing.get_context("fork").Process(target=_fill_rows_on_two_threads)
+    child.start()
+    child.join(timeout=60)
+    if child.is_alive():
+        child.kill()
+    assert child.exitcode == 0

@@ -12,6 +12,7 @@ processes that already run in parallel (``--workers``) do not oversubscribe the 
 
 from __future__ import annotations
 
+import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Sequence
 
@@ -30,7 +31,9 @@ ADJOINT_ROWS = frozenset(range(9)) | frozenset(range(16, 27))
 #: Fewest problems worth a thread of their own (a problem takes ~0.3-1 ms; a hand-off ~20 us).
 MIN_ROWS_PER_THREAD = 4
 
-_pools: dict[int, ThreadPoolExecutor] = {}
+#: Worker pools by (process id, workers): a process forked from one that had a pool gets new
+#: threads instead of a copy whose threads did not survive the fork.
+_pools: dict[tuple[int, int], ThreadPoolExecutor] = {}
 
 
 def solve_batch(*args) -> None:
@@ -73,9 +76,10 @@ def run_in_blocks(kernel: Callable, args: Sequence, batched: frozenset[int],
     def block(lo: int, hi: int) -> list:
         return [a[lo:hi] if i in batched else a for i, a in enumerate(args)]
 
-    pool = _pools.get(len(blocks) - 1)
+    key = (os.getpid(), len(blocks) - 1)
+    pool = _pools.get(key)
     if pool is None:
-        pool = _pools[len(blocks) - 1] = ThreadPoolExecutor(len(blocks) - 1, thread_name_prefix="gpmpc-ipm")
+        pool = _pools[key] = ThreadPoolExecutor(len(blocks) - 1, thread_name_prefix="gpmpc-ipm")
     others = [pool.submit(kernel, *block(lo, hi)) for lo, hi in blocks[1:]]
     try:
         kernel(*block(*blocks[0]))
