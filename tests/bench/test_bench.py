@@ -20,6 +20,10 @@ def test_bench_local_short(monkeypatch):
         ("fast, all", "forward"), ("fast, all", "forward+backward"),
         ("fast, crossing", "forward"), ("fast, crossing", "forward+backward")]
     assert all(r["same_plans"] and r["threads"] == 2 and r["speedup_vs_one_thread"] > 0 for r in threads)
+    families = result["families"]
+    assert {r["family"] for r in families["table"]} == set(bench_local.FAMILIES)
+    assert all(r["speedup_vs_default"] > 0 and r["speedup_all_cores_vs_default"] > 0 for r in families["table"])
+    assert isinstance(families["target"]["met_all_cores"], bool)
     paths = {(r["path"], r["batch"], r["pass"]) for r in result["table"]}
     for path in ("fast", "cvxpylayers-default", "clarabel"):
         for batch in (2, 4):
