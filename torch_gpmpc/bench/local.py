@@ -29,6 +29,7 @@ Timings use one torch thread.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from pathlib import Path
 from typing import Callable
@@ -341,8 +342,6 @@ THREAD_BATCHES = (64, 100)
 
 def available_cores() -> int:
     """Cores this process may run on."""
-    import os
-
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
