@@ -31,6 +31,7 @@ class StepInfo:
             (``metrics.json``'s ``risk_spent``; 0 without margins).
         min_obstacle_distance: smallest distance from an agent's centre to an obstacle after the
             step (NaN without obstacles).
+        step_s: wall-clock seconds of the step's planning (NaN where not measured).
     """
 
     iterations: int
@@ -41,6 +42,7 @@ class StepInfo:
     lost_agents: list[int] = field(default_factory=list)
     risk_spent: float = 0.0
     min_obstacle_distance: float = math.nan
+    step_s: float = math.nan
 
 
 def pair_min_distance(x: Tensor) -> float:
@@ -66,6 +68,8 @@ def log_step(tb, t: int, info: StepInfo, res: StepResult) -> None:
     if not math.isnan(info.min_obstacle_distance):
         tb.scalar("safety/min_obstacle_distance", info.min_obstacle_distance, t)
     tb.scalar("perf/solve_ms", 1000.0 * res.solve_time_s / max(res.iterations, 1), t)
+    if not math.isnan(info.step_s):
+        tb.scalar("perf/step_ms", 1000.0 * info.step_s, t)
 
 
 class StepRecorder:
@@ -141,7 +145,8 @@ class StepRecorder:
         return StepInfo(iterations=res.iterations, min_distance=min_dist, converged=res.converged,
                         primal=res.primal_residuals[-1] if res.primal_residuals else math.nan,
                         violations_total=self.violations_total, lost_agents=list(res.lost_agents),
-                        risk_spent=self.risk_spent, min_obstacle_distance=self._obstacle_distance(pos))
+                        risk_spent=self.risk_spent, min_obstacle_distance=self._obstacle_distance(pos),
+                        step_s=math.nan if step_s is None else step_s)
 
     def _obstacle_distance(self, positions: Tensor) -> float:
         """Smallest centre-to-obstacle distance of positions (K, P); NaN without obstacles."""
