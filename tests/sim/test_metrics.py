@@ -195,7 +195,7 @@ def test_risk_spent_sums_the_pair_bounds_and_survives_a_round_trip(hand_rollout,
 
 def test_step_times_are_summarized_by_hand_and_survive_a_round_trip(hand_rollout, tmp_path):
     """Mean, median and worst of the recorded control-step times (4 steps, hand values);
-    ``None`` where a run did not record them (the distributed backend, older files)."""
+    ``None`` where a run did not record them (files written before they were)."""
     assert compute_metrics(hand_rollout)["step_time_s_max"] is None
     hand_rollout.step_time = np.array([0.01, 0.04, 0.02, 0.03])
     path = tmp_path / "r.npz"

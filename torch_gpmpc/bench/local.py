@@ -360,12 +360,15 @@ def run_threads(quick: bool = False) -> dict:
             for batch in THREAD_BATCHES[:1] if quick else THREAD_BATCHES:
                 data = family_problem("all", batch, seed=batch)[2] if name == "all" else \
                     crossing_instances(batch, seed=batch)
+                plans = {}
+                for n in sorted({1, cores}):
+                    torch.set_num_threads(n)
+                    with torch.no_grad():
+                        plans[n] = layer(data).X
                 for backward in (False, True):
-                    seconds, plans = {}, {}
+                    seconds = {}
                     for n in sorted({1, cores}):
                         torch.set_num_threads(n)
-                        with torch.no_grad():
-                            plans[n] = layer(data).X
                         seconds[n] = _time(_solve_layer(layer), data, backward, 2 if quick else 5)
                     rows.append({"workload": f"fast, {name}", "batch": batch,
                                  "pass": "forward+backward" if backward else "forward", "threads": cores,

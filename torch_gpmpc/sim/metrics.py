@@ -211,8 +211,8 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
 
 def step_time_metrics(step_time: Any) -> dict[str, float | None]:
     """``step_time_s_mean``, ``step_time_s_median`` and ``step_time_s_max``: the wall-clock
-    seconds of the run's control steps (:attr:`Rollout.step_time`, shape (S,)); ``None`` where
-    not recorded or the run has no steps."""
+    seconds of the run's control steps (:attr:`Rollout.step_time`, shape (S,)); ``None`` for
+    files written before it was recorded and for runs without steps."""
     times = None if step_time is None else np.asarray(step_time, dtype=np.float64)
     if times is None or not times.size:
         return {"step_time_s_mean": None, "step_time_s_median": None, "step_time_s_max": None}

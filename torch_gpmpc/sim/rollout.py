@@ -65,8 +65,9 @@ class Rollout:
         prediction_var: the GP's predictive variance (latent + noise) of the same, shape (S, K, R).
         gp_update_time: seconds of the online GP updates per step, shape (S,) (0 for a frozen GP).
         step_time: wall-clock seconds of each control step's planning (graph, reference and
-            ADMM with its local solves and safety checks; not the plant), shape (S,) (``None`` for
-            the distributed backend and in files written before it was recorded).
+            ADMM with its local solves and safety checks; not the plant; for the distributed
+            backend the coordinator's wait for the agents' step, messages included), shape (S,)
+            (``None`` in files written before it was recorded).
 
     Example:
         >>> from torch_gpmpc import Config, compute_metrics, simulate
