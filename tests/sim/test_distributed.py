@@ -153,3 +153,18 @@ def test_longer_run_with_two_agents_per_process_equals_inprocess():
     assert report.processes == 2 and not report.lost_agents
     assert np.abs(rollout.states - ref.states).max() <= 1e-9
     assert np.array_equal(rollout.admm_iterations, ref.admm_iterations)
+
+
+def test_shaped_references_reach_the_agents_doorway():
+    """The doorway's routed, turn-taking references are shaped by the closed loop and sent with
+    the sensing message: two agents in one process follow them exactly as in process (the one
+    waiting its turn included; without them both would drive straight at the wall)."""
+    cfg = Config(scenario="doorway", num_agents=2, method="nominal", noise_std=0.0, wind_scale=0.0, max_steps=50)
+    rollout, report = simulate_distributed(cfg, agents_per_process=2, timeout_s=60)
+    ref = simulate(cfg)
+    assert not report.lost_agents
+    assert np.abs(rollout.states - ref.states).max() <= 1e-9
+    crossed = rollout.states[-1, :, 0] * rollout.states[0, :, 0] < 0  # each now in the other room
+    assert crossed.all()
+    waited = np.abs(np.diff(rollout.states[15:25, 1, 0], axis=0)).max()  # agent 1 holds while 0 is in the gap
+    assert waited < 1e-3

@@ -155,3 +155,20 @@ def forest_extent(num_agents: int, num_obstacles: int, circle_radius: float, min
     spacing = 2 * FOREST_TREE_RADIUS + r_safe + FOREST_GAP_EXTRA
     area = num_obstacles * math.pi * (spacing / 2) ** 2 / FOREST_FILL
     return max(circle_radius, area / (4 * half_height) + 1.0), half_height
+
+
+#: ``doorway``: the wall's thickness and its gap, in units of ``r_safe`` (the gap is narrower than
+#: two agents side by side, ``2 r_safe``, and leaves one agent ``0.4 r_safe`` of room each side).
+DOORWAY_WALL = 0.8
+DOORWAY_GAP = 1.8
+
+
+def doorway_extent(num_agents: int, circle_radius: float, min_separation: float, r_safe: float) -> tuple[float, float]:
+    """Half-length X and half-height H of the ``doorway`` workspace ``|x1| <= X``, ``|x2| <= H``.
+
+    Each room holds a column of ``ceil(K / 2)`` lanes ``max(min_separation, r_safe)`` apart, with a
+    metre to spare above and below (H >= 2); X is ``circle_radius``.
+    """
+    lanes = (num_agents + 1) // 2
+    half_height = max((lanes - 1) * max(min_separation, r_safe) / 2 + 1.0, 2.0)
+    return circle_radius, half_height

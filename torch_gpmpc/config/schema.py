@@ -16,7 +16,7 @@ from typing import Any, Mapping
 
 from torch_gpmpc.config.fields import Rules, build, coerce_lists, validate
 from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, parse_model, resolve_model
-from torch_gpmpc.config.obstacles import ObstacleField, forest_extent
+from torch_gpmpc.config.obstacles import ObstacleField, doorway_extent, forest_extent
 from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.config.plant import PLANTS, VEHICLES, WINDS
 from torch_gpmpc.config.settings import (
@@ -27,7 +27,7 @@ from torch_gpmpc.errors import GpmpcError
 
 METHODS = METHOD_NAMES
 REFERENCES = ("line", "target")
-SCENARIOS = ("paper", "circle", "random", "forest")
+SCENARIOS = ("paper", "circle", "random", "forest", "doorway")
 
 
 @dataclass(frozen=True)
@@ -75,7 +75,8 @@ class Config:
             ``m_k + m_j``, sound by the union bound), ``joint`` (``Phi^-1(1 - eps) sqrt(s_k + s_j)``,
             the tightest sound choice for independent Gaussian agents, no risk split) or
             ``own`` (the paper's eq. 24: each agent only its own margin; not sound).
-        scenario: ``paper``, ``circle``, ``random`` or ``forest`` (obstacles: :mod:`~torch_gpmpc.sim.scenarios`).
+        scenario: ``paper``, ``circle``, ``random``, ``forest`` or ``doorway`` (obstacles and
+            walls: :mod:`~torch_gpmpc.sim.scenarios`).
         num_agents: K (the paper scenario has 3).
         seed: seed for data, noise and scenario generation.
         solver: ``fast`` (structure-exploiting interior point compiled with numba, :mod:`~torch_gpmpc.control.solvers.interior_point`),
@@ -252,10 +253,13 @@ class Config:
     @property
     def scenario_extent(self) -> float:
         """Half-width of the region the built-in scenario spans: ``circle_radius``, the
-        ``forest``'s half-length (:func:`~torch_gpmpc.config.obstacles.forest_extent`), or for a
-        ``random`` scenario in a workspace the largest coordinate of the workspace."""
+        ``forest``'s half-length (:func:`~torch_gpmpc.config.obstacles.forest_extent`), the
+        ``doorway``'s larger half-side, or for a ``random`` scenario in a workspace the largest
+        coordinate of the workspace."""
         if self.scenario == "random" and self.workspace is not None:
             return max(abs(v) for v in self.workspace.lower + self.workspace.upper)
+        if self.scenario == "doorway":
+            return max(doorway_extent(self.num_agents, self.circle_radius, self.min_separation, self.r_safe))
         if self.scenario != "forest":
             return self.circle_radius
         return forest_extent(self.num_agents, self.num_obstacles, self.circle_radius, self.min_separation,

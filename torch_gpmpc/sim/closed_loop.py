@@ -34,6 +34,7 @@ from torch_gpmpc.dynamics.systems import TrueSystem, project_input, system_from_
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.gp.online import OnlineLearning, online_gps
 from torch_gpmpc.sim.detours import DeadlockBreaker, detour_reference
+from torch_gpmpc.sim.path_following import PathFollower
 from torch_gpmpc.sim.recorder import StepInfo, StepRecorder, log_step
 from torch_gpmpc.sim.rollout import Rollout
 from torch_gpmpc.sim.scenarios import Scenario, make_scenario, with_scenario_world
@@ -142,10 +143,13 @@ def simulate(
     return run_closed_loop(cfg, scenario, system, planner, on_step, tb, learning)
 
 
-def reference_window(cfg: Config, scenario: Scenario, t: int) -> Tensor:
-    """The position references of step ``t`` (K, T+1, P), bent round the run's discs and cylinders
+def reference_window(cfg: Config, scenario: Scenario, t: int, follower: PathFollower | None = None) -> Tensor:
+    """The position references of step ``t`` (K, T+1, P): routed agents' along their routes from
+    where they are (``follower``), then bent round the run's discs and cylinders
     (:mod:`~torch_gpmpc.sim.detours`; clearance ``r_safe`` beyond each obstacle's radius)."""
     window = scenario.reference_window(t, cfg.horizon)
+    if follower is not None:
+        window = follower.shape(window)
     if cfg.obstacles is None or not len(cfg.obstacles):
         return window
     return detour_reference(cfg.obstacles, window, scenario.starts, scenario.targets, cfg.r_safe)
@@ -158,6 +162,15 @@ def deadlock_breaker(cfg: Config, scenario: Scenario) -> DeadlockBreaker | None:
         return None
     speed = float(torch.linalg.vector_norm(scenario.targets - scenario.starts, dim=-1).max()) / (scenario.ref_points - 1)
     return DeadlockBreaker(scenario.starts, scenario.targets, cfg.r_safe, cfg.goal_tol, speed)
+
+
+def path_follower(cfg: Config, scenario: Scenario) -> PathFollower | None:
+    """The run's :class:`~torch_gpmpc.sim.path_following.PathFollower`: routes round the boxes
+    (``None`` without boxes, with ``reference = target``, or when no route bends or narrows)."""
+    if scenario.reference_kind != "line":
+        return None
+    return PathFollower.plan(cfg.obstacles, cfg.workspace, scenario.starts, scenario.targets, cfg.r_safe,
+                             scenario.ref_points - 1)
 
 
 def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem | Plant, planner: Planner,
@@ -178,6 +191,7 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem | Plant,
     noise = noise_sequence(cfg, num_agents)
     recorder = StepRecorder(cfg, num_agents)
     breaker = deadlock_breaker(cfg, scenario)
+    follower = path_follower(cfg, scenario)
     start_time = time.perf_counter()
     nominal = plant.nominal
     x = plant.reset(scenario.starts)
@@ -189,10 +203,14 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem | Plant,
             step_start = time.perf_counter()
             positions = nominal.positions(x)
             graph = communication_graph(positions, cfg.comm_radius)
-            window = reference_window(cfg, scenario, t)
+            if follower is not None:
+                follower.update(positions, graph.adjacency())
+            window = reference_window(cfg, scenario, t, follower)
             if breaker is not None:
-                breaker.update(t, positions)
-                window = breaker.shape(t, window, positions)
+                waiting = None if follower is None else torch.as_tensor(follower.queued)
+                rejoin = None if follower is None else follower.rejoin_points(positions)
+                breaker.update(t, positions, waiting)
+                window = breaker.shape(t, window, positions, rejoin)
             xref = nominal.reference_states(window)
             res = planner.plan(t, x, xref, graph)
             if res is None:

@@ -11,7 +11,8 @@ rule: two agents meeting head on at an obstacle both keep to their own left).
 The side depends only on the scenario (the line and the obstacle), never on the noisy state, so
 it cannot flip from step to step. Each agent shapes only its own reference from the obstacles
 it knows: decentralized, and safety still comes from the constraint rows, not from the
-reference. Boxes are left alone (a reference through a wall needs a path, not a bend).
+reference. Boxes are left alone: a reference through a wall needs a route
+(:mod:`~torch_gpmpc.sim.routes`), not a bend.
 """
 
 from __future__ import annotations
@@ -88,8 +89,9 @@ class DeadlockBreaker:
         self.waypoint = torch.full_like(targets, float("nan"))
         self.until = torch.full((targets.shape[0],), -1, dtype=torch.long)
 
-    def update(self, t: int, positions: Tensor) -> None:
-        """Record step t's positions (K, P); start detours for newly stuck agents, end finished ones."""
+    def update(self, t: int, positions: Tensor, exempt: Tensor | None = None) -> None:
+        """Record step t's positions (K, P); start detours for newly stuck agents, end finished ones.
+        ``exempt`` (K,) bool: agents waiting on purpose (their turn at a passage) are not stuck."""
         dist = torch.linalg.vector_norm(positions - self.targets, dim=-1)
         self.history.append(dist)
         active = self.until >= t
@@ -98,6 +100,8 @@ class DeadlockBreaker:
         if len(self.history) <= self.window:
             return
         stalled = (dist > self.r_safe + self.goal_tol) & (self.history[-1 - self.window] - dist < self.goal_tol)
+        if exempt is not None:
+            stalled &= ~exempt
         for k in torch.nonzero(stalled & (self.until < t)).flatten().tolist():
             self._start_detour(k, t, positions)
 
@@ -118,16 +122,19 @@ class DeadlockBreaker:
         self.waypoint[k] = positions[k] + rel[j] / 2 + side * self.r_safe * left
         self.until[k] = t + self.hold
 
-    def shape(self, t: int, window: Tensor, positions: Tensor) -> Tensor:
+    def shape(self, t: int, window: Tensor, positions: Tensor, rejoin: Tensor | None = None) -> Tensor:
         """Reference windows (K, N, P) with the detouring agents' replaced by the polyline
-        position -> waypoint -> target walked at ``speed`` per step."""
+        position -> waypoint -> target walked at ``speed`` per step (``rejoin`` (K, P): where to
+        head after the waypoint instead of the target, where not NaN: a point on a routed agent's
+        route, whose target may lie beyond a wall)."""
         active = torch.nonzero(self.until >= t).flatten().tolist()
         if not active:
             return window
         out = window.clone()
         steps = torch.arange(window.shape[1], dtype=window.dtype) * self.speed  # arc length per point
         for k in active:
-            out[k] = _walk(torch.stack([positions[k], self.waypoint[k], self.targets[k]]), steps)
+            end = self.targets[k] if rejoin is None or bool(torch.isnan(rejoin[k]).any()) else rejoin[k]
+            out[k] = _walk(torch.stack([positions[k], self.waypoint[k], end]), steps)
         return out
 
 

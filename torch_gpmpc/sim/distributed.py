@@ -175,29 +175,32 @@ class RemotePlanner:
                 log.warning("world: lost agent %d at step %d; it continues open loop on its last plan", k, t)
 
     def plan(self, t: int, x: Tensor, xref: Tensor, graph: Graph) -> StepResult | None:
-        """One step: sensing, the ADMM iterations' stop decisions, telemetry (``xref`` is the
-        agents' own business: each holds its reference path)."""
+        """One step: sensing (with each agent's reference window ``xref`` (K, T+1, D): the
+        closed loop shapes it, round obstacles and through passages, from what the agent and its
+        neighbours know), the ADMM iterations' stop decisions, telemetry."""
         self._mark_lost(t)
         if not self._live():
             log.error("world: every agent is lost; ending the run at step %d", t)
             return None
-        self._send_sensing(t, x, graph)
+        self._send_sensing(t, x, xref, graph)
         res = self._decide_iterations(t)
         self._collect(t, res)
         res.messages = message_size(self.cfg.controller_settings(), self.cfg.state_dim) * graph.degrees()
         res.lost_agents = sorted(self.lost)
         return res
 
-    def _send_sensing(self, t: int, x: Tensor, graph: Graph) -> None:
-        K, D = self.num_agents, self.cfg.state_dim
+    def _send_sensing(self, t: int, x: Tensor, xref: Tensor, graph: Graph) -> None:
+        K, D, T = self.num_agents, self.cfg.state_dim, self.cfg.horizon
         adj = graph.adjacency()
         sends = []
+        ref_end = 3 + D + (T + 1) * D
         for k in self._live():
             ids = [j for j in range(K) if bool(adj[k, j])]
-            msg = torch.full((sensing_size(K, D),), -1.0, dtype=DTYPE)
+            msg = torch.full((sensing_size(K, D, T),), -1.0, dtype=DTYPE)
             msg[0], msg[1], msg[2] = CMD_STEP, t, len(ids)
             msg[3:3 + D] = x[k]
-            msg[3 + D:3 + D + len(ids)] = torch.tensor(ids, dtype=DTYPE)
+            msg[3 + D:ref_end] = xref[k].reshape(-1)
+            msg[ref_end:ref_end + len(ids)] = torch.tensor(ids, dtype=DTYPE)
             sends.append((msg, rank_of(k, self.per), tag(Kind.SENSE, 0, k)))
         self.net.exchange(sends, [], self.timeout_s)
 
@@ -270,7 +273,7 @@ class RemotePlanner:
     def stop(self) -> None:
         """Tell every live agent the run is over."""
         K, D = self.num_agents, self.cfg.state_dim
-        self.net.exchange([(torch.full((sensing_size(K, D),), CMD_STOP, dtype=DTYPE), rank_of(k, self.per),
+        self.net.exchange([(torch.full((sensing_size(K, D, self.cfg.horizon),), CMD_STOP, dtype=DTYPE), rank_of(k, self.per),
                             tag(Kind.SENSE, 0, k)) for k in self._live()], [], self.timeout_s)
 
 

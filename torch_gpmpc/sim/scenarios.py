@@ -19,6 +19,13 @@ Generated scenarios (``Config.scenario``):
   ``r_safe + FOREST_GAP_EXTRA`` between each other, so an agent with its chance margins fits
   through every gap. R and the band's height grow with the trees and lanes
   (:func:`~torch_gpmpc.config.obstacles.forest_extent`; at least ``circle_radius``).
+* ``doorway``: two rooms ``|x1| <= X`` (X = ``circle_radius``) split by a wall at x1 = 0 of
+  thickness ``DOORWAY_WALL r_safe`` with one gap of width ``DOORWAY_GAP r_safe`` at x2 = 0,
+  narrower than two agents side by side; the workspace is the two rooms. ``ceil(K/2)`` agents
+  start in a column at x1 = -(X - 1), the others at x1 = X - 1, lanes
+  ``max(min_separation, r_safe)`` apart, and each goes to its mirror image in the other room
+  (the groups swap rooms). References are routed through the gap, where agents take turns
+  (:mod:`~torch_gpmpc.sim.routes`, :mod:`~torch_gpmpc.sim.path_following`).
 
 A scenario file (JSON or TOML) overrides ``Config.scenario``::
 
@@ -45,7 +52,7 @@ from torch import Tensor
 
 from torch_gpmpc.config.fields import nearest_key
 from torch_gpmpc.config.obstacles import (
-    FOREST_GAP_EXTRA, FOREST_TREE_RADIUS, ObstacleField, forest_extent,
+    DOORWAY_GAP, DOORWAY_WALL, FOREST_GAP_EXTRA, FOREST_TREE_RADIUS, ObstacleField, doorway_extent, forest_extent,
 )
 from torch_gpmpc.config.reader import read_table
 from torch_gpmpc.config.schema import REFERENCES, Config
@@ -190,6 +197,8 @@ def make_scenario(cfg: Config, path: str | Path | None = None) -> Scenario:
         starts, targets = random_positions(cfg)
     elif cfg.scenario == "forest":
         return forest_scenario(cfg)
+    elif cfg.scenario == "doorway":
+        return doorway_scenario(cfg)
     else:  # pragma: no cover - Config already restricts the choices
         raise GpmpcError(f"config key 'scenario': unknown scenario {cfg.scenario!r}")
     _check_start_separation(starts, cfg.r_safe, f"scenario {cfg.scenario!r}",
@@ -233,6 +242,27 @@ def forest_scenario(cfg: Config) -> Scenario:
     if P == 3:  # vertical cylinders through the agents' height
         trees = [{**t, "z": [-half_height, half_height]} for t in trees]
     return Scenario(starts, targets, cfg.reference, cfg.ref_points, "forest", obstacles=ObstacleField.parse(trees))
+
+
+def doorway_scenario(cfg: Config) -> Scenario:
+    """The ``doorway`` scenario (module docstring): two groups swap rooms through one narrow gap."""
+    P, K = cfg.position_dim, cfg.num_agents
+    X, H = doorway_extent(K, cfg.circle_radius, cfg.min_separation, cfg.r_safe)
+    sep = max(cfg.min_separation, cfg.r_safe)
+    left = (K + 1) // 2
+    starts = torch.zeros(K, P, dtype=torch.float64)
+    for group, (first, count, x1) in enumerate(((0, left, -(X - 1)), (left, K - left, X - 1))):
+        starts[first:first + count, 0] = x1
+        starts[first:first + count, 1] = (torch.arange(count, dtype=torch.float64) - (count - 1) / 2) * sep
+    targets = starts.clone()
+    targets[:, 0] = -starts[:, 0]
+    half_wall, half_gap = DOORWAY_WALL * cfg.r_safe / 2, DOORWAY_GAP * cfg.r_safe / 2
+    height = [] if P == 2 else [H]
+    walls = [{"min": [-half_wall, half_gap] + [-h for h in height], "max": [half_wall, H] + height},
+             {"min": [-half_wall, -H] + [-h for h in height], "max": [half_wall, -half_gap] + height}]
+    workspace = Workspace((-X, -H) + tuple(-h for h in height), (X, H) + tuple(height))
+    return Scenario(starts, targets, cfg.reference, cfg.ref_points, "doorway", workspace=workspace,
+                    obstacles=ObstacleField.parse(walls))
 
 
 def _place_trees(cfg: Config, half_width: float, half_height: float) -> Tensor:

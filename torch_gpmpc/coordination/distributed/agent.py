@@ -120,18 +120,22 @@ class AgentController:
         self.counters = dict.fromkeys(TELEMETRY_KEYS, 0.0)
 
     # --- step set-up
-    def begin_step(self, t: int, x0: Tensor, nbr_ids: list[int]) -> list[int]:
+    def begin_step(self, t: int, x0: Tensor, nbr_ids: list[int], xref: Tensor | None = None) -> list[int]:
         """Take the measurement; return the neighbours new to this agent (plan exchange).
 
         Args:
             t: step.
             x0: own measured state, shape (D,).
             nbr_ids: ids of agents in communication range.
+            xref: this step's reference states (T+1, D) as the closed loop shaped them (routes,
+                detours); ``None``: the window of the agent's own reference path.
         """
         cfg, k, K = self.cfg, self.k, self.num_agents
         self.x0 = x0
         nominal = self.local.nominal
-        self.xref = nominal.reference_states(reference_window(self.reference, t, cfg.horizon))[None]
+        if xref is None:
+            xref = nominal.reference_states(reference_window(self.reference, t, cfg.horizon))
+        self.xref = xref[None]
         #: the input this agent applied last (the input-rate term's U_{-1}; None on a cold start)
         self.u_prev = None if self.state is None or self.state.applied is None else self.state.applied[k:k + 1]
         if self.state is None:  # cold start: the plan is to stay (initial_state's rule)

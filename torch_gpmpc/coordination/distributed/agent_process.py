@@ -84,7 +84,7 @@ class AgentHost:
         wait = first_wait_s
         try:
             while True:
-                sensed = self._receive(sensing_size(self.num_agents, self.cfg.state_dim), Kind.SENSE, wait)
+                sensed = self._receive(sensing_size(self.num_agents, self.cfg.state_dim, self.cfg.horizon), Kind.SENSE, wait)
                 wait = max(4 * self.timeout_s, 60.0)
                 if float(sensed[0][0]) == CMD_STOP:
                     return EXIT_OK
@@ -105,12 +105,14 @@ class AgentHost:
     def _begin_step(self, sensed: list[Tensor]) -> float:
         """Take the measurements, exchange plans on new edges; returns the communication time."""
         cfg, D = self.cfg, self.cfg.state_dim
+        ref_end = 3 + D + (cfg.horizon + 1) * D
         t0 = time.perf_counter()
         t = int(sensed[0][1])
         new_edges = {}
         for k, m in zip(self.agents, sensed):
-            nbr_ids = [int(v) for v in m[3 + D:3 + D + int(m[2])]]
-            new_edges[k] = self.controllers[k].begin_step(t, m[3:3 + D].clone(), nbr_ids)
+            nbr_ids = [int(v) for v in m[ref_end:ref_end + int(m[2])]]
+            xref = m[3 + D:ref_end].clone().reshape(cfg.horizon + 1, D)
+            new_edges[k] = self.controllers[k].begin_step(t, m[3:3 + D].clone(), nbr_ids, xref)
         sends, recvs, meta = [], [], []
         for k in self.agents:
             ctrl = self.controllers[k]

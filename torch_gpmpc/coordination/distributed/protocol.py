@@ -82,9 +82,10 @@ def rank_of(k: int, per_process: int) -> int:
     return 1 + k // per_process
 
 
-def sensing_size(num_agents: int, dim: int) -> int:
-    """Numbers in one sensing message (world -> agent, once per step)."""
-    return 3 + dim + num_agents - 1
+def sensing_size(num_agents: int, dim: int, horizon: int) -> int:
+    """Numbers in one sensing message (world -> agent, once per step): command, step, neighbour
+    count, own state (D), reference window ((T+1) D), neighbour ids (up to K-1)."""
+    return 3 + dim + (horizon + 1) * dim + num_agents - 1
 
 
 def telemetry_size(cfg: Config) -> int:
