@@ -91,21 +91,30 @@ def validate(obj: Any, rules: Rules) -> None:
 
 def _coerce(typ: Any, value: Any) -> Any:
     """Accept ints for float fields; leave everything else for the type check."""
+    tuple_type = _tuple_type(typ)
+    if tuple_type is not None and isinstance(value, (list, tuple)):  # a TOML/JSON/Python list
+        item = typing.get_args(tuple_type)[0]
+        return tuple(_coerce(item, v) for v in value)
     allowed = typing.get_args(typ) or (typ,)
     if float in allowed and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
-    if typing.get_origin(typ) is tuple and isinstance(value, (list, tuple)):  # a TOML/JSON/Python list
-        item = typing.get_args(typ)[0]
-        return tuple(_coerce(item, v) for v in value)
     return value
 
 
 def coerce_lists(obj: Any) -> None:
-    """Turn every list given for a ``tuple[...]`` field of the frozen dataclass ``obj`` into a tuple
-    (ints as floats for float items), as ``build`` does for flat mappings; call before :func:`validate`."""
+    """Turn every list given for a ``tuple[...]`` (or ``tuple[...] | None``) field of the frozen
+    dataclass ``obj`` into a tuple (ints as floats for float items), as ``build`` does for flat
+    mappings; call before :func:`validate`."""
     for name, typ in field_types(type(obj)).items():
-        if typing.get_origin(typ) is tuple:
+        if _tuple_type(typ) is not None:
             object.__setattr__(obj, name, _coerce(typ, getattr(obj, name)))
+
+
+def _tuple_type(typ: Any) -> Any:
+    """The ``tuple[X, ...]`` of a field typed ``tuple[X, ...]`` or ``tuple[X, ...] | None``, else ``None``."""
+    if typing.get_origin(typ) is tuple:
+        return typ
+    return next((t for t in typing.get_args(typ) if typing.get_origin(t) is tuple), None)
 
 
 def _is(base: Any, value: Any) -> bool:
@@ -119,11 +128,14 @@ def _is(base: Any, value: Any) -> bool:
 
 
 def _check_type(what: str, name: str, value: Any, typ: Any) -> None:
-    if typing.get_origin(typ) is tuple:  # tuple[int, ...]
-        item = typing.get_args(typ)[0]
-        if isinstance(value, tuple) and all(_is(item, v) for v in value):
+    tuple_type = _tuple_type(typ)
+    if tuple_type is not None:  # tuple[int, ...], possibly | None
+        item = typing.get_args(tuple_type)[0]
+        if (value is None and tuple_type is not typ) or (
+                isinstance(value, tuple) and all(_is(item, v) for v in value)):
             return
-        raise GpmpcError(f"{what} '{name}': expected a list of {item.__name__}, got {value!r}")
+        none = " or null" if tuple_type is not typ else ""
+        raise GpmpcError(f"{what} '{name}': expected a list of {item.__name__}{none}, got {value!r}")
     allowed = typing.get_args(typ) or (typ,)
     if value is None and type(None) in allowed:
         return

@@ -124,6 +124,9 @@ class Config:
         obstacle_eps: the risk of one obstacle row (chance methods: the row's margin is
             ``Phi^{-1}(1 - obstacle_eps)`` times the agent's own standard deviation along it).
         obstacle_rows: obstacle rows per agent and horizon step (its nearest obstacles).
+        radii: each agent's body radius, a list of K numbers (a pair keeps ``r_k + r_j`` between
+            centres, an agent ``r_k`` from every obstacle), or null: ``r_safe / 2`` each; a
+            scenario file's ``radii`` set it for its run.
         num_obstacles: the cylinders (discs in 2D) of ``scenario = forest``.
         deadlock_detour: an agent stuck behind a neighbour (no progress for 10 steps) detours
             round it on a fixed side (:class:`~torch_gpmpc.sim.detours.DeadlockBreaker`).
@@ -200,6 +203,7 @@ class Config:
     obstacles: ObstacleField | None = None
     obstacle_eps: float = 0.01
     obstacle_rows: int = 4
+    radii: tuple[float, ...] | None = None
     num_obstacles: int = 20
     deadlock_detour: bool = True
     plant: str = "model"
@@ -218,7 +222,7 @@ class Config:
         if isinstance(self.model, dict):  # an inline model table (a config file's [model])
             object.__setattr__(self, "model", parse_model(self.model, "config key 'model'"))
         parse_world(self, "config key")
-        coerce_lists(self)  # plant_wind_speed = [1, 0, 0] from Python, TOML or --set
+        coerce_lists(self)  # plant_wind_speed = [1, 0, 0], radii = [0.2, 0.3] from Python, TOML or --set
         validate(self, RULES)
         check_risk_mode(self.risk_mode, self.method, self.pair_margin, "config key")
         if isinstance(self.model, str):

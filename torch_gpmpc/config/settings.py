@@ -16,7 +16,7 @@ from __future__ import annotations
 import typing
 from dataclasses import dataclass
 
-from torch_gpmpc.config.fields import Rules, build, validate
+from torch_gpmpc.config.fields import Rules, build, coerce_lists, validate
 from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.obstacles import ObstacleField
 from torch_gpmpc.config.workspace import Workspace
@@ -62,6 +62,8 @@ CONTROLLER_RANGES: dict[str, tuple[typing.Callable[[typing.Any], bool], str]] = 
     "risk_pacing": (lambda v: 1 <= v <= 1_000_000, "an integer in [1, 1000000]"),
     "obstacle_eps": (lambda v: 0 < v < 1, "a number in (0, 1)"),
     "obstacle_rows": (lambda v: 1 <= v <= 256, "an integer in [1, 256]"),
+    "radii": (lambda v: v is None or (len(v) >= 1 and all(0 < r <= 1e3 for r in v)),
+              "a list of body radii in (0, 1000], one per agent, or null (r_safe / 2 each)"),
 }
 
 
@@ -81,6 +83,8 @@ class ControllerSettings:
             ``U_{-1}`` the input applied last; 0: not in the cost).
         solver: ``fast`` (compiled interior point), ``clarabel`` or ``reference`` (cvxpylayers).
         r_safe, eps, risk_split: safety radius, pair risk, lower-indexed agent's share.
+        radii: each agent's body radius (a pair keeps ``r_k + r_j`` between centres, an agent
+            ``r_k`` from every obstacle), or ``None``: ``r_safe / 2`` each.
         risk_mode, risk_budget, risk_pacing: ``pair_step`` (every pair may fail with probability
             ``eps`` at every step) or ``mission`` (the team's probability of any collision over
             the run is at most ``risk_budget``; :mod:`~torch_gpmpc.coordination.mission_risk`).
@@ -133,15 +137,23 @@ class ControllerSettings:
     obstacles: ObstacleField | None = None
     obstacle_eps: float = 0.01
     obstacle_rows: int = 4
+    radii: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         parse_world(self, "controller setting")
+        coerce_lists(self)  # radii = [0.2, 0.3] from Python
         validate(self, RULES)
         check_risk_mode(self.risk_mode, self.method, self.pair_margin, "controller setting")
 
     def replace(self, **changes: typing.Any) -> "ControllerSettings":
         """A copy with ``changes`` applied (same checks; unknown keys name the nearest one)."""
         return build(ControllerSettings, {**self.__dict__, **changes}, RULES)
+
+    def check_team(self, num_agents: int, where: str = "controller setting") -> None:
+        """Refuse ``radii`` whose length is not the team size K."""
+        if self.radii is not None and len(self.radii) != num_agents:
+            raise GpmpcError(f"{where} 'radii': {len(self.radii)} radii for {num_agents} agents; "
+                             f"give one body radius per agent, or null for r_safe / 2 each")
 
     def uncertainty_for(self, spec: ModelSpec) -> str:
         """The covariance model used for agents of model ``spec`` (``auto`` resolved)."""

@@ -110,14 +110,15 @@ def obstacle_geometry(field: ObstacleField, points: Tensor) -> tuple[Tensor, Ten
     return dist.reshape(*lead, len(field)), normal.reshape(*lead, len(field), P)
 
 
-def obstacle_rows(field: ObstacleField, plan_positions: Tensor, radius: float, num_rows: int
+def obstacle_rows(field: ObstacleField, plan_positions: Tensor, radius: float | Tensor, num_rows: int
                   ) -> tuple[Tensor, Tensor]:
     """The rows ``n^T p_tau >= b_tau`` of the ``num_rows`` obstacles nearest each plan (no margin).
 
     Args:
         field: the obstacles (O >= 0).
         plan_positions: the linearization points' positions at tau = 1..T, shape (B, T, P).
-        radius: the agent's body radius (its centre keeps this far from every obstacle).
+        radius: the agents' body radius (its centre keeps this far from every obstacle): a number,
+            or one per agent as a (B, 1, 1) tensor.
         num_rows: L, rows per agent; obstacles beyond the L nearest (over the horizon) are left
             out, and missing ones are inert rows (normal 0, bound :data:`INERT_BOUND`).
 

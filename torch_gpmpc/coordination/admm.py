@@ -46,6 +46,7 @@ from torch import Tensor, nn
 from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
+from torch_gpmpc.coordination.bodies import edge_distances
 from torch_gpmpc.coordination.agent_step import (
     LocalStep, edge_copies, edge_variances, fall_back_to_previous, obstacle_problem, pair_safety, slot_risks,
 )
@@ -366,7 +367,7 @@ class ADMM:
         with torch.no_grad():
             sep = edge_separations(state.plans.detach(), result.problem.normals.detach(), graph)
             var = state.pvar.detach()[:, :, 0].sum(dim=1)
-            bounds = pair_risk_bounds(sep, var, self.settings.r_safe)
+            bounds = pair_risk_bounds(sep, var, edge_distances(self.settings, graph.edges))
         result.pair_risk = pair_matrix(bounds, graph)
         if ctx.eps_edge is None:
             return state

@@ -32,6 +32,7 @@ from torch_gpmpc.control.risk import (
 )
 from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.control.solvers import make_local_solver
+from torch_gpmpc.coordination.bodies import body_radii, slot_distances
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult
 from torch_gpmpc.dynamics.methods import Method
@@ -285,7 +286,7 @@ class LocalStep:
         lam_mine = state.lam[slot_edge][r, c, side]  # (B, M, 2, T+1, D): this agent's duals
         data = LocalProblemData(
             x0=x0, xref=xref, dyn_A=lin.dyn_A, dyn_c=lin.dyn_c, dyn_B=lin.dyn_B, normals=normals,
-            bounds=cfg.r_safe + margins, active=active, rho=rho,
+            bounds=slot_distances(cfg, agent_ids, graph.slot_nbr[rows]) + margins, active=active, rho=rho,
             z_own=z_slot[r, c, side], z_nbr=z_slot[r, c, 1 - side],
             lam_own=lam_mine[r, c, side], lam_nbr=lam_mine[r, c, 1 - side],
             halfspace_normals=conv.obstacle_normals, halfspace_bounds=conv.obstacle_bounds, u_prev=u_prev,
@@ -312,17 +313,20 @@ class LocalStep:
         if self.method.chance:
             sigma = state_covariances(self.uncertainty, lin.var, lin.dyn_A, self.feedback)[:, 1:]
             own_var = projected_variances(normals, sigma)
-        obs_normals, obs_bounds = self._obstacle_rows(xbar, sigma)
+        obs_normals, obs_bounds = self._obstacle_rows(xbar, sigma, agent_ids)
         return Convexification(lin, normals, own_var, obs_normals, obs_bounds)
 
-    def _obstacle_rows(self, xbar: Tensor, sigma: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
-        """The agents' obstacle rows at the plans ``xbar`` (B, T+1, D), with the own chance margin
-        ``Phi^{-1}(1 - obstacle_eps) sqrt(n^T Sigma_tau n)`` when ``sigma`` (B, T, D, D) is given."""
+    def _obstacle_rows(self, xbar: Tensor, sigma: Tensor | None,
+                       agent_ids: Tensor) -> tuple[Tensor | None, Tensor | None]:
+        """The agents' (``agent_ids`` (B,)) obstacle rows at the plans ``xbar`` (B, T+1, D), with the
+        own chance margin ``Phi^{-1}(1 - obstacle_eps) sqrt(n^T Sigma_tau n)`` when ``sigma``
+        (B, T, D, D) is given."""
         if not self.num_obstacle_rows:
             return None, None
         pos = self.nominal.position
-        normals_p, bounds = obstacle_rows(self.settings.obstacles, xbar[:, 1:, pos], self.settings.r_safe / 2,
-                                          self.num_obstacle_rows)
+        radius = body_radii(self.settings, agent_ids)
+        radius = radius[:, None, None] if isinstance(radius, Tensor) else radius  # over (T, rows)
+        normals_p, bounds = obstacle_rows(self.settings.obstacles, xbar[:, 1:, pos], radius, self.num_obstacle_rows)
         normals = on_positions(normals_p, pos, xbar.shape[-1])
         if sigma is not None:
             quantile = chance_quantile(torch.as_tensor(self.settings.obstacle_eps, dtype=bounds.dtype))

@@ -100,14 +100,14 @@ def edge_separations(plans: Tensor, normals: Tensor, graph: Graph) -> Tensor:
     return sep
 
 
-def pair_risk_bounds(separation: Tensor, variance: Tensor, r_safe: float) -> Tensor:
+def pair_risk_bounds(separation: Tensor, variance: Tensor, r_safe: float | Tensor) -> Tensor:
     """The bound on a pair's collision probability at the next sample,
     ``Phi(-(separation - r_safe) / sqrt(variance))``.
 
     Args:
         separation: (E,) planned separation along the normal at tau = 1.
         variance: (E,) ``s_k + s_j``, the two agents' variances along the normal.
-        r_safe: safety radius.
+        r_safe: the required centre distance: a number, or one per edge (E,) (``r_k + r_j``).
 
     Returns:
         (E,) probabilities (0 or 1 where the variance is 0; NaN where an input is).

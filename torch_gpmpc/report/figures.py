@@ -23,7 +23,7 @@ from matplotlib.patches import Circle, Rectangle
 from torch_gpmpc.config.obstacles import ObstacleField
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.fileio import atomic_path
-from torch_gpmpc.sim.metrics import compute_metrics, pair_distances, pair_index, path_lengths
+from torch_gpmpc.sim.metrics import body_radii_of, compute_metrics, pair_distances, pair_index, path_lengths
 from torch_gpmpc.sim.rollout import Rollout
 
 logger = logging.getLogger(__name__)
@@ -71,13 +71,13 @@ def plot_trajectories(
     """Snapshot panels of the agents' motion (the paper's Figs. 2-3).
 
     Per panel (one per step t): each agent's trajectory so far (solid), its current
-    position (heavy dot) with a circle of radius r_safe/2, the plan made at t
+    position (heavy dot) with a circle of its body radius (r_safe/2, or its ``radii`` entry), the plan made at t
     (dashed, small dot at its end), and the dashed straight line start -> target.
     The last panel says when the targets were reached.
 
     Args:
         rollout: the run; uses ``states`` (S+1, K, D), ``plans`` (S, K, T+1, D),
-            ``targets`` (K, D) and ``config['r_safe']``.
+            ``targets`` (K, D) and ``config['r_safe']`` (and ``config['radii']``).
         path: PNG file to write.
         steps: steps t in 0..S to show (default: 4 evenly spaced, including S).
         reference_paths: optional reference, shape (K, R, D), drawn dotted.
@@ -95,7 +95,7 @@ def plot_trajectories(
     ref = None if reference_paths is None else np.asarray(reference_paths, dtype=np.float64)
     fig, axes = _new_figure(len(steps))
     for n, (ax, t) in enumerate(zip(axes[0], steps)):
-        _draw_snapshot(ax, rollout, states, t, metrics["r_safe"], ref)
+        _draw_snapshot(ax, rollout, states, t, body_radii_of(rollout.config or {}, states.shape[1], metrics["r_safe"]), ref)
         title = f"t = {t}"
         if n == len(steps) - 1:
             ttt = metrics["time_to_target"]
@@ -106,9 +106,9 @@ def plot_trajectories(
     return _save(fig, path)
 
 
-def _draw_snapshot(ax: Any, rollout: Rollout, states: np.ndarray, t: int, r_safe: float,
+def _draw_snapshot(ax: Any, rollout: Rollout, states: np.ndarray, t: int, radii: np.ndarray,
                    ref: np.ndarray | None) -> None:
-    """One panel of :func:`plot_trajectories` at step t."""
+    """One panel of :func:`plot_trajectories` at step t (``radii`` (K,): the bodies drawn)."""
     targets = np.asarray(rollout.targets, dtype=np.float64)
     plans = np.asarray(rollout.plan_positions, dtype=np.float64)
     _draw_obstacles(ax, (rollout.config or {}).get("obstacles"))
@@ -126,8 +126,8 @@ def _draw_snapshot(ax: Any, rollout: Rollout, states: np.ndarray, t: int, r_safe
             ax.plot(plan[-1, 0], plan[-1, 1], "o", color=c, ms=3)
         pos = states[t, k]
         ax.plot(pos[0], pos[1], "o", color=c, ms=8)
-        if r_safe > 0:
-            ax.add_patch(Circle((pos[0], pos[1]), r_safe / 2, fill=False, color=c, lw=0.8))
+        if radii[k] > 0:
+            ax.add_patch(Circle((pos[0], pos[1]), radii[k], fill=False, color=c, lw=0.8))
     ax.set_aspect("equal", adjustable="box")
     ax.set_xlabel("x1")
     ax.set_ylabel("x2")

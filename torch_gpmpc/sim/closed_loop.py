@@ -170,7 +170,7 @@ def path_follower(cfg: Config, scenario: Scenario) -> PathFollower | None:
     if scenario.reference_kind != "line":
         return None
     return PathFollower.plan(cfg.obstacles, cfg.workspace, scenario.starts, scenario.targets, cfg.r_safe,
-                             scenario.ref_points - 1)
+                             scenario.ref_points - 1, cfg.radii)
 
 
 def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem | Plant, planner: Planner,

@@ -166,6 +166,9 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
     noise_std = float(cfg.get("noise_std", defaults.noise_std))
 
     dists = pair_distances(states)  # (S+1, P)
+    radii = body_radii_of(cfg, states.shape[1], r_safe)  # (K,)
+    i, j = np.triu_indices(states.shape[1], k=1)
+    required = radii[i] + radii[j]  # (P,): r_safe without radii
     ttt = time_to_target(states, targets, goal_tol)
     arrivals = arrival_steps(states, targets, goal_tol)
     final = np.linalg.norm(states[-1] - targets, axis=-1)  # (K,)
@@ -178,7 +181,8 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
         "reached": ttt is not None,
         "time_to_target": ttt,
         "min_pair_distance": _scalar(dists.min()) if dists.size else None,
-        "violations": int(np.count_nonzero(dists < r_safe)),
+        "violations": int(np.count_nonzero(dists < required)),
+        "min_pair_clearance": _scalar((dists - required).min()) if dists.size else None,
         "path_length": [float(v) for v in path_lengths(states)],
         "straight_line_length": [float(v) for v in np.linalg.norm(targets - states[0], axis=-1)],
         "admm_iterations_mean": _mean(iters),
@@ -202,11 +206,19 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
         "unsafe_plan_steps": _count(getattr(rollout, "unsafe_plan", None)),
         **_failures(rollout),
         **risk_metrics(rollout),
-        **obstacle_metrics(states, cfg.get("obstacles"), r_safe),
+        **obstacle_metrics(states, cfg.get("obstacles"), r_safe, radii),
         "deadlock_steps": deadlock_steps(states, targets, goal_tol, r_safe),
         "plan_tracking_rmse": plan_tracking_rmse(rollout),
         **prediction_metrics(rollout, cfg.get("wind_change_step")),
     }
+
+
+def body_radii_of(cfg: dict, num_agents: int, r_safe: float) -> np.ndarray:
+    """The agents' body radii (K,) from a run's config: its ``radii``, else ``r_safe / 2`` each."""
+    radii = cfg.get("radii")
+    if radii is None or len(radii) != num_agents:
+        return np.full(num_agents, r_safe / 2)
+    return np.asarray(radii, dtype=np.float64)
 
 
 def step_time_metrics(step_time: Any) -> dict[str, float | None]:
@@ -279,15 +291,18 @@ def deadlock_steps(positions: np.ndarray, targets: np.ndarray, goal_tol: float, 
     return int(np.count_nonzero(stalled.any(axis=1)))
 
 
-def obstacle_metrics(positions: np.ndarray, obstacles: Any, r_safe: float) -> dict[str, Any]:
+def obstacle_metrics(positions: np.ndarray, obstacles: Any, r_safe: float,
+                     radii: np.ndarray | None = None) -> dict[str, Any]:
     """``min_obstacle_distance`` (the smallest distance from an agent's centre to an obstacle's
     surface over the run; negative inside; ``None`` without obstacles) and ``obstacle_violations``
-    (the (step, agent, obstacle) entries closer than the body radius ``r_safe / 2`` by more than
+    (the (step, agent, obstacle) entries closer than the agent's body radius by more than
     :data:`OBSTACLE_TOL`, the solvers' accuracy: a plan that holds its row exactly lands on it; 0 without).
 
     Args:
         positions: (S+1, K, P) true positions.
         obstacles: the run's ``obstacles`` (list of tables or an ``ObstacleField``), or ``None``.
+        r_safe: the pair distance; the body radius is ``r_safe / 2`` unless ``radii`` (K,) gives one
+            per agent.
     """
     import torch
 
@@ -298,7 +313,8 @@ def obstacle_metrics(positions: np.ndarray, obstacles: Any, r_safe: float) -> di
         return {"obstacle_violations": 0, "min_obstacle_distance": None}
     dist, _ = obstacle_geometry(ObstacleField.parse(obstacles), torch.as_tensor(positions, dtype=torch.float64))
     dist = dist.numpy()  # (S+1, K, O)
-    return {"obstacle_violations": int(np.count_nonzero(dist < r_safe / 2 - OBSTACLE_TOL)),
+    radius = r_safe / 2 if radii is None else np.asarray(radii, dtype=np.float64)[None, :, None]
+    return {"obstacle_violations": int(np.count_nonzero(dist < radius - OBSTACLE_TOL)),
             "min_obstacle_distance": _scalar(dist.min())}
 
 

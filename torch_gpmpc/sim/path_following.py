@@ -64,19 +64,21 @@ class PathFollower:
 
     @classmethod
     def plan(cls, field: ObstacleField | None, workspace: Workspace | None, starts: Tensor, targets: Tensor,
-             r_safe: float, speed_steps: int) -> "PathFollower | None":
-        """Route every agent (clearance ``r_safe / 2 + PASSAGE_MARGIN`` from boxes: a body and a
-        little room); ``None`` when no route bends or has a passage (then the scenario's own
-        references are unchanged).
+             r_safe: float, speed_steps: int, radii: tuple[float, ...] | None = None) -> "PathFollower | None":
+        """Route every agent (clearance from boxes: its body radius plus ``PASSAGE_MARGIN``);
+        ``None`` when no route bends or has a passage (then the scenario's own references are
+        unchanged).
 
         Args:
             starts, targets: (K, P). speed_steps: the reference covers a route in this many steps.
+            radii: the body radii (K,) (default ``r_safe / 2`` each).
         """
         lower, upper = box_footprints(field)
         if lower.shape[0] == 0:
             return None
-        clearance = r_safe / 2 + PASSAGE_MARGIN
-        routes = [route(s, g, lower, upper, clearance, workspace) for s, g in zip(starts.numpy(), targets.numpy())]
+        body = [r_safe / 2] * starts.shape[0] if radii is None else list(radii)
+        routes = [route(s, g, lower, upper, b + PASSAGE_MARGIN, workspace)
+                  for s, g, b in zip(starts.numpy(), targets.numpy(), body)]
         stretches = [passages(r, lower, upper, r_safe, workspace) for r in routes]
         speeds = np.array([arc_lengths(r)[-1] for r in routes]) / max(speed_steps, 1)
         follower = cls(routes, stretches, speeds, r_safe, wait=2 * r_safe)

@@ -88,6 +88,10 @@ class StepRecorder:
             "failed_solves", "failed_by_kind", "fallback", "unsafe_plan", "pair_separation", "pair_required",
             "pair_risk", "step_time")}
         self.pairs = torch.triu_indices(num_agents, num_agents, 1).unbind()
+        radii = torch.full((num_agents,), cfg.r_safe / 2, dtype=torch.float64) if cfg.radii is None \
+            else torch.tensor(cfg.radii, dtype=torch.float64)
+        #: each pair's required centre distance (r_safe, or r_k + r_j), (pairs,)
+        self.required = radii[self.pairs[0]] + radii[self.pairs[1]]
         self.position = list(cfg.model_spec().position)
         self.violations_total = 0
         self.risk_spent = 0.0
@@ -140,7 +144,7 @@ class StepRecorder:
         min_dist = pair_min_distance(pos)
         if self.num_agents > 1:
             dist = torch.cdist(pos, pos)
-            self.violations_total += int((dist[self.pairs] < self.cfg.r_safe).sum())
+            self.violations_total += int((dist[self.pairs] < self.required).sum())
         return StepInfo(iterations=res.iterations, min_distance=min_dist, converged=res.converged,
                         primal=res.primal_residuals[-1] if res.primal_residuals else math.nan,
                         violations_total=self.violations_total, lost_agents=list(res.lost_agents),

@@ -37,6 +37,7 @@ A scenario file (JSON or TOML) overrides ``Config.scenario``::
     workspace = {"min": [-5, -5], "max": [5, 5]} # optional soft box on the positions (P numbers each)
     obstacles = [{"center": [0, 1], "radius": 0.5},  # optional: discs/spheres, vertical cylinders
                  {"min": [1, -2], "max": [2, -1]}]   # ({..., "z": [zmin, zmax]}) and boxes
+    radii = [0.2, 0.3]                           # optional: body radius per agent (default r_safe / 2)
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ from torch_gpmpc.errors import GpmpcError
 logger = logging.getLogger(__name__)
 
 #: Keys a scenario file may contain.
-SCENARIO_KEYS = ("starts", "targets", "reference", "ref_points", "name", "workspace", "obstacles")
+SCENARIO_KEYS = ("starts", "targets", "reference", "ref_points", "name", "workspace", "obstacles", "radii")
 #: Largest allowed absolute coordinate in a scenario file.
 MAX_COORDINATE = 1e4
 #: Candidates drawn per batch, and batches tried per agent, by ``random`` scenarios.
@@ -82,7 +83,8 @@ class Scenario:
         ref_points: R, the number of points of the straight-line reference (>= 2).
         name: a label (``paper``, ``circle``, ``random`` or the file's stem).
         workspace: a soft box on the positions the controller keeps to, or ``None``.
-        obstacles: static obstacles the agents keep ``r_safe / 2`` from, or ``None``.
+        obstacles: static obstacles the agents keep their body radius from, or ``None``.
+        radii: the agents' body radii (K,), or ``None`` (the config's ``radii``, else ``r_safe / 2``).
     """
 
     starts: Tensor
@@ -92,6 +94,7 @@ class Scenario:
     name: str = "custom"
     workspace: Workspace | None = None
     obstacles: ObstacleField | None = None
+    radii: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         starts = torch.as_tensor(self.starts, dtype=torch.float64)
@@ -168,6 +171,7 @@ class Scenario:
             "ref_points": self.ref_points,
             **({} if self.workspace is None else {"workspace": self.workspace.to_table()}),
             **({} if self.obstacles is None else {"obstacles": self.obstacles.to_table()}),
+            **({} if self.radii is None else {"radii": list(self.radii)}),
         }
 
 
@@ -201,8 +205,8 @@ def make_scenario(cfg: Config, path: str | Path | None = None) -> Scenario:
         return doorway_scenario(cfg)
     else:  # pragma: no cover - Config already restricts the choices
         raise GpmpcError(f"config key 'scenario': unknown scenario {cfg.scenario!r}")
-    _check_start_separation(starts, cfg.r_safe, f"scenario {cfg.scenario!r}",
-                            "raise circle_radius, lower num_agents or lower r_safe")
+    _check_start_separation(starts, _required(cfg.radii, cfg.r_safe, starts.shape[0]), f"scenario {cfg.scenario!r}",
+                            "raise circle_radius, lower num_agents or lower r_safe (or radii)")
     return Scenario(starts, targets, cfg.reference, cfg.ref_points, cfg.scenario)
 
 
@@ -380,8 +384,10 @@ def load_scenario_file(path: str | Path, cfg: Config) -> Scenario:
     name = data.get("name", path.stem)
     if not isinstance(name, str):
         raise GpmpcError(f"{where}: 'name' must be a string, got {name!r}")
-    _check_start_separation(starts, cfg.r_safe, where, "move them apart or lower r_safe")
-    _warn_close_targets(targets, cfg.r_safe, where)
+    radii = _parse_radii(data["radii"], starts.shape[0], where) if "radii" in data else None
+    required = _required(radii if radii is not None else cfg.radii, cfg.r_safe, starts.shape[0])
+    _check_start_separation(starts, required, where, "move them apart or lower r_safe (or radii)")
+    _warn_close_targets(targets, required, where)
     workspace = None
     if "workspace" in data:
         workspace = Workspace.parse(data["workspace"], where)
@@ -392,18 +398,26 @@ def load_scenario_file(path: str | Path, cfg: Config) -> Scenario:
         obstacles.check_dim(cfg.position_dim, f"{where}: obstacles")
     if starts.shape[0] != cfg.num_agents:
         logger.info("%s has %d agents; it overrides num_agents=%d", where, starts.shape[0], cfg.num_agents)
-    return Scenario(starts, targets, reference, ref_points, name, workspace, obstacles)
+    return Scenario(starts, targets, reference, ref_points, name, workspace, obstacles, radii)
 
 
 def with_scenario_world(cfg: Config, scenario: Scenario) -> Config:
-    """``cfg`` with the scenario's workspace and obstacles, where it has them (they override the
-    config's ``workspace`` and ``obstacles``)."""
+    """``cfg`` with the scenario's workspace, obstacles and radii, where it has them (they override
+    the config's ``workspace``, ``obstacles`` and ``radii``).
+
+    Raises:
+        GpmpcError: ``radii`` whose length is not the scenario's team size.
+    """
     changes = {}
     if scenario.workspace is not None and scenario.workspace != cfg.workspace:
         changes["workspace"] = scenario.workspace.to_table()
     if scenario.obstacles is not None and scenario.obstacles != cfg.obstacles:
         changes["obstacles"] = scenario.obstacles.to_table()
-    return cfg.replace(**changes) if changes else cfg
+    if scenario.radii is not None and scenario.radii != cfg.radii:
+        changes["radii"] = list(scenario.radii)
+    out = cfg.replace(**changes) if changes else cfg
+    out.controller_settings().check_team(scenario.num_agents, "config key")
+    return out
 
 
 def _parse_matrix(value: Any, key: str, where: str) -> Tensor:
@@ -458,29 +472,57 @@ def _parse_ref_points(value: Any, where: str) -> int:
     return value
 
 
-def _check_start_separation(starts: Tensor, r_safe: float, where: str, fix: str) -> None:
-    """Raise if two starts are closer than ``r_safe`` (names the closest such pair)."""
-    k = starts.shape[0]
-    if k < 2:
-        return
-    i, j = torch.triu_indices(k, k, offset=1)
-    dist = (starts[i] - starts[j]).norm(dim=1)  # (P,)
-    p = int(torch.argmin(dist))
-    d = float(dist[p])
-    if d < r_safe:
-        raise GpmpcError(f"{where}: starts of agents {int(i[p])} and {int(j[p])} are {d:.4g} apart, "
-                         f"closer than r_safe = {r_safe:g}; {fix}")
+def _required(radii: tuple[float, ...] | None, r_safe: float, num_agents: int) -> Tensor:
+    """The required centre distance of every pair (K, K): ``r_k + r_j``, or ``r_safe`` without radii."""
+    if radii is None or len(radii) != num_agents:  # a length mismatch is refused when the run starts
+        return torch.full((num_agents, num_agents), float(r_safe), dtype=torch.float64)
+    r = torch.tensor(radii, dtype=torch.float64)
+    return r[:, None] + r[None, :]
 
 
-def _warn_close_targets(targets: Tensor, r_safe: float, where: str) -> None:
-    """Targets closer than ``r_safe`` cannot all be reached safely: warn (not an error)."""
-    k = targets.shape[0]
-    if k < 2:
-        return
+def _name(required: Tensor) -> str:
+    """How an error names a required distance: ``r_safe`` without radii (every pair's the same,
+    the diagonal included), else the pair's sum of radii."""
+    return "r_safe" if bool((required == required[0, 0]).all()) else "the sum of their radii"
+
+
+def _parse_radii(value: Any, num_agents: int, where: str) -> tuple[float, ...]:
+    """``radii``: K numbers in (0, 1000]."""
+    if not isinstance(value, list) or len(value) != num_agents:
+        raise GpmpcError(f"{where}: 'radii' must be a list of {num_agents} body radii (one per agent), got {value!r}")
+    radii = tuple(_parse_number(r, f"radii[{k}]", where) for k, r in enumerate(value))
+    for k, r in enumerate(radii):
+        if not 0 < r <= 1e3:
+            raise GpmpcError(f"{where}: radii[{k}] = {r:g}; give a body radius in (0, 1000]")
+    return radii
+
+
+def _closest_pair(points: Tensor, required: Tensor) -> tuple[int, int, float, float]:
+    """The pair (i, j) whose distance falls furthest short of its required distance, its distance
+    and its requirement."""
+    k = points.shape[0]
     i, j = torch.triu_indices(k, k, offset=1)
-    dist = (targets[i] - targets[j]).norm(dim=1)
-    p = int(torch.argmin(dist))
-    if float(dist[p]) < r_safe:
-        logger.warning("%s: targets of agents %d and %d are %.4g apart, closer than r_safe = %g; "
-                       "they cannot both be reached without a violation",
-                       where, int(i[p]), int(j[p]), float(dist[p]), r_safe)
+    dist = (points[i] - points[j]).norm(dim=1)  # (pairs,)
+    p = int(torch.argmin(dist - required[i, j]))
+    return int(i[p]), int(j[p]), float(dist[p]), float(required[i[p], j[p]])
+
+
+def _check_start_separation(starts: Tensor, required: Tensor, where: str, fix: str) -> None:
+    """Raise if two starts are closer than their required distance ``required`` (K, K) (names the
+    pair that falls furthest short)."""
+    if starts.shape[0] < 2:
+        return
+    i, j, d, need = _closest_pair(starts, required)
+    if d < need:
+        raise GpmpcError(f"{where}: starts of agents {i} and {j} are {d:.4g} apart, closer than {_name(required)} "
+                         f"= {need:g}; {fix}")
+
+
+def _warn_close_targets(targets: Tensor, required: Tensor, where: str) -> None:
+    """Targets closer than their required distance cannot all be reached safely: warn (not an error)."""
+    if targets.shape[0] < 2:
+        return
+    i, j, d, need = _closest_pair(targets, required)
+    if d < need:
+        logger.warning("%s: targets of agents %d and %d are %.4g apart, closer than %s = %g; "
+                       "they cannot both be reached without a violation", where, i, j, d, _name(required), need)
