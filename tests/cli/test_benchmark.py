@@ -64,3 +64,25 @@ def test_quick_benchmark_of_a_built_in_and_a_file_scenario_resumes_from_its_cach
 def test_benchmark_refuses_bad_team_sizes(tmp_path, capsys):
     assert main(["benchmark", "--agents", "0", "--out", str(tmp_path)]) == 2
     assert "--agents" in capsys.readouterr().err
+
+
+def test_transition_time_uses_the_model_files_own_dt(tmp_path):
+    """The random-transition agent (examples/transition/di3d.toml) samples at dt = 0.2; the
+    config's dt (0.1) shapes the built-in models only, so it must not time this run."""
+    from pathlib import Path
+
+    from torch_gpmpc.sim.metrics import compute_metrics
+    from torch_gpmpc.sim.rollout import Rollout
+
+    model = Path(__file__).resolve().parents[2] / "examples" / "transition" / "di3d.toml"
+    out = tmp_path / "bench"
+    argv = ["benchmark", "--scenario", "random", "--agents", "3", "--seeds", "1", "--workers", "1",
+            "--set", f"model={model}", "--set", 'workspace={"min": [-0.97, -0.97, -0.97], "max": [0.97, 0.97, 0.97]}',
+            "--set", "r_safe=0.35", "--set", "min_separation=0.35", "--set", "reference=target",
+            "--set", "method=nominal", "--set", "noise_std=0", "--set", "wind_scale=0", "--set", "max_steps=40",
+            "--out", str(out)]
+    assert main(argv) == 0
+    with open(out / "benchmark.csv") as f:
+        row = next(csv.DictReader(f))
+    arrival = compute_metrics(Rollout.load(next((out / "cache").glob("*.npz"))))["arrival_step_max"]
+    assert arrival is not None and float(row["transition_time_s"]) == pytest.approx(arrival * 0.2)

@@ -42,7 +42,8 @@ def main(args) -> int:
     (out / "cache").mkdir(parents=True, exist_ok=True)
     tasks = benchmark_tasks(cfg, args.scenario, agents, seeds, str(out / "cache"))
     run_uncached([task for *_, task in tasks], args.workers or os.cpu_count() or 1)
-    rows = [run_outcome(compute_metrics(Rollout.load(task.path)), label, cfg.dt) for label, _, task in tasks]
+    dt = cfg.model_spec().dt  # a model file's own dt (cfg.dt shapes the built-in models only)
+    rows = [run_outcome(compute_metrics(Rollout.load(task.path)), label, dt) for label, _, task in tasks]
     summary = summary_rows(rows)
     write_text(out / "benchmark.csv", _csv(rows, CSV_COLUMNS))
     table = markdown_table(summary)
