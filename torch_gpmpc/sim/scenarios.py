@@ -255,7 +255,7 @@ def doorway_scenario(cfg: Config) -> Scenario:
     sep = max(cfg.min_separation, cfg.r_safe)
     left = (K + 1) // 2
     starts = torch.zeros(K, P, dtype=torch.float64)
-    for group, (first, count, x1) in enumerate(((0, left, -(X - 1)), (left, K - left, X - 1))):
+    for first, count, x1 in ((0, left, -(X - 1)), (left, K - left, X - 1)):
         starts[first:first + count, 0] = x1
         starts[first:first + count, 1] = (torch.arange(count, dtype=torch.float64) - (count - 1) / 2) * sep
     targets = starts.clone()
@@ -265,6 +265,8 @@ def doorway_scenario(cfg: Config) -> Scenario:
     walls = [{"min": [-half_wall, half_gap] + [-h for h in height], "max": [half_wall, H] + height},
              {"min": [-half_wall, -H] + [-h for h in height], "max": [half_wall, -half_gap] + height}]
     workspace = Workspace((-X, -H) + tuple(-h for h in height), (X, H) + tuple(height))
+    _check_start_separation(starts, _required(cfg.radii, cfg.r_safe, K), "scenario 'doorway'",
+                            "raise min_separation or lower the radii")
     return Scenario(starts, targets, cfg.reference, cfg.ref_points, "doorway", workspace=workspace,
                     obstacles=ObstacleField.parse(walls))
 
