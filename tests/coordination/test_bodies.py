@@ -107,3 +107,13 @@ def test_a_large_agent_keeps_its_own_radius_from_an_obstacle():
     m = compute_metrics(simulate(cfg, scenario))
     assert m["reached"] and m["obstacle_violations"] == 0
     assert 0.6 - 1e-6 <= m["min_obstacle_distance"] < 0.62
+
+
+def test_pair_buffer_is_asked_by_the_rows_and_keeps_r_safe_strictly():
+    s = ControllerSettings(radii=[0.1, 0.2], pair_buffer=0.01)
+    np.testing.assert_allclose(slot_distances(s, torch.tensor([0]), torch.tensor([[1]]))[..., 0].numpy(), [[0.31]])
+    assert slot_distances(ControllerSettings(pair_buffer=0.01), torch.tensor([0]), torch.tensor([[1]])) == 0.51
+    assert edge_distances(s, torch.tensor([[0, 1]])).tolist() == pytest.approx([0.3])  # risk judges the distance
+    # exact model, head on: without a buffer the pair sits on r_safe to rounding (strict count > 0)
+    m = compute_metrics(simulate(_two_agents(pair_buffer=1e-3)))
+    assert m["reached"] and m["violations"] == 0 and m["min_pair_distance"] >= 0.5

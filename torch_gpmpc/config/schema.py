@@ -127,6 +127,9 @@ class Config:
         radii: each agent's body radius, a list of K numbers (a pair keeps ``r_k + r_j`` between
             centres, an agent ``r_k`` from every obstacle), or null: ``r_safe / 2`` each; a
             scenario file's ``radii`` set it for its run.
+        pair_buffer: extra distance the collision rows ask beyond ``r_safe`` (or ``r_k + r_j``),
+            for example ``admm_tol``, so that plans whose copies agree only to the consensus
+            tolerance still keep ``r_safe``; metrics and risk bounds judge ``r_safe`` itself.
         num_obstacles: the cylinders (discs in 2D) of ``scenario = forest``.
         deadlock_detour: an agent stuck behind a neighbour (no progress for 10 steps) detours
             round it on a fixed side (:class:`~torch_gpmpc.sim.detours.DeadlockBreaker`).
@@ -204,6 +207,7 @@ class Config:
     obstacle_eps: float = 0.01
     obstacle_rows: int = 4
     radii: tuple[float, ...] | None = None
+    pair_buffer: float = 0.0
     num_obstacles: int = 20
     deadlock_detour: bool = True
     plant: str = "model"

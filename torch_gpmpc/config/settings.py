@@ -62,6 +62,7 @@ CONTROLLER_RANGES: dict[str, tuple[typing.Callable[[typing.Any], bool], str]] = 
     "risk_pacing": (lambda v: 1 <= v <= 1_000_000, "an integer in [1, 1000000]"),
     "obstacle_eps": (lambda v: 0 < v < 1, "a number in (0, 1)"),
     "obstacle_rows": (lambda v: 1 <= v <= 256, "an integer in [1, 256]"),
+    "pair_buffer": (lambda v: 0 <= v <= 1e3, "a number in [0, 1000] (0: none)"),
     "radii": (lambda v: v is None or (len(v) >= 1 and all(0 < r <= 1e3 for r in v)),
               "a list of body radii in (0, 1000], one per agent, or null (r_safe / 2 each)"),
 }
@@ -85,6 +86,9 @@ class ControllerSettings:
         r_safe, eps, risk_split: safety radius, pair risk, lower-indexed agent's share.
         radii: each agent's body radius (a pair keeps ``r_k + r_j`` between centres, an agent
             ``r_k`` from every obstacle), or ``None``: ``r_safe / 2`` each.
+        pair_buffer: what the collision rows ask beyond the pair's distance (e.g. ``admm_tol``:
+            copies that agree only to the consensus tolerance still keep it); the safety metrics
+            and the risk bounds still judge the distance itself.
         risk_mode, risk_budget, risk_pacing: ``pair_step`` (every pair may fail with probability
             ``eps`` at every step) or ``mission`` (the team's probability of any collision over
             the run is at most ``risk_budget``; :mod:`~torch_gpmpc.coordination.mission_risk`).
@@ -138,6 +142,7 @@ class ControllerSettings:
     obstacle_eps: float = 0.01
     obstacle_rows: int = 4
     radii: tuple[float, ...] | None = None
+    pair_buffer: float = 0.0
 
     def __post_init__(self) -> None:
         parse_world(self, "controller setting")

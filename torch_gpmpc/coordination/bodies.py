@@ -24,16 +24,16 @@ def body_radii(settings: ControllerSettings, agent_ids: Tensor) -> Tensor | floa
 
 
 def slot_distances(settings: ControllerSettings, agent_ids: Tensor, slot_nbr: Tensor) -> Tensor | float:
-    """The required centre distance of each slot's pair, ``r_k + r_j`` -> (B, M, 1) (broadcast over
-    the horizon), or ``r_safe``.
+    """The centre distance each slot's collision rows ask: ``r_k + r_j`` (or ``r_safe``) plus
+    ``pair_buffer`` -> (B, M, 1) (broadcast over the horizon), or a number without radii.
 
     Args:
         agent_ids: (B,) the agents. slot_nbr: (B, M) their neighbour per slot (any id where inactive).
     """
     if settings.radii is None:
-        return settings.r_safe
+        return settings.r_safe + settings.pair_buffer
     radii = torch.tensor(settings.radii, dtype=torch.float64)
-    return (radii[agent_ids][:, None] + radii[slot_nbr])[..., None]
+    return (radii[agent_ids][:, None] + radii[slot_nbr])[..., None] + settings.pair_buffer
 
 
 def edge_distances(settings: ControllerSettings, edges: Tensor) -> Tensor | float:
