@@ -126,8 +126,8 @@ def test_an_acceleration_box_and_a_workspace_run_on_the_fast_solver(tmp_path, di
             "max_steps": 25 if distributed else 60, "admm_max_iter": 40}
     args = ["run", "--scenario", str(scenario), "--out", str(out), *[a for k, v in sets.items() for a in
                                                                       ("--set", f"{k}={v}")]]
-    if distributed:
-        args += ["--backend", "distributed"]
+    if distributed:  # two agents per process: half the process start-ups
+        args += ["--backend", "distributed", "--agents-per-process", "2"]
     assert main(args) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     with np.load(out / "rollout.npz") as r:
