@@ -168,6 +168,15 @@ class ControllerSettings:
 RULES = Rules("controller setting", "", CONTROLLER_CHOICES, CONTROLLER_RANGES)
 
 
+def agent_radii(radii: typing.Sequence[float] | None, r_safe: float, num_agents: int) -> tuple[float, ...]:
+    """Every agent's body radius (K numbers): ``radii`` when it gives one per agent, else
+    ``r_safe / 2`` each (a length mismatch is refused where a run starts, by
+    :meth:`ControllerSettings.check_team`)."""
+    if radii is None or len(radii) != num_agents:
+        return (r_safe / 2,) * num_agents
+    return tuple(float(r) for r in radii)
+
+
 def parse_world(obj, what: str) -> None:
     """Turn the tables of a frozen dataclass's ``workspace`` and ``obstacles`` fields (from a file or
     ``--set``) into :class:`Workspace` and :class:`ObstacleField`, naming ``<what> '<field>'`` on error."""

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from torch_gpmpc.config.schema import Config
+from torch_gpmpc.config.settings import agent_radii
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.sim.rollout import Rollout
 
@@ -215,10 +216,7 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
 
 def body_radii_of(cfg: dict, num_agents: int, r_safe: float) -> np.ndarray:
     """The agents' body radii (K,) from a run's config: its ``radii``, else ``r_safe / 2`` each."""
-    radii = cfg.get("radii")
-    if radii is None or len(radii) != num_agents:
-        return np.full(num_agents, r_safe / 2)
-    return np.asarray(radii, dtype=np.float64)
+    return np.asarray(agent_radii(cfg.get("radii"), r_safe, num_agents), dtype=np.float64)
 
 
 def step_time_metrics(step_time: Any) -> dict[str, float | None]:

@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.config.obstacles import ObstacleField
+from torch_gpmpc.config.settings import agent_radii
 from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.sim.routes import PASSAGE_MARGIN, arc_lengths, box_footprints, passages, route, walk
 
@@ -76,7 +77,7 @@ class PathFollower:
         lower, upper = box_footprints(field)
         if lower.shape[0] == 0:
             return None
-        body = [r_safe / 2] * starts.shape[0] if radii is None else list(radii)
+        body = agent_radii(radii, r_safe, starts.shape[0])
         routes = [route(s, g, lower, upper, b + PASSAGE_MARGIN, workspace)
                   for s, g, b in zip(starts.numpy(), targets.numpy(), body)]
         stretches = [passages(r, lower, upper, r_safe, workspace) for r in routes]

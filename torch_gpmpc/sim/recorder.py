@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.config.schema import Config
+from torch_gpmpc.config.settings import agent_radii
 from torch_gpmpc.control.obstacle_rows import obstacle_geometry
 from torch_gpmpc.control.problem import FAILURE_KINDS
 from torch_gpmpc.coordination.state import StepResult
@@ -88,8 +89,7 @@ class StepRecorder:
             "failed_solves", "failed_by_kind", "fallback", "unsafe_plan", "pair_separation", "pair_required",
             "pair_risk", "step_time")}
         self.pairs = torch.triu_indices(num_agents, num_agents, 1).unbind()
-        radii = torch.full((num_agents,), cfg.r_safe / 2, dtype=torch.float64) if cfg.radii is None \
-            else torch.tensor(cfg.radii, dtype=torch.float64)
+        radii = torch.tensor(agent_radii(cfg.radii, cfg.r_safe, num_agents), dtype=torch.float64)
         #: each pair's required centre distance (r_safe, or r_k + r_j), (pairs,)
         self.required = radii[self.pairs[0]] + radii[self.pairs[1]]
         self.position = list(cfg.model_spec().position)

@@ -57,6 +57,7 @@ from torch_gpmpc.config.obstacles import (
 )
 from torch_gpmpc.config.reader import read_table
 from torch_gpmpc.config.schema import REFERENCES, Config
+from torch_gpmpc.config.settings import agent_radii
 from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.errors import GpmpcError
 
@@ -475,10 +476,8 @@ def _parse_ref_points(value: Any, where: str) -> int:
 
 
 def _required(radii: tuple[float, ...] | None, r_safe: float, num_agents: int) -> Tensor:
-    """The required centre distance of every pair (K, K): ``r_k + r_j``, or ``r_safe`` without radii."""
-    if radii is None or len(radii) != num_agents:  # a length mismatch is refused when the run starts
-        return torch.full((num_agents, num_agents), float(r_safe), dtype=torch.float64)
-    r = torch.tensor(radii, dtype=torch.float64)
+    """The required centre distance of every pair (K, K): ``r_k + r_j`` (``r_safe`` without radii)."""
+    r = torch.tensor(agent_radii(radii, r_safe, num_agents), dtype=torch.float64)
     return r[:, None] + r[None, :]
 
 
