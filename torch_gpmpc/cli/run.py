@@ -45,7 +45,7 @@ def main(args) -> int:
     from torch_gpmpc.report.tensorboard import TBLogger
     from torch_gpmpc.sim.closed_loop import needs_gp, simulate
     from torch_gpmpc.sim.metrics import compute_metrics
-    from torch_gpmpc.sim.scenarios import make_scenario
+    from torch_gpmpc.sim.scenarios import make_scenario, with_scenario_world
 
     distributed = args.backend == "distributed"
     if distributed and is_agent_rank():  # torchrun / env launch: ranks > 0 serve agents, rank 0 writes
@@ -55,6 +55,7 @@ def main(args) -> int:
     # validate everything (config, scenario, model, output path) before any work or output
     cfg = config_from_args(args)
     scenario = make_scenario(cfg, args.scenario)
+    cfg = with_scenario_world(cfg, scenario)  # its workspace, obstacles, radii and models
     gps = [load_model_gp(args.gp_model, cfg.model_spec())] if args.gp_model else None
     if gps is None and needs_gp(cfg.method):
         check_gp_inputs(cfg)
@@ -63,10 +64,10 @@ def main(args) -> int:
         if cfg.solver == "fast":
             prepare_solver_kernel()
         if gps is None and needs_gp(cfg.method):  # before the progress bar: its rate is the loop's
-            from torch_gpmpc.dynamics.systems import system_from_config
+            from torch_gpmpc.dynamics.team import team_system_from_config
             from torch_gpmpc.gp import fit_agent_gps
 
-            gps = fit_agent_gps(cfg, system_from_config(cfg), scenario.num_agents)
+            gps = fit_agent_gps(cfg, team_system_from_config(cfg), scenario.num_agents)
     tb = TBLogger(out / "tb")
     bar = tqdm(total=cfg.max_steps, desc=f"{cfg.method} seed {cfg.seed}", unit="step", leave=False)
 

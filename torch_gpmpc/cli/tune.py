@@ -67,6 +67,9 @@ def main(args) -> int:
     if cfg.risk_mode == "mission" and settings.tune_split:
         raise GpmpcError("risk_mode=mission allots each agent's risk from its own budget, so there is no risk "
                          "split to tune; set --set tune.tune_split=false (rho still tunes), or risk_mode=pair_step")
+    if cfg.models is not None and cfg.team().is_mixed:
+        raise GpmpcError("config key 'models': tuning runs teams of one model; tune on one model, or run the "
+                         "mixed team with gpmpc run")
     if not Method.parse(cfg.method).chance and settings.tune_split:
         log.warning("method %s has no chance margins: the risk split gets no gradient", cfg.method)
 

@@ -202,16 +202,16 @@ def resolve_model(model: str, dim: int, dt: float, u_max: float) -> ModelSpec:
     return cached[1]
 
 
-def check_model_name(model: str) -> None:
-    """Refuse a ``model`` value that is neither a built-in nor an existing model file."""
+def check_model_name(model: str, key: str = "model") -> None:
+    """Refuse a ``model`` value (of config key ``key``) that is neither a built-in nor an existing model file."""
     if model in BUILTIN_MODELS:
         return
     path = Path(model)
     if path.suffix.lower() not in MODEL_SUFFIXES:
-        raise GpmpcError(f"config key 'model': {model!r} is neither {' nor '.join(BUILTIN_MODELS)} nor a "
+        raise GpmpcError(f"config key {key!r}: {model!r} is neither {' nor '.join(BUILTIN_MODELS)} nor a "
                          "model file (.toml or .json)")
     if not path.is_file():
-        raise GpmpcError(f"config key 'model': model file {model!r} does not exist; check the path")
+        raise GpmpcError(f"config key {key!r}: model file {model!r} does not exist; check the path")
 
 
 def load_model_file(path: str | Path) -> ModelSpec:

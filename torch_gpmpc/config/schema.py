@@ -19,6 +19,7 @@ from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, parse_mod
 from torch_gpmpc.config.obstacles import ObstacleField, doorway_extent, forest_extent
 from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.config.plant import PLANTS, VEHICLES, WINDS
+from torch_gpmpc.config.team import TeamSpec, team_spec
 from torch_gpmpc.config.settings import (
     CONTROLLER_CHOICES, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings, check_risk_mode,
     controller_keys, parse_world, resolve_uncertainty,
@@ -127,6 +128,10 @@ class Config:
         radii: each agent's body radius, a list of K numbers (a pair keeps ``r_k + r_j`` between
             centres, an agent ``r_k`` from every obstacle), or null: ``r_safe / 2`` each; a
             scenario file's ``radii`` set it for its run.
+        models: a mixed team: one model per agent (built-in names or model files, K of them), or
+            null (every agent has ``model``); overrides ``model``. Models of different sizes are
+            lifted to the largest (:mod:`~torch_gpmpc.config.team`); they must share ``dt``, the
+            position indices and the number of residual rows. A scenario file's ``models`` set it.
         pair_buffer: extra distance the collision rows ask beyond ``r_safe`` (or ``r_k + r_j``),
             for example ``admm_tol``, so that plans whose copies agree only to the consensus
             tolerance still keep ``r_safe``; metrics and risk bounds judge ``r_safe`` itself.
@@ -207,6 +212,7 @@ class Config:
     obstacle_eps: float = 0.01
     obstacle_rows: int = 4
     radii: tuple[float, ...] | None = None
+    models: tuple[str, ...] | None = None
     pair_buffer: float = 0.0
     num_obstacles: int = 20
     deadlock_detour: bool = True
@@ -231,6 +237,10 @@ class Config:
         check_risk_mode(self.risk_mode, self.method, self.pair_margin, "config key")
         if isinstance(self.model, str):
             check_model_name(self.model)
+        if self.models is not None:
+            for name in self.models:
+                check_model_name(name, "models")
+            self.team()  # refuses models that cannot plan together
         if self.workspace is not None:
             self.workspace.check_dim(self.position_dim, "config key 'workspace'")
         if self.obstacles is not None:
@@ -243,10 +253,21 @@ class Config:
         warn_ignored_keys(self)
 
     def model_spec(self) -> ModelSpec:
-        """The agent model of this run (built-in, read from the model file, or given)."""
+        """The agent model of this run (built-in, read from the model file, or given); with
+        ``models``, agent 0's model lifted to the team's sizes (every agent's state and input
+        then have its sizes, position and number of residual rows)."""
+        if self.models is not None:
+            return self.team().agent_spec(0)
         if isinstance(self.model, ModelSpec):
             return self.model
         return resolve_model(self.model, self.dim, self.dt, self.u_max)
+
+    def team(self) -> TeamSpec | None:
+        """The team's models lifted to common sizes (:func:`~torch_gpmpc.config.team.team_spec`), or
+        ``None`` without ``models``."""
+        if self.models is None:
+            return None
+        return team_spec([resolve_model(name, self.dim, self.dt, self.u_max) for name in self.models])
 
     def controller_settings(self) -> ControllerSettings:
         """The controller's settings (the keys of :class:`ControllerSettings`)."""
@@ -318,7 +339,10 @@ def warn_ignored_keys(cfg: Config) -> None:
     the current choices ignore."""
     defaults = {f.name: f.default for f in dataclasses.fields(Config)}
     ignored = []
-    if not (isinstance(cfg.model, str) and cfg.model in ("single-integrator", "double-integrator")):
+    if cfg.models is not None:  # dim, dt and u_max shape the built-ins it names
+        if cfg.model != defaults["model"]:
+            ignored.append(("model", "models", "every agent has its own model"))
+    elif not (isinstance(cfg.model, str) and cfg.model in ("single-integrator", "double-integrator")):
         ignored += [(key, "model", "the model defines its own state, sampling time and input bound")
                     for key in _BUILTIN_MODEL_KEYS if getattr(cfg, key) != defaults[key]]
     elif cfg.model == "single-integrator" and cfg.dt != defaults["dt"]:
@@ -373,6 +397,7 @@ _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "plant_wind_speed": (lambda v: len(v) == 3 and all(abs(w) <= 50 for w in v), "3 numbers [wx, wy, wz] in m/s, each within 50"),
     "plant_rate_hz": (lambda v: 1 <= v <= 10_000, "a number in [1, 10000]"),
     "plant_sensor_noise": (lambda v: v >= 0, "a number >= 0"),
+    "models": (lambda v: v is None or len(v) >= 1, "a list of model names or files, one per agent, or null"),
     "wind_change_step": (lambda v: v is None or v >= 0, "an integer >= 0 or null (never)"),
     "gp_online_budget": (lambda v: 2 <= v <= 5000, "an integer in [2, 5000]"),
     "gp_online_refit_every": (lambda v: v >= 0, "an integer >= 0 (0: never re-fit)"),

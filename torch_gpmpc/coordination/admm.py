@@ -179,7 +179,7 @@ class ADMM:
     ) -> None:
         #: the run configuration this ADMM was built from, if any (tuning reads it)
         self.cfg = step if isinstance(step, Config) else None
-        if not isinstance(step, LocalStep):
+        if isinstance(step, (Config, ControllerSettings)):
             if nominal is None:
                 if self.cfg is None:
                     raise TypeError("ADMM(settings, ...) needs the agent model: pass nominal=ModelSpec/NominalModel")

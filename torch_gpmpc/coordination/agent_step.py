@@ -150,6 +150,11 @@ def on_positions(normals_p: Tensor, position: list[int], state_dim: int) -> Tens
     return normals
 
 
+def select_rows(items: list, rows: slice | Tensor) -> list:
+    """The entries ``rows`` (a slice, or an int64 tensor of agent ids) of a per-agent list."""
+    return items[rows] if isinstance(rows, slice) else [items[int(k)] for k in rows]
+
+
 def _reported_variances(state: ADMMState, slot_edge: Tensor, side: Tensor, own: Tensor) -> Tensor:
     """The neighbours' last reported projected variances per slot (B, M, T); the agent's own
     where none has been reported yet (a symmetric first guess)."""
@@ -242,7 +247,7 @@ class LocalStep:
 
     def assemble(
         self, x0: Tensor, xref: Tensor, state: ADMMState, graph: Graph, rho: Tensor, eps_self: Tensor,
-        rows: slice = slice(None), linearization: Any = None, eps_nbr: Tensor | None = None,
+        rows: slice | Tensor = slice(None), linearization: Any = None, eps_nbr: Tensor | None = None,
         u_prev: Tensor | None = None,
     ) -> Assembled:
         """Linearize around the current plans and assemble the local problems of agents ``rows``.
@@ -258,7 +263,9 @@ class LocalStep:
             graph: communication graph.
             rho: ADMM penalty.
             eps_self: (B, M) own risk per slot of the selected agents.
-            rows: which agents (B of them): all by default; an agent process passes its own row.
+            rows: which agents (B of them): all by default; an agent process passes its own row, a
+                mixed team's step (:class:`~torch_gpmpc.coordination.team_step.TeamStep`) the agents
+                of one model (an int64 tensor of ids).
                 ``self.gps`` is indexed by agent id (an agent process may hold ``None`` for others).
             linearization: a previous call's ``Assembled.linearization`` (a :class:`Convexification`)
                 at the same plans, inputs and rows, or a dynamics linearization alone; ``None``:
@@ -294,13 +301,13 @@ class LocalStep:
         max_margin = margins[active].max() if bool(active.any()) else margins.new_zeros(())
         return Assembled(data, max_margin, own_var, conv)
 
-    def _convexify(self, state: ADMMState, graph: Graph, rows: slice, lin: Any = None) -> "Convexification":
+    def _convexify(self, state: ADMMState, graph: Graph, rows: slice | Tensor, lin: Any = None) -> "Convexification":
         """The parts of the local problems fixed by the linearization points ``state.plans``
         (and inputs): the dynamics linearization (``lin`` if given), the collision normals and
         each agent's projected variances along them."""
         xbar = state.plans[rows]
         if lin is None:
-            gps = None if self.gps is None else self.gps[rows]
+            gps = None if self.gps is None else select_rows(self.gps, rows)
             lin = linearize_plan(self.method, xbar, self.nominal, self.wind, gps,
                                  include_noise=self.settings.margin_variance == "predictive",
                                  ubar=state.inputs[rows])

@@ -17,8 +17,10 @@ from torch_gpmpc.coordination.admm import ADMM
 from torch_gpmpc.coordination.agent_step import LocalStep, as_nominal
 from torch_gpmpc.coordination.graph import Graph, communication_graph
 from torch_gpmpc.coordination.state import ADMMState, StepResult
+from torch_gpmpc.coordination.team_step import TeamStep
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.dynamics.systems import NominalModel, TrueSystem, VortexWind
+from torch_gpmpc.dynamics.team import TeamSystem
 from torch_gpmpc.errors import GpmpcError
 
 
@@ -146,13 +148,14 @@ class Controller:
         return result
 
 
-def make_agent_step(cfg: Config, system: TrueSystem, gps: list | None = None,
-                    method: str | Method | None = None) -> LocalStep:
+def make_agent_step(cfg: Config, system: TrueSystem | TeamSystem, gps: list | None = None,
+                    method: str | Method | None = None) -> LocalStep | TeamStep:
     """The per-agent step of ``method`` (default ``cfg.method``) for a run configuration.
 
     The method decides what the agents know: the ``nonlinear`` baselines get the true
     wind of ``system``, the ``gp`` and chance methods their residual GPs; the nominal
-    model is ``system``'s.
+    model is ``system``'s (a mixed team's :class:`~torch_gpmpc.dynamics.team.TeamSystem` gives a
+    :class:`~torch_gpmpc.coordination.team_step.TeamStep`, one local step per model).
 
     Args:
         cfg: run configuration.
@@ -162,7 +165,10 @@ def make_agent_step(cfg: Config, system: TrueSystem, gps: list | None = None,
     """
     method = Method.parse(method or cfg.method)
     wind = system.wind if method.needs_wind else None
-    return LocalStep(cfg, system.nominal, method, wind, gps if method.needs_gp else None)
+    gps = gps if method.needs_gp else None
+    if isinstance(system, TeamSystem):
+        return TeamStep(cfg, system.team, method, wind, gps)
+    return LocalStep(cfg, system.nominal, method, wind, gps)
 
 
 def make_controller(cfg: Config, system: TrueSystem, gps: list | None = None,

@@ -156,6 +156,15 @@ class NominalModel:
             ref[..., v] = step[..., self.position.index(p)] / a
         return ref
 
+    def project(self, u: Tensor) -> Tensor:
+        """Inputs (..., m) projected onto the model's input bounds (:func:`project_input`)."""
+        return project_input(u, self.spec)
+
+    def gp_targets(self, x: Tensor, u: Tensor, x_next: Tensor) -> tuple[Tensor, Tensor]:
+        """GP inputs (..., Din) and residual targets ``[x' - A x - B u]_R`` (..., R) of transitions
+        x -> x_next (..., n) under inputs u (..., m)."""
+        return self.gp_input(x, u), (x_next - self(x, u))[..., self.residual]
+
     def __call__(self, x: Tensor, u: Tensor) -> Tensor:
         """Nominal next state ``A x + B u``: x (..., n), u (..., m) -> (..., n)."""
         return x @ self.A(x.dtype, x.device).T + u @ self.B(x.dtype, x.device).T
@@ -297,12 +306,16 @@ def make_system(dim: int | ModelSpec = 2, noise_std: float = 0.1, wind_scale: fl
 
 
 def system_from_config(cfg) -> TrueSystem:
-    """The true system of a run configuration (its ``model``, ``noise_std`` and ``wind_scale``).
+    """The true system of a run configuration (its ``model``, ``noise_std`` and ``wind_scale``) of
+    one model (a mixed team's: :func:`~torch_gpmpc.dynamics.team.team_system_from_config`).
 
     With ``plant = rotorpy`` the model's own world is not flown (only its nominal part plans), so
     the vortex wind is left out and any residual rows are allowed.
     """
     wind_scale = 0.0 if getattr(cfg, "plant", "model") == "rotorpy" else cfg.wind_scale
+    if getattr(cfg, "models", None) is not None and cfg.team().is_mixed:
+        raise GpmpcError("config key 'models': a mixed team has one system per model; build it with "
+                         "torch_gpmpc.dynamics.team.team_system_from_config")
     return make_system(cfg.model_spec(), cfg.noise_std, wind_scale)
 
 

@@ -319,12 +319,26 @@ def fit_agent_gp(settings: GPFitSettings | Config, system, k: int) -> ResidualGP
 
 
 def fit_agent_gps(settings: GPFitSettings | Config, system, agents: int) -> list[ResidualGP]:
-    """Every agent's residual GP (:func:`fit_agent_gp` for ``k = 0..agents-1``, one data draw)."""
+    """Every agent's residual GP (:func:`fit_agent_gp` for ``k = 0..agents-1``, one data draw).
+
+    A mixed team's system (:class:`~torch_gpmpc.dynamics.team.TeamSystem`): agent k's GP learns
+    from row block k of the recipe's data drawn with its own model's system."""
+    if hasattr(system, "team"):
+        return _fit_team_gps(_fit_settings(settings), system, agents)
     flights = _flight_settings(settings)
     settings = _fit_settings(settings)
     data = _recipe_data(settings, system, agents) if flights is None \
         else _flight_data(settings, flights, system, range(agents))
     return [_fit_rows(settings, system, data, k) for k in range(agents)]
+
+
+def _fit_team_gps(settings: GPFitSettings, system, agents: int) -> list[ResidualGP]:
+    gps: list[ResidualGP | None] = [None] * agents
+    for g, group_system in enumerate(system.systems):
+        data = _recipe_data(settings, group_system, agents)
+        for k in system.team.members(g):
+            gps[k] = _fit_rows(settings, group_system, data, k)
+    return gps
 
 
 def _flight_settings(settings: GPFitSettings | Config):

@@ -192,7 +192,8 @@ class OnlineLearning:
 
     Args:
         gps: one model per agent (the controller's objects: updated in place).
-        nominal: the planning model (its residual rows and GP input columns).
+        nominal: the planning model (its residual rows and GP input columns; a mixed team's
+            :class:`~torch_gpmpc.dynamics.team.TeamNominal`).
         online: add each agent's transitions to its own GP (``OnlineGP`` wrappers).
         max_input_change: add a transition only if its input differs from the agent's previous one
             by at most this (Euclidean norm; ``None``: every transition). A vehicle that realizes its
@@ -215,12 +216,12 @@ class OnlineLearning:
     def observe(self, x: Tensor, u: Tensor, x_next: Tensor) -> tuple[Tensor, Tensor]:
         """One step of every agent: measured states x (K, D), inputs u (K, Du), next measured
         states (K, D). Returns prediction errors and predictive variances, each (K, R)."""
-        nominal = self.nominal
-        inputs = nominal.gp_input(x, u)
-        y = (x_next - nominal(x, u))[:, nominal.residual]
+        inputs, y = self.nominal.gp_targets(x, u, x_next)
+        if isinstance(inputs, Tensor):  # one model: (K, Din); a mixed team's: one (1, Din_k) per agent
+            inputs = [inputs[k:k + 1] for k in range(inputs.shape[0])]
         errors, variances = [], []
         for k, gp in enumerate(self.gps):
-            mean, var = gp.predict(inputs[k:k + 1], include_noise=True)
+            mean, var = gp.predict(inputs[k], include_noise=True)
             errors.append(y[k] - mean[0])
             variances.append(var[0])
         start = time.perf_counter()
@@ -228,7 +229,7 @@ class OnlineLearning:
             steady = self._steady_inputs(u)
             for k, gp in enumerate(self.gps):
                 if steady[k]:
-                    gp.add(inputs[k:k + 1], y[k:k + 1])
+                    gp.add(inputs[k], y[k:k + 1])
                 else:
                     self.skipped[k] += 1
                 gp.end_step()

@@ -30,7 +30,8 @@ from torch_gpmpc.coordination.state import ADMMState, StepResult
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.dynamics.plants import Plant, plant_from_config
-from torch_gpmpc.dynamics.systems import TrueSystem, project_input, system_from_config
+from torch_gpmpc.dynamics.systems import TrueSystem
+from torch_gpmpc.dynamics.team import TeamSystem, team_system_from_config
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.gp.online import OnlineLearning, online_gps
 from torch_gpmpc.sim.detours import DeadlockBreaker, detour_reference
@@ -81,8 +82,9 @@ def noise_sequence(cfg: Config, num_agents: int) -> Tensor:
                        dtype=torch.float64)
 
 
-def check_gps(gps: list, num_agents: int, spec: ModelSpec) -> list:
-    """One GP per agent (a single GP is shared), each with the model's GP inputs and residual rows.
+def check_gps(gps: list, num_agents: int, spec: ModelSpec | list[ModelSpec]) -> list:
+    """One GP per agent (a single GP is shared), each with its model's GP inputs and residual rows
+    (``spec``: the team's model, or one per agent).
 
     Raises:
         GpmpcError: wrong count or dimension.
@@ -91,8 +93,9 @@ def check_gps(gps: list, num_agents: int, spec: ModelSpec) -> list:
         gps = gps * num_agents
     if len(gps) != num_agents:
         raise GpmpcError(f"got {len(gps)} GP models for {num_agents} agents; give one, or one per agent")
-    din, dout = len(spec.gp_inputs), len(spec.residual)
-    for gp in gps:
+    specs = spec if isinstance(spec, list) else [spec] * num_agents
+    for gp, spec in zip(gps, specs):
+        din, dout = len(spec.gp_inputs), len(spec.residual)
         if gp.input_dim != din or gp.output_dim != dout:
             raise GpmpcError(
                 f"GP model has input/output dimension {gp.input_dim}/{gp.output_dim} but the model "
@@ -100,6 +103,21 @@ def check_gps(gps: list, num_agents: int, spec: ModelSpec) -> list:
                 "gpmpc fit-gp --model on transitions of that model"
             )
     return gps
+
+
+def agent_specs(cfg: Config, num_agents: int) -> list[ModelSpec]:
+    """Every agent's model (lifted to the team's sizes with ``models``).
+
+    Raises:
+        GpmpcError: ``models`` whose length is not the team size.
+    """
+    team = cfg.team()
+    if team is None:
+        return [cfg.model_spec()] * num_agents
+    if team.num_agents != num_agents:
+        raise GpmpcError(f"config key 'models': {team.num_agents} models for {num_agents} agents; give one "
+                         "model per agent")
+    return [team.agent_spec(k) for k in range(num_agents)]
 
 
 def simulate(
@@ -130,9 +148,10 @@ def simulate(
     scenario = scenario or make_scenario(cfg)
     cfg = with_scenario_world(cfg, scenario)
     num_agents = scenario.num_agents
-    system = system_from_config(cfg)
+    agent_specs(cfg, num_agents)  # a team of the scenario's size
+    system = team_system_from_config(cfg)
     if needs_gp(cfg.method):
-        gps = check_gps(gps, num_agents, cfg.model_spec()) if gps is not None \
+        gps = check_gps(gps, num_agents, agent_specs(cfg, num_agents)) if gps is not None \
             else fit_agent_gps(cfg, system, num_agents)
     learning = None
     if gps is not None:
@@ -186,7 +205,7 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem | Plant,
     Returns:
         The :class:`Rollout`.
     """
-    plant = plant_from_config(cfg, system) if isinstance(system, TrueSystem) else system
+    plant = plant_from_config(cfg, system) if isinstance(system, (TrueSystem, TeamSystem)) else system
     num_agents = scenario.num_agents
     noise = noise_sequence(cfg, num_agents)
     recorder = StepRecorder(cfg, num_agents)
@@ -216,7 +235,7 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem | Plant,
             if res is None:
                 break
             step_s = time.perf_counter() - step_start
-            u = project_input(res.inputs[:, 0], nominal.spec)
+            u = nominal.project(res.inputs[:, 0])
             x_prev, x = x, plant.step(t, x, u, noise=noise[t])
             states.append(plant.true_states)
             if learning is not None:

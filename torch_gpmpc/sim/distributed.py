@@ -342,6 +342,9 @@ def simulate_distributed(
     cfg = cfg.replace(method=method or cfg.method)
     scenario = scenario or make_scenario(cfg)
     cfg = with_scenario_world(cfg, scenario)
+    if cfg.models is not None and cfg.team().is_mixed:
+        raise GpmpcError("config key 'models': a mixed team runs in process only (--backend inprocess); the "
+                         "distributed backend needs one model for every agent")
     K = scenario.num_agents
     if K > MAX_AGENTS:
         raise GpmpcError(f"distributed run: at most {MAX_AGENTS} agents, got {K}")

@@ -38,6 +38,8 @@ A scenario file (JSON or TOML) overrides ``Config.scenario``::
     obstacles = [{"center": [0, 1], "radius": 0.5},  # optional: discs/spheres, vertical cylinders
                  {"min": [1, -2], "max": [2, -1]}]   # ({..., "z": [zmin, zmax]}) and boxes
     radii = [0.2, 0.3]                           # optional: body radius per agent (default r_safe / 2)
+    models = ["double-integrator", "robot.toml"] # optional: model per agent (a mixed team; files
+                                                 # relative to this file's folder)
 """
 
 from __future__ import annotations
@@ -64,7 +66,8 @@ from torch_gpmpc.errors import GpmpcError
 logger = logging.getLogger(__name__)
 
 #: Keys a scenario file may contain.
-SCENARIO_KEYS = ("starts", "targets", "reference", "ref_points", "name", "workspace", "obstacles", "radii")
+SCENARIO_KEYS = ("starts", "targets", "reference", "ref_points", "name", "workspace", "obstacles", "radii",
+                 "models")
 #: Largest allowed absolute coordinate in a scenario file.
 MAX_COORDINATE = 1e4
 #: Candidates drawn per batch, and batches tried per agent, by ``random`` scenarios.
@@ -86,6 +89,8 @@ class Scenario:
         workspace: a soft box on the positions the controller keeps to, or ``None``.
         obstacles: static obstacles the agents keep their body radius from, or ``None``.
         radii: the agents' body radii (K,), or ``None`` (the config's ``radii``, else ``r_safe / 2``).
+        models: the agents' models (K built-in names or model files: a mixed team), or ``None`` (the
+            config's ``models``, else its ``model``).
     """
 
     starts: Tensor
@@ -96,6 +101,7 @@ class Scenario:
     workspace: Workspace | None = None
     obstacles: ObstacleField | None = None
     radii: tuple[float, ...] | None = None
+    models: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         starts = torch.as_tensor(self.starts, dtype=torch.float64)
@@ -173,6 +179,7 @@ class Scenario:
             **({} if self.workspace is None else {"workspace": self.workspace.to_table()}),
             **({} if self.obstacles is None else {"obstacles": self.obstacles.to_table()}),
             **({} if self.radii is None else {"radii": list(self.radii)}),
+            **({} if self.models is None else {"models": list(self.models)}),
         }
 
 
@@ -399,17 +406,18 @@ def load_scenario_file(path: str | Path, cfg: Config) -> Scenario:
     if "obstacles" in data:
         obstacles = ObstacleField.parse(data["obstacles"], f"{where}: obstacles")
         obstacles.check_dim(cfg.position_dim, f"{where}: obstacles")
+    models = _parse_models(data["models"], starts.shape[0], path.parent, where) if "models" in data else None
     if starts.shape[0] != cfg.num_agents:
         logger.info("%s has %d agents; it overrides num_agents=%d", where, starts.shape[0], cfg.num_agents)
-    return Scenario(starts, targets, reference, ref_points, name, workspace, obstacles, radii)
+    return Scenario(starts, targets, reference, ref_points, name, workspace, obstacles, radii, models)
 
 
 def with_scenario_world(cfg: Config, scenario: Scenario) -> Config:
-    """``cfg`` with the scenario's workspace, obstacles and radii, where it has them (they override
-    the config's ``workspace``, ``obstacles`` and ``radii``).
+    """``cfg`` with the scenario's workspace, obstacles, radii and models, where it has them (they
+    override the config's ``workspace``, ``obstacles``, ``radii`` and ``models``).
 
     Raises:
-        GpmpcError: ``radii`` whose length is not the scenario's team size.
+        GpmpcError: ``radii`` or ``models`` whose length is not the scenario's team size.
     """
     changes = {}
     if scenario.workspace is not None and scenario.workspace != cfg.workspace:
@@ -418,8 +426,13 @@ def with_scenario_world(cfg: Config, scenario: Scenario) -> Config:
         changes["obstacles"] = scenario.obstacles.to_table()
     if scenario.radii is not None and scenario.radii != cfg.radii:
         changes["radii"] = list(scenario.radii)
+    if scenario.models is not None and scenario.models != cfg.models:
+        changes["models"] = list(scenario.models)
     out = cfg.replace(**changes) if changes else cfg
     out.controller_settings().check_team(scenario.num_agents, "config key")
+    if out.models is not None and len(out.models) != scenario.num_agents:
+        raise GpmpcError(f"config key 'models': {len(out.models)} models for {scenario.num_agents} agents; "
+                         "give one model per agent")
     return out
 
 
@@ -496,6 +509,15 @@ def _parse_radii(value: Any, num_agents: int, where: str) -> tuple[float, ...]:
         if not 0 < r <= 1e3:
             raise GpmpcError(f"{where}: radii[{k}] = {r:g}; give a body radius in (0, 1000]")
     return radii
+
+
+def _parse_models(value: Any, num_agents: int, folder: Path, where: str) -> tuple[str, ...]:
+    """``models``: K built-in names or model files (a relative file that exists next to the scenario
+    file is taken from there)."""
+    if not isinstance(value, list) or len(value) != num_agents or not all(isinstance(v, str) for v in value):
+        raise GpmpcError(f"{where}: 'models' must be a list of {num_agents} model names or files (one per agent), "
+                         f"got {value!r}")
+    return tuple(str(folder / v) if not Path(v).is_absolute() and (folder / v).is_file() else v for v in value)
 
 
 def _closest_pair(points: Tensor, required: Tensor) -> tuple[int, int, float, float]:
