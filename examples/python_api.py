@@ -106,7 +106,7 @@ def run(steps: int = 50, gradient_step: int = 14, agents: int = 4, horizon: int 
 
     # gradients of a plan cost at one step, from the same warm start, with a fixed number of
     # ADMM iterations (a stopping test met at rho but not at rho + h would make the finite
-    # differences jump)
+    # differences jump) and no safety fallback (its re-planned plans do not depend on rho)
     x_g, xref_g, warm = saved
     probe = Controller(model, gps=gps, settings=settings.replace(admm_tol=1e-12, admm_dual_tol=1e-12,
                                                                 admm_max_iter=25))
@@ -117,7 +117,7 @@ def run(steps: int = 50, gradient_step: int = 14, agents: int = 4, horizon: int 
 
     def cost(rho, split):
         probe.warm = warm
-        return plan_cost(probe.step(x_g, xref_g, rho=rho, risk_split=split), xref_g)
+        return plan_cost(probe.step(x_g, xref_g, rho=rho, risk_split=split, safety_fallback=False), xref_g)
 
     rho = torch.tensor(20.0, dtype=torch.float64, requires_grad=True)
     split = torch.tensor(0.5, dtype=torch.float64, requires_grad=True)

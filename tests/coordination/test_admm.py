@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from torch_gpmpc.coordination.admm import ADMM, initial_state
+from torch_gpmpc.coordination.agent_step import LocalStep
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.coordination.graph import communication_graph, graph_from_edges
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
@@ -170,6 +171,54 @@ def test_obstacle_problem_keeps_the_neighbours_plans_fixed():
     gap = (data.normals * (sol.X[:, None, 1:] - fixed[:, :, 1:])).sum(-1) - data.bounds
     assert float((gap + sol.slack).min()) > -pinned
     assert float(sol.slack[gap > 1e-3].abs().max()) < 1e-6
+
+
+def test_buffered_voronoi_cells_closed_form_and_the_re_plan_keeps_each_agent_in_its_half():
+    from torch_gpmpc.control.solvers import make_local_solver
+    from torch_gpmpc.coordination.agent_step import cell_agents, cell_planes, cell_problem, leaves_cell
+    from torch_gpmpc.coordination.state import initial_state
+
+    # two agents at (-1, 0) and (1, 0), bound 0.5: agent 0's cell is x <= -0.25, agent 1's x >= 0.25
+    x0 = torch.tensor([[-1.0, 0.0], [1.0, 0.0]], dtype=torch.float64)
+    graph = communication_graph(x0, None)
+    plans = x0[:, None].repeat(1, 4, 1)
+    n, m = cell_planes(plans, plans[graph.slot_nbr], [0, 1])
+    torch.testing.assert_close(n[:, 0], torch.tensor([[-1.0, 0.0], [1.0, 0.0]], dtype=torch.float64))
+    torch.testing.assert_close(m[:, 0], torch.zeros(2, dtype=torch.float64))
+    bounds = torch.full((2, 1), 0.5, dtype=torch.float64)
+    plans[0, 1, 0], plans[1, 1, 0] = -0.2, 0.3  # agent 0 steps over its plane, agent 1 stays inside
+    assert leaves_cell(plans, graph, bounds, 1e-3, [0, 1]).tolist() == [True, False]
+    assert cell_agents(torch.tensor([False, False]), graph).tolist() == [True, True]
+    assert cell_agents(torch.tensor([False, True]), graph).tolist() == [False, False]  # a neighbour with momentum
+
+    # both re-plan at once, heading straight at each other: each keeps to its half at every step
+    T = 6
+    nominal = NominalModel(2)
+    state = initial_state(x0, T, graph)
+    xref = x0.flip(0)[:, None].expand(2, T + 1, 2).clone()
+    admm = ADMM(LocalStep(Config(method="nominal", horizon=T), nominal))
+    ctx, state = admm.prepare(x0, xref, graph, None)
+    assembled = admm.agent_step.assemble(x0, xref, state, graph, ctx.rho, ctx.eps_self)
+    data = assembled.data
+    sol = make_local_solver(T, 2, 1, nominal, 2.0, 1e-3, 1e4, "fast")(
+        cell_problem(data, state.plans, state.plans[graph.slot_nbr], [0, 1]))
+    assert bool(sol.ok.all()) and float(sol.slack.max()) < 1e-8
+    # within what the pinned copies move (FIXED_OBSTACLE_RHO), here a few 1e-6
+    assert float(sol.X[0, 1:, 0].max()) <= -0.25 + 1e-5 and float(sol.X[1, 1:, 0].min()) >= 0.25 - 1e-5
+    assert float((sol.X[0, 1:] - sol.X[1, 1:]).norm(dim=-1).min()) >= 0.5 - 2e-5
+
+
+def test_buffered_voronoi_fallback_keeps_a_capped_crowd_safe():
+    """ADMM capped at 2 iterations in a crowded crossing (8 agents on a circle, noiseless): the
+    fallback acts on most steps; no pair comes closer than r_safe and every agent arrives."""
+    from torch_gpmpc.sim.closed_loop import simulate
+    from torch_gpmpc.sim.metrics import compute_metrics
+
+    cfg = Config(scenario="circle", num_agents=8, admm_max_iter=2, noise_std=0.0, gp_samples=50, gp_iters=20)
+    m = compute_metrics(simulate(cfg))
+    assert m["converged_fraction"] == 0.0 and m["fallback_steps"] > 20
+    assert m["violations"] == 0 and m["min_pair_distance"] >= cfg.r_safe
+    assert all(a is not None for a in m["arrival_steps"])
 
 
 def test_capped_admm_falls_back_to_safe_plans_in_closed_loop():

@@ -48,7 +48,8 @@ from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.coordination.bodies import edge_distances
 from torch_gpmpc.coordination.agent_step import (
-    LocalStep, edge_copies, edge_variances, fall_back_to_previous, obstacle_problem, pair_safety, slot_risks,
+    LocalStep, cell_agents, edge_copies, edge_variances, fall_back_to_previous, fallback_problem, leaves_cell, pair_safety,
+    slot_risks,
 )
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.mission_risk import (
@@ -316,9 +317,10 @@ class ADMM:
             max_iter: iteration cap (defaults to ``settings.admm_max_iter``).
             tol: absolute primal tolerance of the stopping rule (defaults to ``settings.admm_tol``;
                 0 never stops early). Penalty balancing always uses the configured tolerances.
-            safety_fallback: when ADMM stops unconverged, re-plan the agents of every pair whose
-                plans are unsafe at tau = 1 against their neighbours' latest plans as fixed
-                obstacles (:func:`~.agent_step.obstacle_problem`).
+            safety_fallback: when ADMM stops unconverged, re-plan agents that can stop at once
+                (among neighbours that can too) inside their buffered Voronoi cells when their
+                plans leave them, and other agents of pairs unsafe at tau = 1 against their
+                neighbours' latest plans (:func:`~.agent_step.fallback_problem`).
         """
         s = self.settings
         ctx, state = self.prepare(x0, xref, graph, warm, rho, risk_split, tol)
@@ -342,14 +344,21 @@ class ADMM:
     def _check_safety(self, state: ADMMState, data, graph: Graph, layer, result: StepResult,
                       fallback: bool) -> ADMMState:
         """Judge the applied plans at tau = 1 (own plans, not copies); after an unconverged stop,
-        re-plan the agents of unsafe pairs against their neighbours' latest plans."""
+        re-plan (:func:`~.agent_step.fallback_problem`) every cell agent
+        (:func:`~.agent_step.cell_agents`) whose plan leaves its buffered Voronoi cell at tau = 1,
+        and every other agent in a pair unsafe at tau = 1."""
         bounds = data.bounds[:, :, 0].detach()
         position = self.nominal.position
         unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.settings.admm_tol, position)
-        if fallback and not result.converged and bool(unsafe.any()):
+        replan, cells = unsafe, cell_agents(self.nominal.momentum(graph.num_agents), graph)
+        if fallback and not result.converged and bool(cells.any()):
+            replan = torch.where(cells, leaves_cell(state.plans.detach(), graph, bounds, self.settings.admm_tol,
+                                                    position), unsafe)
+        if fallback and not result.converged and bool(replan.any()):
             with torch.no_grad():
-                sol = self.agent_step.solve(layer, obstacle_problem(data, state.plans[graph.slot_nbr]))
-            use = unsafe & sol.ok
+                sol = self.agent_step.solve(layer, fallback_problem(data, state.plans, state.plans[graph.slot_nbr],
+                                                                    position, cells))
+            use = replan & sol.ok
             if bool(use.any()):
                 state = dataclasses.replace(state, plans=torch.where(use[:, None, None], sol.X, state.plans),
                                             inputs=torch.where(use[:, None, None], sol.U, state.inputs))

@@ -108,7 +108,7 @@ class Controller:
         return communication_graph(self.model.positions(x.detach()), self.settings.comm_radius)
 
     def step(self, x: Tensor, xref: Tensor, graph: Graph | None = None, rho: float | Tensor | None = None,
-             risk_split: float | Tensor | None = None) -> StepResult:
+             risk_split: float | Tensor | None = None, safety_fallback: bool = True) -> StepResult:
         """Plan one control step for every agent.
 
         Args:
@@ -121,6 +121,10 @@ class Controller:
                 at the last step (new edges start at ``settings.rho``).
             risk_split: scalar or (K, K) share of each pair's risk taken by its lower-indexed
                 agent (default the settings'); a tensor gets gradients.
+            safety_fallback: after an unconverged stop, re-plan the agents of unsafe or conflicting
+                pairs against their neighbours (:meth:`ADMM.solve_step
+                <torch_gpmpc.coordination.admm.ADMM.solve_step>`); those plans do not depend on
+                ``rho``, so a gradient probe with a fixed iteration budget turns it off.
 
         Returns:
             The :class:`~torch_gpmpc.coordination.state.StepResult`: ``plans`` (K, T+1, n),
@@ -143,7 +147,8 @@ class Controller:
         warm = None if self.warm is None or self.warm.plans.shape[0] != K else self.warm.shifted()
         if warm is not None and rho is not None:
             warm = dataclasses.replace(warm, rho=None)  # the given rho starts every edge
-        result = self.admm.solve_step(x, xref, graph, warm=warm, rho=rho, risk_split=risk_split)
+        result = self.admm.solve_step(x, xref, graph, warm=warm, rho=rho, risk_split=risk_split,
+                                      safety_fallback=safety_fallback)
         self.warm = result.state.detached()
         return result
 

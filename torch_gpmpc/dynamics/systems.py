@@ -140,6 +140,11 @@ class NominalModel:
                     out.append((p, v, a))
         return out
 
+    def momentum(self, num_agents: int) -> Tensor:
+        """(K,) bool: whether each of K agents of this model has momentum (a state that drives its
+        position, :meth:`rate_states`), so that it cannot stop at once."""
+        return torch.full((num_agents,), bool(self.rate_states()), dtype=torch.bool)
+
     def reference_states(self, path: Tensor) -> Tensor:
         """State references from position references (..., S, P) -> (..., S, n).
 

@@ -93,6 +93,10 @@ class TeamNominal:
         """States at rest at ``positions`` (K, P) -> (K, n) (every other state 0, for every model)."""
         return self.models[0].states_at(positions)
 
+    def momentum(self, num_agents: int) -> Tensor:
+        """(K,) bool: whether each agent's model has momentum (``num_agents`` must be K)."""
+        return torch.tensor([bool(self.agent_model(k).rate_states()) for k in range(num_agents)], dtype=torch.bool)
+
     def reference_states(self, path: Tensor) -> Tensor:
         """Each agent's state references from its position references: (K, S, P) -> (K, S, n)."""
         return self.per_group(NominalModel.reference_states, path)

@@ -28,7 +28,7 @@ from torch_gpmpc.control.problem import FAILURE_KINDS, LocalSolution
 from torch_gpmpc.coordination.admm import consensus_update
 from torch_gpmpc.coordination.penalty import balance_penalty, edge_residuals, starting_penalties
 from torch_gpmpc.coordination.agent_step import (
-    edge_copies, fall_back_to_previous, obstacle_problem, pair_safety, slot_risks,
+    cell_agents, edge_copies, fall_back_to_previous, fallback_problem, leaves_cell, pair_safety, slot_risks,
 )
 from torch_gpmpc.coordination.controller import make_agent_step
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
@@ -296,7 +296,8 @@ class AgentController:
 
     def check_safety(self, converged: bool) -> None:
         """Judge the own plan at tau = 1 against the neighbours' latest plans; after an
-        unconverged stop, re-plan against them as fixed obstacles if unsafe (as the in-process
+        unconverged stop, re-plan (inside its buffered Voronoi cell if it is a cell agent and its
+        plan leaves it, else against its neighbours' plans if unsafe; as the in-process
         :class:`~torch_gpmpc.coordination.admm.ADMM` does; here each agent sees only its own
         pairs and its neighbours' plans before their own fallback)."""
         if not self.graph.num_edges or not self.result.iterations:
@@ -307,8 +308,13 @@ class AgentController:
         full_bounds[k] = bounds[0]
         unsafe, _, _ = pair_safety(state.plans, self.graph, full_bounds, tol,
                                    self.local.nominal.position)
-        if not converged and bool(unsafe[k]):
-            data = obstacle_problem(self.assembled.data, state.plans[self.graph.slot_nbr[k:k + 1]])
+        replan, position = unsafe, self.local.nominal.position
+        cells = cell_agents(self.local.nominal.momentum(self.num_agents), self.graph)
+        if not converged and bool(cells[k]):
+            replan = leaves_cell(state.plans, self.graph, full_bounds, tol, position)
+        if not converged and bool(replan[k]):
+            data = fallback_problem(self.assembled.data, state.plans[k:k + 1], state.plans[self.graph.slot_nbr[k:k + 1]],
+                                    position, cells[k:k + 1])
             sol = self.local.solve(self.layer, data)
             if bool(sol.ok[0]):
                 plans, inputs = state.plans.clone(), state.inputs.clone()
