@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from torch_gpmpc.coordination.admm import ADMM, initial_state
+from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.coordination.agent_step import LocalStep
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.coordination.graph import communication_graph, graph_from_edges
@@ -219,6 +220,8 @@ def test_buffered_voronoi_fallback_keeps_a_capped_crowd_safe():
     assert m["converged_fraction"] == 0.0 and m["fallback_steps"] > 20
     assert m["violations"] == 0 and m["min_pair_distance"] >= cfg.r_safe
     assert all(a is not None for a in m["arrival_steps"])
+    with pytest.raises(GpmpcError, match="'safety_fallback'.*cells, obstacles"):
+        cfg.replace(safety_fallback="cell")
 
 
 def test_capped_admm_falls_back_to_safe_plans_in_closed_loop():

@@ -79,6 +79,17 @@ def test_drones_and_ground_robots_plan_with_their_own_dynamics_and_bounds():
     assert step.message_size == 2 * 9 * 4 + 8  # lifted state, plus the T variances of the sum margin
 
 
+def test_the_controller_takes_one_model_per_agent():
+    settings = ControllerSettings(method="nominal", horizon=6)
+    ctrl = Controller([DI, SI, DI], settings=settings)
+    assert isinstance(ctrl.agent_step, TeamStep) and ctrl.model.dim == 4 and ctrl.message_size == 2 * 7 * 4
+    x0, xref = crossing(ctrl.model, 3, 6)
+    step = ctrl.step(x0, xref)
+    again = ADMM(TeamStep(settings, team_spec([DI, SI, DI]))).solve_step(x0, xref, ctrl.graph(x0))
+    torch.testing.assert_close(step.plans, again.plans, rtol=0, atol=0)
+    assert isinstance(Controller([DI, DI], settings=settings).agent_step, LocalStep)  # one model: as before
+
+
 def test_models_that_cannot_plan_together_are_refused_naming_the_fix():
     with pytest.raises(GpmpcError, match="sampling time"):
         team_spec([ModelSpec.double_integrator(2, dt=0.2), SI])

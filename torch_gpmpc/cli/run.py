@@ -130,6 +130,13 @@ def _obstacle_note(m: dict) -> str:
     return f", obstacle distance {m['min_obstacle_distance']:.3f} ({m['obstacle_violations']} hits)"
 
 
+def _clearance_note(m: dict) -> str:
+    """The closest pair's clearance (its distance less the pair's required one: ``r_safe``, or
+    ``r_k + r_j`` with ``radii``)."""
+    clearance = m.get("min_pair_clearance")
+    return "" if clearance is None else f", closest clearance {clearance:+.3f}"
+
+
 def _summary(m: dict, out: Path) -> str:
     def num(value, fmt: str) -> str:  # null when K = 1 (no pairs) or no step was taken
         return "-" if value is None else format(value, fmt)
@@ -139,6 +146,7 @@ def _summary(m: dict, out: Path) -> str:
     return (
         f"{m['method']} seed {m['seed']}: {arrival}, {'all at once at t = ' + str(ttt) if m['reached'] else 'never all at once'} "
         f"in {m['steps']} steps; min distance {num(m['min_pair_distance'], '.3f')} "
-        f"({m['violations']} violations of r_safe{_risk_note(m)}){_obstacle_note(m)}; ADMM iterations mean {num(m['admm_iterations_mean'], '.1f')} "
+        f"({m['violations']} violating step-pairs{_clearance_note(m)}{_risk_note(m)}){_obstacle_note(m)}; "
+        f"ADMM iterations mean {num(m['admm_iterations_mean'], '.1f')} "
         f"max {num(m['admm_iterations_max'], 'd')}; wall {m['wall_time_s']:.1f} s -> {out}"
     )

@@ -135,6 +135,10 @@ class Config:
         pair_buffer: extra distance the collision rows ask beyond ``r_safe`` (or ``r_k + r_j``),
             for example ``admm_tol``, so that plans whose copies agree only to the consensus
             tolerance still keep ``r_safe``; metrics and risk bounds judge ``r_safe`` itself.
+        safety_fallback: the re-plan after an unconverged ADMM stop: ``cells`` (agents that can
+            stop at once, among neighbours that can too, re-plan inside buffered Voronoi cells;
+            agents with momentum against their neighbours' plans as fixed obstacles) or
+            ``obstacles`` (every agent of a pair unsafe at tau = 1 against its neighbours' plans).
         num_obstacles: the cylinders (discs in 2D) of ``scenario = forest``.
         deadlock_detour: an agent stuck behind a neighbour (no progress for 10 steps) detours
             round it on a fixed side (:class:`~torch_gpmpc.sim.detours.DeadlockBreaker`).
@@ -214,6 +218,7 @@ class Config:
     radii: tuple[float, ...] | None = None
     models: tuple[str, ...] | None = None
     pair_buffer: float = 0.0
+    safety_fallback: str = "cells"
     num_obstacles: int = 20
     deadlock_detour: bool = True
     plant: str = "model"

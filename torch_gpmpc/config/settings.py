@@ -32,6 +32,7 @@ RHO_UPDATES = ("fixed", "adaptive")
 ADMM_STOPS = ("primal", "primal-dual")
 RISK_MODES = ("pair_step", "mission")
 SOLVERS = ("fast", "clarabel", "reference")
+SAFETY_FALLBACKS = ("cells", "obstacles")
 
 CONTROLLER_CHOICES: dict[str, tuple] = {
     "uncertainty": ("auto", *UNCERTAINTY_MODES),
@@ -42,6 +43,7 @@ CONTROLLER_CHOICES: dict[str, tuple] = {
     "solver": SOLVERS,
     "method": METHOD_NAMES,
     "risk_mode": RISK_MODES,
+    "safety_fallback": SAFETY_FALLBACKS,
 }
 
 CONTROLLER_RANGES: dict[str, tuple[typing.Callable[[typing.Any], bool], str]] = {
@@ -86,6 +88,10 @@ class ControllerSettings:
         r_safe, eps, risk_split: safety radius, pair risk, lower-indexed agent's share.
         radii: each agent's body radius (a pair keeps ``r_k + r_j`` between centres, an agent
             ``r_k`` from every obstacle), or ``None``: ``r_safe / 2`` each.
+        safety_fallback: the re-plan after an unconverged ADMM stop: ``cells`` (agents that can
+            stop at once, among neighbours that can too, re-plan inside buffered Voronoi cells;
+            others against their neighbours' plans) or ``obstacles`` (every agent of a pair unsafe
+            at tau = 1 against its neighbours' plans as fixed obstacles, the earlier rule).
         pair_buffer: what the collision rows ask beyond the pair's distance (e.g. ``admm_tol``:
             copies that agree only to the consensus tolerance still keep it); the safety metrics
             and the risk bounds still judge the distance itself.
@@ -143,6 +149,7 @@ class ControllerSettings:
     obstacle_rows: int = 4
     radii: tuple[float, ...] | None = None
     pair_buffer: float = 0.0
+    safety_fallback: str = "cells"
 
     def __post_init__(self) -> None:
         parse_world(self, "controller setting")

@@ -52,7 +52,7 @@ class LocalProblemData:
         lam_nbr: multiplier of the neighbour copy per edge, shape (B, M, T+1, D).
         rho_nbr: penalty of the neighbour copies alone, scalar or (B, M); ``None`` = ``rho``.
             A large ``rho_nbr`` with ``rho = 0`` pins the copies to ``z_nbr``: the neighbours'
-            plans become fixed obstacles (the safety fallback).
+            plans become fixed obstacles (the safety fallback's re-plan).
         dyn_B: linearized input matrices ``B + J_u`` (GPs that read the input), shape
             (B, T, D, Du); ``None`` = the nominal B at every step.
         halfspace_normals: extra soft rows ``n^T X_tau >= b`` (no neighbour copy; e.g. obstacle

@@ -351,6 +351,7 @@ class ADMM:
         position = self.nominal.position
         unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.settings.admm_tol, position)
         replan, cells = unsafe, cell_agents(self.nominal.momentum(graph.num_agents), graph)
+        cells = cells & (self.settings.safety_fallback == "cells")
         if fallback and not result.converged and bool(cells.any()):
             replan = torch.where(cells, leaves_cell(state.plans.detach(), graph, bounds, self.settings.admm_tol,
                                                     position), unsafe)

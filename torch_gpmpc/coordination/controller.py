@@ -13,6 +13,7 @@ from torch import Tensor
 from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
+from torch_gpmpc.config.team import team_spec
 from torch_gpmpc.coordination.admm import ADMM
 from torch_gpmpc.coordination.agent_step import LocalStep, as_nominal
 from torch_gpmpc.coordination.graph import Graph, communication_graph
@@ -20,7 +21,7 @@ from torch_gpmpc.coordination.state import ADMMState, StepResult
 from torch_gpmpc.coordination.team_step import TeamStep
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.dynamics.systems import NominalModel, TrueSystem, VortexWind
-from torch_gpmpc.dynamics.team import TeamSystem
+from torch_gpmpc.dynamics.team import TeamNominal, TeamSystem
 from torch_gpmpc.errors import GpmpcError
 
 
@@ -36,7 +37,9 @@ class Controller:
     Args:
         model: the agents' known linear model: a :class:`ModelSpec`
             (``ModelSpec.double_integrator(...)``, ``ModelSpec.load(path)``), a
-            :class:`~torch_gpmpc.dynamics.systems.NominalModel`, or a model file path.
+            :class:`~torch_gpmpc.dynamics.systems.NominalModel`, or a model file path; or a list of
+            them, one per agent (a mixed team: states and inputs lifted to the largest model's
+            sizes, :mod:`~torch_gpmpc.config.team`).
         gps: one residual model per agent (the :class:`~torch_gpmpc.gp.protocol.ResidualModel`
             protocol: a :class:`~torch_gpmpc.gp.model.ResidualGP`, or user GPyTorch models wrapped
             by :meth:`ResidualGP.from_gpytorch`); needed by the ``gp*`` and ``*-chance`` methods.
@@ -61,20 +64,25 @@ class Controller:
         ((2, 9, 4), (2, 8, 2), 72, 'propagated')
     """
 
-    def __init__(self, model: ModelSpec | NominalModel | str | Path, gps: Sequence | None = None,
+    def __init__(self, model: ModelSpec | NominalModel | str | Path | Sequence, gps: Sequence | None = None,
                  settings: ControllerSettings | None = None, wind: VortexWind | None = None) -> None:
-        if isinstance(model, (str, Path)):
-            model = ModelSpec.load(model)
-        if not isinstance(model, (ModelSpec, NominalModel)):
-            raise GpmpcError(f"Controller: model must be a ModelSpec, a NominalModel or a model file path, "
-                             f"got {type(model).__name__}")
+        models = list(model) if isinstance(model, (list, tuple)) else [model]
+        models = [ModelSpec.load(m) if isinstance(m, (str, Path)) else m for m in models]
+        for m in models:
+            if not isinstance(m, (ModelSpec, NominalModel)):
+                raise GpmpcError(f"Controller: model must be a ModelSpec, a NominalModel or a model file path (or "
+                                 f"a list of them, one per agent), got {type(m).__name__}")
         settings = settings or ControllerSettings()
         method = Method.parse(settings.method)
         if method.needs_gp and gps is None:
             raise GpmpcError(f"Controller: method {method.value!r} needs one residual model per agent (gps=[...]); "
                              "use settings.method='nominal' for none")
-        self.agent_step = LocalStep(settings, as_nominal(model), method, wind,
-                                    None if gps is None else list(gps))
+        gps = None if gps is None else list(gps)
+        team = team_spec([as_nominal(m).spec for m in models]) if len(models) > 1 else None
+        if team is not None and team.is_mixed:
+            self.agent_step = TeamStep(settings, team, method, wind, gps)
+        else:
+            self.agent_step = LocalStep(settings, as_nominal(models[0]), method, wind, gps)
         self.admm = ADMM(self.agent_step)
         self.warm: ADMMState | None = None
 
@@ -84,8 +92,8 @@ class Controller:
         return self.agent_step.settings
 
     @property
-    def model(self) -> NominalModel:
-        """The agents' known model (tensor form)."""
+    def model(self) -> NominalModel | TeamNominal:
+        """The agents' known model (tensor form; a mixed team's models, one per agent)."""
         return self.agent_step.nominal
 
     @property

@@ -107,8 +107,9 @@ class StepResult:
         messages: (K,) numbers each agent sends per iteration.
         solution: the final :class:`LocalSolution` (kept for gradients and diagnostics).
         lost_agents: agents a distributed run has lost (they follow their last plans).
-        fallback: ADMM stopped unconverged with some pair's plans unsafe, and the agents of
-            such pairs re-planned against their neighbours' latest plans as fixed obstacles.
+        fallback: ADMM stopped unconverged and some agents re-planned (inside their buffered
+            Voronoi cells, or with momentum against their neighbours' latest plans as fixed
+            obstacles; :func:`~torch_gpmpc.coordination.agent_step.fallback_problem`).
         unsafe_plan: after any fallback, some pair's applied plans are closer at tau = 1 than
             their collision rows require (``r_safe`` plus the pair's margin, less ``admm_tol``).
         pair_separation: (K, K) the applied plans' distance at tau = 1 per pair (NaN off edges).

@@ -309,7 +309,8 @@ class AgentController:
         unsafe, _, _ = pair_safety(state.plans, self.graph, full_bounds, tol,
                                    self.local.nominal.position)
         replan, position = unsafe, self.local.nominal.position
-        cells = cell_agents(self.local.nominal.momentum(self.num_agents), self.graph)
+        cells = cell_agents(self.local.nominal.momentum(self.num_agents), self.graph) \
+            & (self.cfg.safety_fallback == "cells")
         if not converged and bool(cells[k]):
             replan = leaves_cell(state.plans, self.graph, full_bounds, tol, position)
         if not converged and bool(replan[k]):
