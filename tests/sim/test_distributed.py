@@ -30,6 +30,24 @@ from torch_gpmpc.dynamics.systems import make_system
 QUICK = {"method": "gp-chance", "max_steps": 3, "admm_max_iter": 5, "gp_iters": 5}
 
 
+def drive_agents(agents: list, t: int, x: torch.Tensor, iterations: int) -> list:
+    """One step of the agent protocol by hand (no processes): every agent of a complete graph
+    begins step t at its state in x, learns its neighbours' plans and runs ``iterations`` ADMM
+    iterations; returns each iteration's per-agent ``update`` results."""
+    K = len(agents)
+    new = {k: agents[k].begin_step(t, x[k].clone(), [j for j in range(K) if j != k]) for k in range(K)}
+    for k in range(K):
+        for j in new[k]:
+            agents[j].set_neighbour_plan(k, agents[k].own_plan().clone())
+    for a in agents:
+        a.finish_setup()
+    residuals = []
+    for _ in range(iterations):
+        own = {k: agents[k].solve() for k in range(K)}
+        residuals.append([agents[k].update({j: own[j][k] for j in own[k]}) for k in range(K)])
+    return residuals
+
+
 @pytest.mark.parametrize("input_rate_weight", [0.0, 0.3])
 def test_agent_controllers_reproduce_batched_admm_bit_for_bit(input_rate_weight):
     """No processes: K AgentControllers exchanging copies by hand give ADMM.solve_step's
@@ -49,17 +67,9 @@ def test_agent_controllers_reproduce_batched_admm_bit_for_bit(input_rate_weight)
         for t in range(2):
             res = admm.solve_step(x, sc.reference_window(t, cfg.horizon), communication_graph(x, None), warm=warm)
             warm = res.state.shifted()
-            new = {k: agents[k].begin_step(t, x[k].clone(), [j for j in range(K) if j != k]) for k in range(K)}
-            for k in range(K):
-                for j in new[k]:
-                    agents[j].set_neighbour_plan(k, agents[k].own_plan().clone())
-            for a in agents:
-                a.finish_setup()
-            for it in range(res.iterations):
-                own = {k: agents[k].solve() for k in range(K)}
-                out = [agents[k].update({j: own[j][k] for j in own[k]}) for k in range(K)]
-                assert max(o[0] for o in out) == res.primal_residuals[it]
-                assert max(o[1] for o in out) == res.dual_residuals[it]
+            residuals = drive_agents(agents, t, x, res.iterations)
+            assert [max(o[0] for o in out) for out in residuals] == res.primal_residuals
+            assert [max(o[1] for o in out) for out in residuals] == res.dual_residuals
             u = torch.stack([a.end_step().u for a in agents])
             assert torch.equal(u, res.inputs[:, 0])
             x = system.step(x, clip_norm(u, cfg.u_max), noise=noise[t])
@@ -83,16 +93,7 @@ def test_agent_controllers_reproduce_the_buffered_voronoi_fallback():
         for t in range(2):  # the fallback acts at t = 1
             res = admm.solve_step(x, sc.reference_window(t, cfg.horizon), communication_graph(x, None), warm=warm)
             warm, fallbacks = res.state.shifted(), fallbacks + int(res.fallback)
-            new = {k: agents[k].begin_step(t, x[k].clone(), [j for j in range(K) if j != k]) for k in range(K)}
-            for k in range(K):
-                for j in new[k]:
-                    agents[j].set_neighbour_plan(k, agents[k].own_plan().clone())
-            for a in agents:
-                a.finish_setup()
-            for _ in range(res.iterations):
-                own = {k: agents[k].solve() for k in range(K)}
-                for k in range(K):
-                    agents[k].update({j: own[j][k] for j in own[k]})
+            drive_agents(agents, t, x, res.iterations)
             for a in agents:
                 a.check_safety(res.converged)
             u = torch.stack([a.end_step().u for a in agents])

@@ -48,7 +48,7 @@ from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.coordination.bodies import edge_distances
 from torch_gpmpc.coordination.agent_step import (
-    LocalStep, cell_agents, edge_copies, edge_variances, fall_back_to_previous, fallback_problem, leaves_cell, pair_safety,
+    LocalStep, edge_copies, edge_variances, fall_back_to_previous, fallback_agents, fallback_problem, pair_safety,
     slot_risks,
 )
 from torch_gpmpc.coordination.graph import Graph
@@ -350,12 +350,12 @@ class ADMM:
         bounds = data.bounds[:, :, 0].detach()
         position = self.nominal.position
         unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.settings.admm_tol, position)
-        replan, cells = unsafe, cell_agents(self.nominal.momentum(graph.num_agents), graph)
-        cells = cells & (self.settings.safety_fallback == "cells")
-        if fallback and not result.converged and bool(cells.any()):
-            replan = torch.where(cells, leaves_cell(state.plans.detach(), graph, bounds, self.settings.admm_tol,
-                                                    position), unsafe)
-        if fallback and not result.converged and bool(replan.any()):
+        replan = torch.zeros_like(unsafe)
+        if fallback and not result.converged:
+            replan, cells = fallback_agents(state.plans.detach(), graph, bounds, self.settings.admm_tol, position,
+                                            self.nominal.momentum(graph.num_agents), unsafe,
+                                            self.settings.safety_fallback)
+        if bool(replan.any()):
             with torch.no_grad():
                 sol = self.agent_step.solve(layer, fallback_problem(data, state.plans, state.plans[graph.slot_nbr],
                                                                     position, cells))

@@ -524,6 +524,27 @@ def cell_agents(momentum: Tensor, graph: Graph) -> Tensor:
     return ~momentum & ~nbr_momentum
 
 
+def fallback_agents(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, position: list[int],
+                    momentum: Tensor, unsafe: Tensor, rule: str) -> tuple[Tensor, Tensor]:
+    """Who re-plans after an unconverged stop, and how (the rule both backends apply).
+
+    Args:
+        plans: (K, T+1, D) the agents' own plans. graph: the communication graph.
+        bounds: (K, M) collision bounds at tau = 1 (``-inf``: unknown). tol: allowance.
+        position: the state indices of the position. momentum: (K,) bool.
+        unsafe: (K,) bool, agents in a pair unsafe at tau = 1 (:func:`pair_safety`).
+        rule: the ``safety_fallback`` setting, ``cells`` or ``obstacles``.
+
+    Returns:
+        ``(replan, cells)``, each (K,) bool: cell agents (:func:`cell_agents`) re-plan when their
+        plan leaves its cell (:func:`leaves_cell`), the others when ``unsafe``.
+    """
+    cells = cell_agents(momentum, graph) if rule == "cells" else torch.zeros_like(unsafe)
+    if not bool(cells.any()):
+        return unsafe, cells
+    return torch.where(cells, leaves_cell(plans, graph, bounds, tol, position), unsafe), cells
+
+
 def fallback_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, position: list[int],
                      cells: Tensor) -> LocalProblemData:
     """The safety fallback's re-plan of each agent: inside its buffered Voronoi cell
@@ -534,10 +555,12 @@ def fallback_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tenso
         data: the last iteration's problems. own_plans: (B, T+1, D). nbr_plans: (B, M, T+1, D).
         position: the state indices of the position. cells: (B,) bool.
     """
-    fixed = obstacle_problem(data, nbr_plans)
     if not bool(cells.any()):
-        return fixed
+        return obstacle_problem(data, nbr_plans)
     cell = cell_problem(data, own_plans, nbr_plans, position)
+    if bool(cells.all()):
+        return cell
+    fixed = obstacle_problem(data, nbr_plans)
     rows = cells[:, None, None, None]
     return dataclasses.replace(fixed, normals=torch.where(rows, cell.normals, fixed.normals),
                                z_nbr=torch.where(rows, cell.z_nbr, fixed.z_nbr))

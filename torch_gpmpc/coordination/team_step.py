@@ -23,7 +23,7 @@ from torch_gpmpc.coordination.agent_step import Assembled, LocalStep, as_setting
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult
 from torch_gpmpc.dynamics.methods import Method
-from torch_gpmpc.dynamics.systems import VortexWind
+from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 from torch_gpmpc.dynamics.team import TeamNominal, by_group
 from torch_gpmpc.errors import GpmpcError
 
@@ -41,12 +41,14 @@ def select_problems(data: LocalProblemData, rows: Tensor) -> LocalProblemData:
     return dataclasses.replace(data, **changes)
 
 
-def merge_problems(parts: list[LocalProblemData], members: list[Tensor], input_matrices: list[Tensor]) -> LocalProblemData:
+def merge_problems(parts: list[LocalProblemData], members: list[Tensor], models: list[NominalModel]) -> LocalProblemData:
     """One batch in agent order from each model's problems (``parts[g]`` holds agents ``members[g]``);
-    a part without ``dyn_B`` gets its model's B (``input_matrices[g]``, (n, m)) at every step."""
+    a part without ``dyn_B`` gets its model's B (``models[g]``, (n, m)) at every step when another
+    part has one."""
     if any(p.dyn_B is not None for p in parts):
         parts = [p if p.dyn_B is not None else dataclasses.replace(
-            p, dyn_B=B.to(p.dyn_A).expand(*p.dyn_A.shape[:2], *B.shape)) for p, B in zip(parts, input_matrices)]
+            p, dyn_B=model.B(p.dyn_A.dtype, p.dyn_A.device).expand(*p.dyn_A.shape[:2], -1, -1))
+            for p, model in zip(parts, models)]
     merged = {}
     for f in dataclasses.fields(LocalProblemData):
         values = [getattr(p, f.name) for p in parts]
@@ -155,8 +157,7 @@ class TeamStep:
                 x0[idx], xref[idx], state, graph, rho[idx] if rho.dim() == 2 else rho, eps_self[idx], rows=idx,
                 linearization=None if linearization is None else linearization[g],
                 eps_nbr=None if eps_nbr is None else eps_nbr[idx], u_prev=None if u_prev is None else u_prev[idx]))
-        data = merge_problems([p.data for p in parts], self.members,
-                              [step.nominal.B(xref.dtype, xref.device) for step in self.groups])
+        data = merge_problems([p.data for p in parts], self.members, [step.nominal for step in self.groups])
         own_var = None if parts[0].own_variance is None else by_group(self.members, [p.own_variance for p in parts])
         return Assembled(data, torch.stack([p.max_margin for p in parts]).max(), own_var,
                          tuple(p.linearization for p in parts))

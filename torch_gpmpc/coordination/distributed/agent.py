@@ -28,7 +28,7 @@ from torch_gpmpc.control.problem import FAILURE_KINDS, LocalSolution
 from torch_gpmpc.coordination.admm import consensus_update
 from torch_gpmpc.coordination.penalty import balance_penalty, edge_residuals, starting_penalties
 from torch_gpmpc.coordination.agent_step import (
-    cell_agents, edge_copies, fall_back_to_previous, fallback_problem, leaves_cell, pair_safety, slot_risks,
+    edge_copies, fall_back_to_previous, fallback_agents, fallback_problem, pair_safety, slot_risks,
 )
 from torch_gpmpc.coordination.controller import make_agent_step
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
@@ -303,17 +303,17 @@ class AgentController:
         if not self.graph.num_edges or not self.result.iterations:
             return
         k, state, tol = self.k, self.state, self.cfg.admm_tol
+        position = self.local.nominal.position
         bounds = self.assembled.data.bounds[:, :, 0].detach()
         full_bounds = bounds.new_full((self.num_agents, bounds.shape[1]), float("-inf"))
         full_bounds[k] = bounds[0]
-        unsafe, _, _ = pair_safety(state.plans, self.graph, full_bounds, tol,
-                                   self.local.nominal.position)
-        replan, position = unsafe, self.local.nominal.position
-        cells = cell_agents(self.local.nominal.momentum(self.num_agents), self.graph) \
-            & (self.cfg.safety_fallback == "cells")
-        if not converged and bool(cells[k]):
-            replan = leaves_cell(state.plans, self.graph, full_bounds, tol, position)
-        if not converged and bool(replan[k]):
+        unsafe, _, _ = pair_safety(state.plans, self.graph, full_bounds, tol, position)
+        replan = torch.zeros_like(unsafe)
+        if not converged:
+            replan, cells = fallback_agents(state.plans, self.graph, full_bounds, tol, position,
+                                            self.local.nominal.momentum(self.num_agents), unsafe,
+                                            self.cfg.safety_fallback)
+        if bool(replan[k]):
             data = fallback_problem(self.assembled.data, state.plans[k:k + 1], state.plans[self.graph.slot_nbr[k:k + 1]],
                                     position, cells[k:k + 1])
             sol = self.local.solve(self.layer, data)
@@ -322,8 +322,7 @@ class AgentController:
                 plans[k], inputs[k] = sol.X[0], sol.U[0]
                 self.state = dataclasses.replace(state, plans=plans, inputs=inputs)
                 self.counters["fallback"] = 1.0
-                unsafe, _, _ = pair_safety(self.state.plans, self.graph, full_bounds, tol,
-                                           self.local.nominal.position)
+                unsafe, _, _ = pair_safety(self.state.plans, self.graph, full_bounds, tol, position)
         self.counters["unsafe_plan"] = float(bool(unsafe[k]))
 
     def end_step(self) -> Telemetry:
