@@ -123,6 +123,25 @@ def test_solver_fault_falls_back_and_the_run_finishes_in_process(model, fault, t
     assert f"local MPC solve failed ({KINDS[fault]}" in caplog.text
 
 
+@pytest.mark.parametrize("fault", list(KINDS))
+def test_solver_fault_in_a_mixed_team_fails_only_that_models_agents(fault, tmp_path, monkeypatch):
+    """Drones and a ground robot: one solver per model, each failing at its own third call; a raise
+    fails every agent of that model's batch, NaN and inaccurate its row 0; the run finishes."""
+    import torch_gpmpc.coordination.agent_step as agent_step
+
+    cfg = Config(**{**SHORT, "scenario": "circle", "num_agents": 3,
+                    "models": ["double-integrator", "single-integrator", "double-integrator"]})
+    monkeypatch.setattr(agent_step, "make_local_solver", agent_step.make_local_solver)  # restored afterwards
+    load_faults(tmp_path).install(fault, FAILING_CALL)
+    rollout = simulate(cfg)
+    m = compute_metrics(rollout)
+    n = 3 if fault == "exception" else 2  # 2 drones + 1 robot; row 0 of each of the 2 batches
+    assert rollout.num_steps == cfg.max_steps
+    assert m["failed_local_solves_by_kind"] == {k: (n if k == KINDS[fault] else 0) for k in KINDS.values()}
+    assert np.isfinite(rollout.states).all() and np.isfinite(rollout.inputs).all()
+    assert rollout.states.shape[-1] == 4 and float(abs(rollout.states[:, 1, 2:]).max()) == 0.0
+
+
 @pytest.mark.parametrize("model, fault", [("double-integrator", "exception"), ("crazyflie", "exception"),
                                           ("single-integrator", "nan"), ("crazyflie", "inaccurate")])
 def test_solver_fault_falls_back_and_the_run_finishes_distributed(model, fault, tmp_path, monkeypatch):
