@@ -106,10 +106,6 @@ def test_models_that_cannot_plan_together_are_refused_naming_the_fix():
 
     with pytest.raises(GpmpcError, match="2 models for 3 agents"):
         simulate(cfg.replace(method="nominal"))
-    from torch_gpmpc.sim.distributed import simulate_distributed
-
-    with pytest.raises(GpmpcError, match="in process only"):
-        simulate_distributed(cfg.replace(num_agents=2, method="nominal"))
 
 
 def test_a_scenario_file_gives_each_agent_its_model(tmp_path):

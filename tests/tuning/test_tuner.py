@@ -47,17 +47,9 @@ def _small_objective(seeds, settings: TuneSettings, variances=(0.01, 0.02, 0.04)
     return TuningObjective(admm, instances, ObjectiveWeights.from_settings(settings), settings.admm_iters, settings.mpc_steps)
 
 
-@pytest.mark.parametrize("rho_update", ["adaptive", "fixed"])
-@pytest.mark.parametrize("mpc_steps", [1, 2, 3])
-def test_gradient_matches_finite_differences(mpc_steps, rho_update):
-    """d objective / d (log rho, theta_lo,hi) against central differences (fixed 4 ADMM iterations),
-    with the default ``sum`` pair margins (each row also carries the neighbour's reported margin)."""
-    settings = TuneSettings(admm_iters=4, mpc_steps=mpc_steps)
-    objective = _small_objective([0], settings, pair_margin="sum", rho_update=rho_update)
-    params = TuningParameters(3, rho=5.0)
-    with torch.no_grad():  # a generic point: three different splits
-        params.theta[0, 1], params.theta[0, 2], params.theta[1, 2] = 0.3, -0.2, 0.1
-    objective(params).loss.backward()
+def _gradient_and_differences(objective: TuningObjective, params: TuningParameters) -> tuple[list, list]:
+    """The backward pass's d objective / d (log rho, theta_01, theta_02, theta_12) (call backward
+    first) and Richardson-extrapolated central differences of the same."""
     edges = [(0, 1), (0, 2), (1, 2)]
     grad = [float(params.log_rho.grad)] + [float(params.theta.grad[e]) for e in edges]
 
@@ -74,7 +66,21 @@ def test_gradient_matches_finite_differences(mpc_steps, rho_update):
         return (f(coord, h) - f(coord, -h)) / (2 * h)
 
     # Richardson: removes the h^2 term; h = 1e-3 keeps solver noise (~1e-10) negligible
-    fd = [(4 * central(c, 1e-3) - central(c, 2e-3)) / 3 for c in range(4)]
+    return grad, [(4 * central(c, 1e-3) - central(c, 2e-3)) / 3 for c in range(4)]
+
+
+@pytest.mark.parametrize("rho_update", ["adaptive", "fixed"])
+@pytest.mark.parametrize("mpc_steps", [1, 2, 3])
+def test_gradient_matches_finite_differences(mpc_steps, rho_update):
+    """d objective / d (log rho, theta_lo,hi) against central differences (fixed 4 ADMM iterations),
+    with the default ``sum`` pair margins (each row also carries the neighbour's reported margin)."""
+    settings = TuneSettings(admm_iters=4, mpc_steps=mpc_steps)
+    objective = _small_objective([0], settings, pair_margin="sum", rho_update=rho_update)
+    params = TuningParameters(3, rho=5.0)
+    with torch.no_grad():  # a generic point: three different splits
+        params.theta[0, 1], params.theta[0, 2], params.theta[1, 2] = 0.3, -0.2, 0.1
+    objective(params).loss.backward()
+    grad, fd = _gradient_and_differences(objective, params)
     assert all(abs(g) > 1e-4 for g in grad), grad  # every parameter really matters here
     for g, d in zip(grad, fd, strict=True):
         assert abs(g - d) <= 1e-4 * abs(d), (grad, fd)
@@ -218,6 +224,43 @@ def test_cli_tune_writes_outputs_resumes_and_run_accepts_them(tmp_path, capsys):
     metrics = json.loads((run_out / "metrics.json").read_text())
     assert metrics["steps"] == 1
     capsys.readouterr()
+
+
+def test_gradient_matches_finite_differences_for_a_mixed_team():
+    """A double-integrator drone (radius 0.2) between two single-integrator robots (0.3): the unrolled
+    ADMM of the mixed team (each model's own step, inputs projected onto each model's bound, the
+    distance penalty at r_k + r_j) is differentiable in rho and the split; 2 MPC steps, 4 iterations."""
+    from torch_gpmpc.coordination.team_step import TeamStep
+    from torch_gpmpc.dynamics.team import team_system_from_config
+
+    cfg = Config(**SMALL, models=["single-integrator", "double-integrator", "single-integrator"], radii=[0.3, 0.2, 0.3],
+                 pair_margin="sum")
+    settings = TuneSettings(admm_iters=4, mpc_steps=2)
+    admm = ADMM(TeamStep(cfg, cfg.team(), cfg.method, None, [ConstantVarianceGP(v) for v in (0.01, 0.02, 0.04)]))
+    instances = with_warm_starts(admm, make_instances(cfg, [0], settings))
+    objective = TuningObjective(admm, instances, ObjectiveWeights.from_settings(settings), settings.admm_iters,
+                                settings.mpc_steps, system=team_system_from_config(cfg))
+    params = TuningParameters(3, rho=5.0)
+    with torch.no_grad():
+        params.theta[0, 1], params.theta[0, 2], params.theta[1, 2] = 0.3, -0.2, 0.1
+    value = objective(params)
+    value.loss.backward()
+    assert float(value.parts["distance_penalty"].detach()) > 0  # the pairs' own distances are in play
+    grad, fd = _gradient_and_differences(objective, params)
+    assert abs(grad[0]) > 1e-3 and sum(abs(g) > 1e-4 for g in grad[1:]) == 2, grad  # pair (0, 1) stays clear
+    for g, d in zip(grad, fd, strict=True):
+        assert abs(g - d) <= 1e-4 * abs(d) + 1e-9, (grad, fd)
+
+
+def test_distance_penalty_uses_each_pairs_radii():
+    from torch_gpmpc.tuning.unroll import distance_penalty
+
+    plans = torch.zeros(2, 2, 2, dtype=torch.float64)
+    plans[1, 1, 0] = 0.45  # 0.45 apart at tau = 1: inside r_k + r_j = 0.5, outside r_safe = 0.4
+    width = 0.01
+    got = distance_penalty(plans, 0.4, width, radii=[0.2, 0.3])
+    assert abs(float(got) - width * math.log1p(math.exp(0.05 / width))) < 1e-12
+    assert float(distance_penalty(plans, 0.4, width)) < 2e-3 * float(got)  # r_safe alone: outside
 
 
 def test_cli_tune_errors_are_one_line(tmp_path, capsys):

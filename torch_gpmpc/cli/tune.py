@@ -51,7 +51,7 @@ def main(args) -> int:
     from torch_gpmpc.coordination.controller import make_controller
     from torch_gpmpc.gp import fit_agent_gps
     from torch_gpmpc.sim.scenarios import make_scenario
-    from torch_gpmpc.dynamics.systems import system_from_config
+    from torch_gpmpc.dynamics.team import team_system_from_config
     from torch_gpmpc.report.tensorboard import TBLogger
 
     if args.iters < 0:
@@ -67,16 +67,13 @@ def main(args) -> int:
     if cfg.risk_mode == "mission" and settings.tune_split:
         raise GpmpcError("risk_mode=mission allots each agent's risk from its own budget, so there is no risk "
                          "split to tune; set --set tune.tune_split=false (rho still tunes), or risk_mode=pair_step")
-    if cfg.models is not None and cfg.team().is_mixed:
-        raise GpmpcError("config key 'models': tuning runs teams of one model; tune on one model, or run the "
-                         "mixed team with gpmpc run")
     if not Method.parse(cfg.method).chance and settings.tune_split:
         log.warning("method %s has no chance margins: the risk split gets no gradient", cfg.method)
 
     started = time.perf_counter()
     scenario = make_scenario(cfg)
     num_agents = scenario.num_agents
-    system = system_from_config(cfg)
+    system = team_system_from_config(cfg)
     gps = fit_agent_gps(cfg, system, num_agents) if Method.parse(cfg.method).needs_gp else None
     admm = make_controller(cfg, system, gps)
 

@@ -201,16 +201,14 @@ class ADMM:
         return self.agent_step.gps
 
     def with_config(self, cfg: Config) -> "ADMM":
-        """The same agents' models (method, nominal model, wind, GPs) under another configuration."""
-        step = self.agent_step
-        admm = ADMM(LocalStep(cfg, step.nominal, step.method, step.wind, step.gps))
+        """The same agents' models (method, nominal models, wind, GPs) under another configuration."""
+        admm = ADMM(self.agent_step.with_settings(cfg))
         admm.cfg = cfg
         return admm
 
     def with_settings(self, **changes: Any) -> "ADMM":
         """The same agents under settings with ``changes`` applied (keys of :class:`ControllerSettings`)."""
-        step = self.agent_step
-        admm = ADMM(LocalStep(self.settings.replace(**changes), step.nominal, step.method, step.wind, step.gps))
+        admm = ADMM(self.agent_step.with_settings(self.settings.replace(**changes)))
         admm.cfg = None if self.cfg is None else self.cfg.replace(**changes)
         return admm
 

@@ -223,6 +223,10 @@ class LocalStep:
         #: failure kinds already warned about (one warning per kind per run)
         self._warned: set[str] = set()
 
+    def with_settings(self, settings: ControllerSettings | Config) -> "LocalStep":
+        """The same agents (model, method, wind, GPs) under other settings."""
+        return LocalStep(settings, self.nominal, self.method, self.wind, self.gps)
+
     def solver(self, num_slots: int) -> nn.Module:
         """This step's batched local solver for ``num_slots`` neighbour slots (built once per size)."""
         if num_slots not in self._solvers:
@@ -390,11 +394,8 @@ class LocalStep:
 
 
 def fall_back_to_previous(sol: LocalSolution, state: ADMMState, graph: Graph) -> LocalSolution:
-    """Replace failed agents' solutions by their previous plans (a safe, feasible guess).
-
-    At the first ADMM iteration of a step the previous plan is the last step's plan
-    shifted by one step (the warm start); later it is the previous iterate.
-    """
+    """Replace failed agents' solutions by their previous plans (a safe, feasible guess): at the
+    first ADMM iteration of a step the last step's plan shifted (the warm start), later the previous iterate."""
     bad = ~sol.ok
     if not bool(bad.any()):
         return sol

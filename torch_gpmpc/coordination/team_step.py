@@ -125,6 +125,10 @@ class TeamStep:
         self.uncertainty = self.groups[team.group_of[0]].uncertainty
         self._layers: dict[int, TeamLayer] = {}
 
+    def with_settings(self, settings: ControllerSettings | Config) -> "TeamStep":
+        """The same team (models, method, wind, GPs) under other settings."""
+        return TeamStep(settings, self.team, self.method, self.wind, self.gps)
+
     @property
     def exchanges_variance(self) -> bool:
         """Whether neighbours exchange projected variances."""

@@ -308,9 +308,13 @@ def fit_agent_gp(settings: GPFitSettings | Config, system, k: int) -> ResidualGP
     Args:
         settings: the fit settings (a run :class:`Config` is checked and converted with
             ``gp_fit_settings()``).
-        system: the :class:`~torch_gpmpc.dynamics.systems.TrueSystem` that generates the data.
+        system: the :class:`~torch_gpmpc.dynamics.systems.TrueSystem` that generates the data (a mixed
+            team's :class:`~torch_gpmpc.dynamics.team.TeamSystem`: agent k's own model's system, as
+            :func:`fit_agent_gps`).
         k: agent id.
     """
+    if hasattr(system, "team"):
+        system = system.systems[system.team.group_of[k]]
     flights = _flight_settings(settings)
     settings = _fit_settings(settings)
     if flights is not None:

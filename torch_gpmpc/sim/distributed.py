@@ -53,7 +53,7 @@ from torch_gpmpc.coordination.penalty import should_stop
 from torch_gpmpc.coordination.agent_step import message_size
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.state import StepResult, shift_in_time
-from torch_gpmpc.dynamics.systems import system_from_config
+from torch_gpmpc.dynamics.team import team_system_from_config
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.sim.closed_loop import StepCallback, run_closed_loop
 from torch_gpmpc.sim.metrics import pair_distances
@@ -342,9 +342,6 @@ def simulate_distributed(
     cfg = cfg.replace(method=method or cfg.method)
     scenario = scenario or make_scenario(cfg)
     cfg = with_scenario_world(cfg, scenario)
-    if cfg.models is not None and cfg.team().is_mixed:
-        raise GpmpcError("config key 'models': a mixed team runs in process only (--backend inprocess); the "
-                         "distributed backend needs one model for every agent")
     K = scenario.num_agents
     if K > MAX_AGENTS:
         raise GpmpcError(f"distributed run: at most {MAX_AGENTS} agents, got {K}")
@@ -375,7 +372,7 @@ def simulate_distributed(
         net = Network(0)
         send_missions(net, cfg, scenario, gp_model, world_size, per, timeout_s, setup_timeout_s, report)
         planner = RemotePlanner(cfg, net, K, per, timeout_s, report)
-        system = system_from_config(cfg)
+        system = team_system_from_config(cfg)
         rollout = run_closed_loop(cfg, scenario, system, planner, on_step, tb)
         planner.stop()
         ok = True

@@ -10,7 +10,8 @@ from torch import Tensor
 from torch_gpmpc.coordination.admm import ADMM
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.coordination.graph import communication_graph
-from torch_gpmpc.dynamics.systems import TrueSystem, project_input, system_from_config
+from torch_gpmpc.dynamics.systems import TrueSystem
+from torch_gpmpc.dynamics.team import team_system_from_config
 from torch_gpmpc.tuning.instances import TuneInstance
 from torch_gpmpc.tuning.parameters import ObjectiveWeights, TuningParameters
 from torch_gpmpc.tuning.unroll import distance_penalty, unroll_admm
@@ -79,7 +80,7 @@ class TuningObjective:
         self.admm_iters = int(admm_iters)
         self.mpc_steps = int(mpc_steps)
         self.warmup_iters = int(warmup_iters)
-        self.system = system or system_from_config(admm.cfg)
+        self.system = system or team_system_from_config(admm.cfg)
         self.evaluations = 0
 
     def __call__(self, params: TuningParameters | None = None, rho: Tensor | None = None,
@@ -110,10 +111,10 @@ class TuningObjective:
                 sums["dual"] = sums["dual"] + un.dual[-1]
                 sums["cost"] = sums["cost"] + sol.cost.mean()
                 sums["distance_penalty"] = sums["distance_penalty"] + distance_penalty(
-                    nominal.positions(sol.X), self.cfg.r_safe, w.distance_width)
+                    nominal.positions(sol.X), self.cfg.r_safe, w.distance_width, self.cfg.radii)
                 count += 1
                 if step + 1 < self.mpc_steps:
-                    u = project_input(un.result.inputs[:, 0], nominal.spec)
+                    u = nominal.project(un.result.inputs[:, 0])  # each agent onto its model's bounds
                     x = self.system.step(x, u, noise=inst.noise[step])
                     warm = un.result.state.shifted()
         parts = {k: v / count for k, v in sums.items()}

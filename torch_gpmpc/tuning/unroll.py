@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Sequence
 
 import torch
 from torch import Tensor
@@ -93,8 +94,8 @@ def unroll_admm(
     return UnrolledStep(result=result, primal=torch.stack(primal), dual=torch.stack(dual))
 
 
-def distance_penalty(plans: Tensor, r_safe: float, width: float) -> Tensor:
-    """Smooth penalty on planned pair distances below ``r_safe``.
+def distance_penalty(plans: Tensor, r_safe: float, width: float, radii: Sequence[float] | None = None) -> Tensor:
+    """Smooth penalty on planned pair distances below ``r_safe`` (``r_k + r_j`` with ``radii``).
 
     ``sum_{tau=1..T} sum_{k<j} width * softplus((r_safe - ||X_k^tau - X_j^tau||) / width)``
     divided by the number of pairs.
@@ -103,6 +104,7 @@ def distance_penalty(plans: Tensor, r_safe: float, width: float) -> Tensor:
         plans: (K, T+1, D) planned states.
         r_safe: safety radius.
         width: softplus width beta > 0.
+        radii: each agent's body radius (K), or ``None`` (every pair keeps ``r_safe``).
 
     Returns:
         0-d tensor (0 for K < 2).
@@ -113,4 +115,7 @@ def distance_penalty(plans: Tensor, r_safe: float, width: float) -> Tensor:
     i, j = torch.triu_indices(K, K, 1)
     diff = plans[i, 1:] - plans[j, 1:]  # (P, T, D)
     dist = torch.sqrt(diff.pow(2).sum(-1) + _SQRT_FLOOR)
+    if radii is not None:
+        body = torch.as_tensor(radii, dtype=dist.dtype, device=dist.device)
+        r_safe = (body[i] + body[j])[:, None]  # (P, 1): each pair's distance, every step
     return width * torch.nn.functional.softplus((r_safe - dist) / width).sum() / i.numel()

@@ -11,6 +11,11 @@ Each agent computes ``z_e`` (eq. 28; both ends compute the same mean of the same
 copies) and its *own* ``lambda_{e,k}`` (eq. 29). No agent ever receives another agent's
 covariance, GP or data. A lost neighbour is treated as an obstacle following its last
 shared plan: its missing copy is replaced by ``[own plan; last shared plan]``.
+
+In a mixed team (config key ``models``) an agent plans with its own model's step, lifted to the
+team's state size (:mod:`~torch_gpmpc.coordination.team_step`): the rows it solves are the ones
+the in-process :class:`~torch_gpmpc.coordination.team_step.TeamStep` gives its model's step, and
+its messages carry the same lifted states.
 """
 
 from __future__ import annotations
@@ -34,7 +39,8 @@ from torch_gpmpc.coordination.controller import make_agent_step
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
 from torch_gpmpc.coordination.graph import graph_from_edges
 from torch_gpmpc.coordination.state import ADMMState, StepResult, adapt_state, initial_state
-from torch_gpmpc.dynamics.systems import system_from_config
+from torch_gpmpc.coordination.team_step import TeamStep
+from torch_gpmpc.dynamics.team import team_system_from_config
 
 log = logging.getLogger(__name__)
 
@@ -106,11 +112,16 @@ class AgentController:
     def __init__(self, k: int, num_agents: int, cfg: Config, reference: Tensor, gp=None) -> None:
         self.k, self.num_agents, self.cfg = k, num_agents, cfg
         self.reference = torch.as_tensor(reference, dtype=DTYPE)
-        system = system_from_config(cfg)
+        system = team_system_from_config(cfg)
         # indexed by agent id; this process holds only its own GP
         gps = None if gp is None else [gp if j == k else None for j in range(self.num_agents)]
-        #: this agent's per-agent step (the same object the in-process ADMM iterates)
-        self.local = make_agent_step(cfg, system, gps)
+        step = make_agent_step(cfg, system, gps)
+        #: the team's known models (a mixed team's :class:`~torch_gpmpc.dynamics.team.TeamNominal`):
+        #: which neighbours can stop at once (the fallback rule) depends on their models
+        self.team_nominal = step.nominal
+        #: this agent's per-agent step (the same object the in-process ADMM iterates; in a mixed
+        #: team its model's step, as the in-process TeamStep uses for its rows)
+        self.local = step.groups[step.team.group_of[k]] if isinstance(step, TeamStep) else step
         self.rho = torch.as_tensor(cfg.rho, dtype=DTYPE)
         self.state: ADMMState | None = None
         self.known = torch.zeros(num_agents, dtype=torch.bool)
@@ -311,7 +322,7 @@ class AgentController:
         replan = torch.zeros_like(unsafe)
         if not converged:
             replan, cells = fallback_agents(state.plans, self.graph, full_bounds, tol, position,
-                                            self.local.nominal.momentum(self.num_agents), unsafe,
+                                            self.team_nominal.momentum(self.num_agents), unsafe,
                                             self.cfg.safety_fallback)
         if bool(replan[k]):
             data = fallback_problem(self.assembled.data, state.plans[k:k + 1], state.plans[self.graph.slot_nbr[k:k + 1]],

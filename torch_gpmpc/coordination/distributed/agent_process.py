@@ -25,7 +25,7 @@ from torch_gpmpc.coordination.distributed.protocol import (
 )
 from torch_gpmpc.coordination.distributed.transport import Network, destroy_group, init_group
 from torch_gpmpc.dynamics.methods import Method
-from torch_gpmpc.dynamics.systems import system_from_config
+from torch_gpmpc.dynamics.team import team_system_from_config
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +44,7 @@ def agent_gp(cfg, k: int, gp_model: str | None = None):
 
     if gp_model:
         return load_model_gp(gp_model, cfg.model_spec())
-    return fit_agent_gp(cfg, system_from_config(cfg), k)
+    return fit_agent_gp(cfg, team_system_from_config(cfg), k)
 
 
 class AgentHost:
