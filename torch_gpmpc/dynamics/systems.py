@@ -21,7 +21,33 @@ from torch_gpmpc.config.model_spec import ModelSpec, single_integrator
 from torch_gpmpc.errors import GpmpcError
 
 
-class NominalModel:
+class SpecSizes:
+    """Sizes and position of a model read from its ``spec`` (a :class:`ModelSpec`): shared by
+    :class:`NominalModel` and a mixed team's :class:`~torch_gpmpc.dynamics.team.TeamNominal`."""
+
+    spec: ModelSpec
+
+    @property
+    def dim(self) -> int:
+        """State dimension n."""
+        return self.spec.state_dim
+
+    @property
+    def input_dim(self) -> int:
+        """Input dimension m."""
+        return self.spec.input_dim
+
+    @property
+    def position(self) -> list[int]:
+        """State indices of the position (P of them)."""
+        return list(self.spec.position)
+
+    def positions(self, x: Tensor) -> Tensor:
+        """Positions of states: (..., n) -> (..., P)."""
+        return x[..., self.position]
+
+
+class NominalModel(SpecSizes):
     """The known linear model ``f(x, u) = A x + B u`` of one agent, from a :class:`ModelSpec`.
 
     Besides A and B it knows which states are the position (collision rows, references,
@@ -63,21 +89,6 @@ class NominalModel:
         return hash(self.spec)
 
     @property
-    def dim(self) -> int:
-        """State dimension n."""
-        return self.spec.state_dim
-
-    @property
-    def input_dim(self) -> int:
-        """Input dimension m."""
-        return self.spec.input_dim
-
-    @property
-    def position(self) -> list[int]:
-        """State indices of the position (P of them)."""
-        return list(self.spec.position)
-
-    @property
     def residual(self) -> list[int]:
         """State indices with a residual (R of them, one GP each)."""
         return list(self.spec.residual)
@@ -117,10 +128,6 @@ class NominalModel:
             src = x if col[0] == "x" else u
             cols.append(src[..., int(col[1:])])
         return torch.stack(cols, dim=-1)
-
-    def positions(self, x: Tensor) -> Tensor:
-        """Positions of states: (..., n) -> (..., P)."""
-        return x[..., self.position]
 
     def states_at(self, positions: Tensor) -> Tensor:
         """States at rest at ``positions`` (..., P): the position set, every other state 0; (..., n)."""

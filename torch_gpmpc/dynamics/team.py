@@ -17,7 +17,9 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.config.team import TeamSpec
-from torch_gpmpc.dynamics.systems import NominalModel, TrueSystem, VortexWind, make_system, system_from_config
+from torch_gpmpc.dynamics.systems import (
+    NominalModel, SpecSizes, TrueSystem, VortexWind, make_system, system_from_config,
+)
 from torch_gpmpc.errors import GpmpcError
 
 
@@ -30,7 +32,7 @@ def by_group(members: list[Tensor], parts: list[Tensor]) -> Tensor:
     return out
 
 
-class TeamNominal:
+class TeamNominal(SpecSizes):
     """The known models of a mixed team, one per agent (lifted to common sizes).
 
     Args:
@@ -54,26 +56,11 @@ class TeamNominal:
         self.team = team
         self.models = [NominalModel(spec) for spec in team.models]
         self.members = [torch.tensor(team.members(g), dtype=torch.long) for g in range(len(team.models))]
-        #: agent 0's model: sizes and position (common to all) are read from it
+        #: agent 0's lifted model: the team's sizes n, m and the position (common to all) are its
         self.spec = team.agent_spec(0)
 
     def __repr__(self) -> str:
         return f"TeamNominal({[m.spec.name for m in self.models]}, n={self.dim}, m={self.input_dim})"
-
-    @property
-    def dim(self) -> int:
-        """The team's state dimension n (the largest model's)."""
-        return self.spec.state_dim
-
-    @property
-    def input_dim(self) -> int:
-        """The team's input dimension m."""
-        return self.spec.input_dim
-
-    @property
-    def position(self) -> list[int]:
-        """State indices of the position (the same for every model)."""
-        return list(self.spec.position)
 
     def agent_model(self, k: int) -> NominalModel:
         """Agent k's (lifted) model."""
@@ -84,10 +71,6 @@ class TeamNominal:
         put back in agent order."""
         return by_group(self.members, [fn(model, *(r[idx] for r in rows))
                                        for model, idx in zip(self.models, self.members)])
-
-    def positions(self, x: Tensor) -> Tensor:
-        """Positions of states: (..., n) -> (..., P)."""
-        return x[..., self.position]
 
     def states_at(self, positions: Tensor) -> Tensor:
         """States at rest at ``positions`` (K, P) -> (K, n) (every other state 0, for every model)."""

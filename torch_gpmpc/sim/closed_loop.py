@@ -106,18 +106,10 @@ def check_gps(gps: list, num_agents: int, spec: ModelSpec | list[ModelSpec]) -> 
 
 
 def agent_specs(cfg: Config, num_agents: int) -> list[ModelSpec]:
-    """Every agent's model (lifted to the team's sizes with ``models``).
-
-    Raises:
-        GpmpcError: ``models`` whose length is not the team size.
-    """
+    """Every agent's model (lifted to the team's sizes with ``models``, whose length
+    :func:`~torch_gpmpc.sim.scenarios.with_scenario_world` has checked against the team size)."""
     team = cfg.team()
-    if team is None:
-        return [cfg.model_spec()] * num_agents
-    if team.num_agents != num_agents:
-        raise GpmpcError(f"config key 'models': {team.num_agents} models for {num_agents} agents; give one "
-                         "model per agent")
-    return [team.agent_spec(k) for k in range(num_agents)]
+    return [cfg.model_spec()] * num_agents if team is None else [team.agent_spec(k) for k in range(num_agents)]
 
 
 def simulate(
@@ -148,7 +140,6 @@ def simulate(
     scenario = scenario or make_scenario(cfg)
     cfg = with_scenario_world(cfg, scenario)
     num_agents = scenario.num_agents
-    agent_specs(cfg, num_agents)  # a team of the scenario's size
     system = team_system_from_config(cfg)
     if needs_gp(cfg.method):
         gps = check_gps(gps, num_agents, agent_specs(cfg, num_agents)) if gps is not None \
