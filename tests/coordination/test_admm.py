@@ -160,7 +160,7 @@ def test_obstacle_problem_keeps_the_neighbours_plans_fixed():
     those plans, with the slack used only where the fixed obstacle leaves no room."""
     from torch_gpmpc.control.examples import crossing_instance
     from torch_gpmpc.control.solvers import make_local_solver
-    from torch_gpmpc.coordination.agent_step import FIXED_OBSTACLE_RHO, obstacle_problem
+    from torch_gpmpc.coordination.fallback import FIXED_OBSTACLE_RHO, obstacle_problem
 
     inst = crossing_instance(3, 2, method="nominal", variance=0.01, seed=5)
     data = inst.problem_data()
@@ -176,7 +176,7 @@ def test_obstacle_problem_keeps_the_neighbours_plans_fixed():
 
 def test_buffered_voronoi_cells_closed_form_and_the_re_plan_keeps_each_agent_in_its_half():
     from torch_gpmpc.control.solvers import make_local_solver
-    from torch_gpmpc.coordination.agent_step import cell_agents, cell_planes, cell_problem, leaves_cell
+    from torch_gpmpc.coordination.fallback import cell_agents, cell_planes, cell_problem, leaves_cell
     from torch_gpmpc.coordination.state import initial_state
 
     # two agents at (-1, 0) and (1, 0), bound 0.5: agent 0's cell is x <= -0.25, agent 1's x >= 0.25

@@ -1,6 +1,7 @@
 """The mission risk budget (``risk_mode = mission``): the allocation against hand-computed
-numbers, the pair bound against its closed form, the budget arithmetic through ADMM, and a
-single pair under Monte Carlo meeting the mission bound over a run of steps.
+numbers, the pair and obstacle bounds against their closed forms, the budget arithmetic through
+ADMM (pairs and obstacle rows), and a single pair and a single agent beside a disc under Monte
+Carlo meeting their bounds.
 """
 
 from __future__ import annotations
@@ -17,8 +18,8 @@ from torch_gpmpc import Controller, ControllerSettings, ModelSpec
 from torch_gpmpc.config import Config
 from torch_gpmpc.coordination.graph import communication_graph, graph_from_edges
 from torch_gpmpc.coordination.mission_risk import (
-    RISK_FLOOR, agent_charges, edge_allotments, pair_matrix, pair_risk_bounds, slot_risks_from_edges,
-    starting_budgets,
+    RISK_FLOOR, agent_charges, edge_allotments, obstacle_risk_bounds, pair_matrix, pair_risk_bounds, row_allotments,
+    slot_risks_from_edges, starting_budgets,
 )
 from torch_gpmpc.errors import GpmpcError
 
@@ -43,6 +44,41 @@ def test_allocation_matches_a_hand_computed_case():
     charges = agent_charges(torch.tensor([0.002, 0.0], dtype=F64), eps_edge, graph)
     np.testing.assert_allclose(charges.numpy(), [0.0015, 0.0005, 0.0], rtol=1e-12, atol=1e-18)
     assert starting_budgets(4, 0.05).tolist() == [0.0125] * 4
+
+
+def test_obstacle_rows_take_their_shares_of_the_allotment():
+    """With L = 2 obstacle rows each agent splits its allotment over d_k + 2 rows: path 0-1-2,
+    remaining (0.03, 0.02, 0.01), pacing 10 -> 0.03/30, 0.02/40, 0.01/30; with L = 0 the edges'
+    risks are those of the hand-computed case above."""
+    graph = graph_from_edges(3, [(0, 1), (1, 2)])
+    remaining = torch.tensor([0.03, 0.02, 0.01], dtype=F64)
+    np.testing.assert_allclose(row_allotments(remaining, graph, 10, obstacle_rows=2).numpy(),
+                               [0.001, 0.0005, 0.01 / 30], rtol=1e-12)
+    np.testing.assert_allclose(edge_allotments(remaining, graph, 10, obstacle_rows=2).numpy(),
+                               [[0.001, 0.0005], [0.0005, 0.01 / 30]], rtol=1e-12)
+    assert torch.equal(edge_allotments(remaining, graph, 10, obstacle_rows=0), edge_allotments(remaining, graph, 10))
+    alone = graph_from_edges(1, [])
+    assert row_allotments(torch.tensor([0.05], dtype=F64), alone, 10, obstacle_rows=3).item() == pytest.approx(0.05 / 30)
+
+
+def test_obstacle_bound_is_the_tail_beyond_the_row_and_bounds_the_hits():
+    """A disc of radius 0.3 at the origin and a body of radius 0.25: the row at the plan's point
+    (0.9, 0.1) is ``n^T p >= 0.55`` (n the unit vector to the point). A next state held at the row's
+    margin for eps = 0.01 (std 0.1) has the bound eps exactly, and 400k Gaussian draws around it
+    hit the grown disc less often than eps (the disc lies beyond the half-space); an inert padding
+    row (normal 0) adds nothing."""
+    eps, std, grown = 0.01, 0.1, 0.55
+    n = torch.tensor([0.9, 0.1], dtype=F64) / math.hypot(0.9, 0.1)
+    nxt = n * (grown + norm.ppf(1 - eps) * std)
+    plans = torch.stack([torch.zeros(2, dtype=F64), nxt, nxt])[None]  # (1, T+1 = 3, 2)
+    normals = torch.zeros(1, 2, 2, 2, dtype=F64)
+    normals[0, 0] = n  # row 0 at both horizon steps; row 1 inert
+    bounds = torch.tensor([[[grown, grown], [-1.0, -1.0]]], dtype=F64)
+    stds = torch.tensor([[[std, std], [0.0, 0.0]]], dtype=F64)
+    assert obstacle_risk_bounds(plans, normals, bounds, stds).item() == pytest.approx(eps, rel=1e-9)
+    draws = nxt.numpy() + np.random.default_rng(0).normal(0.0, std, (400_000, 2))
+    rate = (np.linalg.norm(draws, axis=1) < grown).mean()
+    assert 0.3 * eps < rate <= eps
 
 
 def test_pair_bound_is_the_gaussian_tail_and_handles_zero_variance():
@@ -126,6 +162,39 @@ def test_budget_never_runs_out_and_charges_add_up_through_the_controller():
     assert float(left.sum()) == pytest.approx(0.05 - total_bound, rel=1e-9)
     ctrl.reset()  # a new mission starts with the whole budget
     assert ctrl.step(x, xref).state.risk_left.sum() <= 0.05
+
+
+def test_obstacle_rows_are_charged_to_the_budget_through_the_controller():
+    """One single integrator passing a disc under a mission budget (no neighbour): its obstacle
+    row carries the margin of the allotment ``R / (pacing L)`` = 0.05 / 10 (against ``obstacle_eps``
+    = 0.01 under ``pair_step``), every step's charge is the row's bound, and the bounds sum to what
+    left the budget."""
+    model = ModelSpec.single_integrator(2, u_max=2.0)
+    disc = [{"center": [0.0, 0.3], "radius": 0.3}]
+    gps = [ConstantVarianceGP(0.01, 2)]
+    x = torch.tensor([[-1.5, 0.0]], dtype=F64)
+    xref = torch.tensor([[1.5, 0.0]], dtype=F64)[:, None].expand(1, 9, 2)
+
+    def controller(mode):
+        return Controller(model, gps=gps, settings=ControllerSettings(
+            horizon=8, risk_mode=mode, risk_budget=0.05, risk_pacing=10, obstacles=disc, obstacle_rows=1))
+
+    rows = {mode: controller(mode).step(x, xref).problem.halfspace_bounds for mode in ("pair_step", "mission")}
+    ctrl = controller("mission")
+    _, raw, _ = ctrl.admm.agent_step._obstacle_rows(x[:, None].expand(1, 9, 2), None, torch.arange(1))
+    ratio = (rows["mission"] - raw) / (rows["pair_step"] - raw)  # the cold start linearizes at x for both
+    np.testing.assert_allclose(ratio.numpy(), norm.ppf(1 - 0.005) / norm.ppf(1 - 0.01), rtol=1e-9)
+    left, spent = starting_budgets(1, 0.05), 0.0
+    for _ in range(15):
+        res = ctrl.step(x, xref)
+        assert res.obstacle_risk is not None and res.pair_risk is None
+        charge = float(res.obstacle_risk.sum())
+        assert float(left.sum() - res.state.risk_left.sum()) == pytest.approx(charge, rel=1e-9, abs=1e-15)
+        if res.state_slack_max == 0.0:
+            assert charge <= float(left.sum()) / 10 * (1 + 1e-9)  # the row holds: at most the allotment
+        spent += charge
+        left, x = res.state.risk_left, res.plans[:, 1]
+    assert 0 < spent <= 0.05 and float(x[0, 0]) > 0.0  # it went past the disc
 
 
 def test_mission_margins_exceed_pair_step_margins():

@@ -16,6 +16,7 @@ from torch_gpmpc import ADMM, Controller, ControllerSettings, LocalStep, ModelSp
 from torch_gpmpc.config import Config
 from torch_gpmpc.config.team import TeamSpec, lift_spec, team_spec
 from torch_gpmpc.coordination.graph import communication_graph
+from torch_gpmpc.coordination.mission_risk import starting_budgets
 from torch_gpmpc.coordination.team_step import TeamStep
 from torch_gpmpc.dynamics.systems import NominalModel
 from torch_gpmpc.dynamics.team import TeamNominal
@@ -156,3 +157,30 @@ def test_three_drones_and_three_robots_cross_safely_under_a_mission_budget(noise
                  models=["double-integrator", "single-integrator"] * 3, radii=[0.2, 0.3] * 3)
     m = compute_metrics(simulate(cfg))
     assert m["violations"] == 0 and all(a is not None for a in m["arrival_steps"])
+
+
+def test_a_mixed_team_charges_each_agent_its_own_obstacle_rows():
+    """Under a mission budget a robot beside a disc and a drone far from it (no edge between them)
+    are charged what each would be charged alone with its model and its share of the budget
+    (1e-9): the team's obstacle bounds reach the right agents. (A drone's position at the next
+    sample is certain, its residual acting on the velocity: its bound is 0 or 1.)"""
+    disc = [{"center": [0.0, 0.35], "radius": 0.3}]
+    x = {"DI": torch.tensor([[-0.6, -6.0, 0.5, 0.0]], dtype=torch.float64),
+         "SI": torch.tensor([[-0.6, 0.0]], dtype=torch.float64)}
+
+    def settings(budget):
+        return ControllerSettings(horizon=6, risk_mode="mission", risk_budget=budget, obstacles=disc, comm_radius=2.0)
+
+    def reference(x0):
+        target = x0.clone()
+        target[:, 0] = 1.5
+        return target[:, None].expand(x0.shape[0], 7, x0.shape[1])
+
+    alone = {name: Controller(spec, gps=[ConstantVarianceGP(0.01, 2)], settings=settings(0.025)).step(
+        x[name], reference(x[name])).obstacle_risk for name, spec in (("DI", DI), ("SI", SI))}
+    team = Controller([DI, SI], gps=[ConstantVarianceGP(0.01, 2), ConstantVarianceGP(0.01, 2)], settings=settings(0.05))
+    x0 = torch.stack([x["DI"][0], torch.cat([x["SI"][0], torch.zeros(2, dtype=torch.float64)])])
+    res = team.step(x0, reference(x0))
+    assert float(alone["SI"]) > 1e-6 and float(alone["DI"]) == 0.0
+    torch.testing.assert_close(res.obstacle_risk, torch.cat([alone["DI"], alone["SI"]]), rtol=1e-9, atol=1e-15)
+    torch.testing.assert_close(starting_budgets(2, 0.05) - res.state.risk_left, res.obstacle_risk, rtol=1e-9, atol=1e-15)

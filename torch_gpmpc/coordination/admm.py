@@ -48,13 +48,13 @@ from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.coordination.bodies import edge_distances
 from torch_gpmpc.coordination.agent_step import (
-    LocalStep, edge_copies, edge_variances, fall_back_to_previous, fallback_agents, fallback_problem, pair_safety,
-    slot_risks,
+    LocalStep, edge_copies, edge_variances, fall_back_to_previous, slot_risks,
 )
+from torch_gpmpc.coordination.fallback import fallback_agents, fallback_problem, pair_safety
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.mission_risk import (
-    RISK_FLOOR, agent_charges, edge_allotments, edge_separations, pair_matrix, pair_risk_bounds,
-    slot_risks_from_edges, starting_budgets,
+    RISK_FLOOR, agent_charges, edge_allotments, edge_separations, obstacle_risk_bounds, pair_matrix,
+    pair_risk_bounds, row_allotments, slot_risks_from_edges, starting_budgets,
 )
 from torch_gpmpc.coordination.penalty import balance_penalty, edge_residuals, should_stop, starting_penalties
 from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult, adapt_state, initial_state
@@ -98,6 +98,8 @@ class StepContext:
         eps_self: (K, M) each agent's own risk per slot. eps_nbr: (K, M) its neighbour's.
         eps_edge: (E, 2) the step's risk of each end of each edge under a mission budget
             (``None``: ``risk_mode = pair_step``).
+        eps_obstacle: (K,) the step's risk of each of an agent's obstacle rows under a mission
+            budget (``None``: ``settings.obstacle_eps``).
         lin_plans, lin_inputs: (K, T+1, n) and (K, T, m) linearization points (the warm start);
             ``None`` with ``relinearize``, where every iterate is its own.
         layer: the batched local solver for the graph's slot count.
@@ -106,6 +108,8 @@ class StepContext:
             every iteration of the step: it is most of an iteration's cost).
         u_prev: (K, m) the inputs applied at the previous step (the input-rate term's
             ``U_{-1}``), from the warm start; ``None``: 0 (a cold start).
+        convexification: the last iterate's convexification (its obstacle rows are charged to a
+            mission budget).
     """
 
     x0: Tensor
@@ -121,6 +125,8 @@ class StepContext:
     tol: float
     linearization: Any = None
     u_prev: Tensor | None = None
+    eps_obstacle: Tensor | None = None
+    convexification: Any = None
 
 
 class ADMM:
@@ -231,12 +237,14 @@ class ADMM:
         rho_t = torch.as_tensor(s.rho if rho is None else rho, dtype=x0.dtype)
         state = initial_state(x0, s.horizon, graph, self.nominal.input_dim) if warm is None \
             else adapt_state(warm, graph)
-        eps_edge = None
+        eps_edge = eps_obstacle = None
         if s.risk_mode == "mission":
             remaining = starting_budgets(graph.num_agents, s.risk_budget, x0) if state.risk_left is None \
                 else state.risk_left
             state = dataclasses.replace(state, risk_left=remaining)
-            eps_edge = edge_allotments(remaining, graph, s.risk_pacing)
+            rows = mission_obstacle_rows(s)
+            eps_edge = edge_allotments(remaining, graph, s.risk_pacing, rows)
+            eps_obstacle = row_allotments(remaining, graph, s.risk_pacing, rows) if rows else None
             eps_self, eps_nbr = slot_risks_from_edges(graph, eps_edge)
         else:
             eps_self = slot_risks(graph, s.eps, s.risk_split if risk_split is None else risk_split)
@@ -246,7 +254,7 @@ class ADMM:
         lin_plans, lin_inputs = (None, None) if s.relinearize else (state.plans, state.inputs)
         ctx = StepContext(x0, xref, graph, rho_t, eps_self, eps_nbr, eps_edge, lin_plans, lin_inputs,
                           self.agent_step.solver(graph.num_slots), s.admm_tol if tol is None else tol,
-                          u_prev=None if warm is None else warm.applied)
+                          u_prev=None if warm is None else warm.applied, eps_obstacle=eps_obstacle)
         return ctx, state
 
     def iterate(self, ctx: StepContext, state: ADMMState) -> tuple[ADMMState, IterationStats]:
@@ -259,9 +267,11 @@ class ADMM:
         rho_now = state.rho if adaptive else ctx.rho
         rho_slots = state.rho[graph.slot_edge] if adaptive and graph.num_edges else ctx.rho
         assembled = step.assemble(ctx.x0, ctx.xref, lin_state, graph, rho_slots, ctx.eps_self,
-                                  linearization=ctx.linearization, eps_nbr=ctx.eps_nbr, u_prev=ctx.u_prev)
+                                  linearization=ctx.linearization, eps_nbr=ctx.eps_nbr, u_prev=ctx.u_prev,
+                                  eps_obstacle=ctx.eps_obstacle)
         if ctx.lin_plans is not None:
             ctx.linearization = assembled.linearization
+        ctx.convexification = assembled.linearization
         data = assembled.data
         t0 = time.perf_counter()
         sol = step.solve(ctx.layer, data)
@@ -318,7 +328,7 @@ class ADMM:
             safety_fallback: when ADMM stops unconverged, re-plan agents that can stop at once
                 (among neighbours that can too) inside their buffered Voronoi cells when their
                 plans leave them, and other agents of pairs unsafe at tau = 1 against their
-                neighbours' latest plans (:func:`~.agent_step.fallback_problem`).
+                neighbours' latest plans (:func:`~.fallback.fallback_problem`).
         """
         s = self.settings
         ctx, state = self.prepare(x0, xref, graph, warm, rho, risk_split, tol)
@@ -332,6 +342,7 @@ class ADMM:
                 break
         if graph.num_edges and result.iterations:
             state = self._check_safety(state, result.problem, graph, ctx.layer, result, safety_fallback)
+        if result.iterations:
             state = self._account_risk(state, result, graph, ctx)
         result.plans, result.inputs, result.state = state.plans, state.inputs, state
         result.slack_max = float(result.solution.slack.detach().max()) if result.solution.slack.numel() else 0.0
@@ -342,8 +353,8 @@ class ADMM:
     def _check_safety(self, state: ADMMState, data, graph: Graph, layer, result: StepResult,
                       fallback: bool) -> ADMMState:
         """Judge the applied plans at tau = 1 (own plans, not copies); after an unconverged stop,
-        re-plan (:func:`~.agent_step.fallback_problem`) every cell agent
-        (:func:`~.agent_step.cell_agents`) whose plan leaves its buffered Voronoi cell at tau = 1,
+        re-plan (:func:`~.fallback.fallback_problem`) every cell agent
+        (:func:`~.fallback.cell_agents`) whose plan leaves its buffered Voronoi cell at tau = 1,
         and every other agent in a pair unsafe at tau = 1."""
         bounds = data.bounds[:, :, 0].detach()
         position = self.nominal.position
@@ -368,19 +379,50 @@ class ADMM:
         return state
 
     def _account_risk(self, state: ADMMState, result: StepResult, graph: Graph, ctx: StepContext) -> ADMMState:
-        """The pairs' collision-probability bounds of the applied plans (``result.pair_risk``) and,
-        under a mission budget, each agent's remaining risk less its charge."""
-        if state.pvar is None or result.problem is None:
-            return state
+        """The pairs' and the obstacle rows' probability bounds of the applied plans
+        (``result.pair_risk``, ``result.obstacle_risk``) and, under a mission budget, each agent's
+        remaining risk less its charge."""
+        bounds = None
         with torch.no_grad():
-            sep = edge_separations(state.plans.detach(), result.problem.normals.detach(), graph)
-            var = state.pvar.detach()[:, :, 0].sum(dim=1)
-            bounds = pair_risk_bounds(sep, var, edge_distances(self.settings, graph.edges))
-        result.pair_risk = pair_matrix(bounds, graph)
+            result.obstacle_risk = self._obstacle_risk(state.plans.detach(), ctx.convexification)
+            if graph.num_edges and state.pvar is not None:
+                sep = edge_separations(state.plans.detach(), result.problem.normals.detach(), graph)
+                var = state.pvar.detach()[:, :, 0].sum(dim=1)
+                bounds = pair_risk_bounds(sep, var, edge_distances(self.settings, graph.edges))
+                result.pair_risk = pair_matrix(bounds, graph)
         if ctx.eps_edge is None:
             return state
-        charges = agent_charges(bounds, ctx.eps_edge.detach(), graph)
+        charges = state.risk_left.new_zeros(graph.num_agents) if bounds is None else \
+            agent_charges(bounds, ctx.eps_edge.detach(), graph)
+        if result.obstacle_risk is not None:
+            charges = charges + result.obstacle_risk
         return dataclasses.replace(state, risk_left=(state.risk_left - charges).clamp_min(RISK_FLOOR))
+
+    def _obstacle_risk(self, plans: Tensor, conv: Any) -> Tensor | None:
+        """(K,) each agent's summed bound on hitting an obstacle of its rows at the next sample
+        (:func:`~.mission_risk.obstacle_risk_bounds`), or ``None`` without obstacle rows or margins.
+
+        Args:
+            plans: (K, T+1, n) the applied plans.
+            conv: the last iterate's convexification; a mixed team's is one per model.
+        """
+        parts = conv if isinstance(conv, tuple) else (conv,)
+        if any(getattr(c, "obstacle_std", None) is None for c in parts):
+            return None
+        members = getattr(self.agent_step, "members", [slice(None)])  # a mixed team's agents per model
+        pos = self.nominal.position
+        risk = plans.new_zeros(plans.shape[0])
+        for c, idx in zip(parts, members):
+            risk[idx] = obstacle_risk_bounds(plans[idx][..., pos], c.obstacle_normals[..., pos], c.obstacle_bounds,
+                                             c.obstacle_std)
+        return risk
+
+
+def mission_obstacle_rows(settings: ControllerSettings) -> int:
+    """L, the obstacle rows an agent carries at a horizon step that a mission budget pays for:
+    ``obstacle_rows``, or fewer when there are fewer obstacles (0 without obstacles)."""
+    obstacles = settings.obstacles
+    return min(settings.obstacle_rows, len(obstacles)) if obstacles is not None else 0
 
 
 def state_slack_max(solution) -> float:

@@ -9,9 +9,7 @@ so both compute the same thing.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -108,8 +106,10 @@ class Convexification:
         lin: the dynamics linearization (:func:`~torch_gpmpc.control.linearize.linearize_plan`).
         normals: collision normals, shape (B, M, T, D).
         own_var: each agent's projected variance along each slot's normal, (B, M, T), or ``None``.
-        obstacle_normals, obstacle_bounds: the agent's obstacle rows ``n^T x_tau >= b`` with their
+        obstacle_normals, obstacle_bounds: the agent's obstacle rows ``n^T x_tau >= b`` without
             chance margins, shapes (B, L, T, D) and (B, L, T), or ``None`` (no obstacles).
+        obstacle_std: the agent's standard deviation along each obstacle row, (B, L, T), or
+            ``None`` (no obstacles, or a method without margins).
     """
 
     lin: Any
@@ -117,6 +117,22 @@ class Convexification:
     own_var: Tensor | None = None
     obstacle_normals: Tensor | None = None
     obstacle_bounds: Tensor | None = None
+    obstacle_std: Tensor | None = None
+
+    def obstacle_bounds_with_margins(self, eps: float | Tensor) -> Tensor | None:
+        """The obstacle rows' bounds with the chance margin ``Phi^{-1}(1 - eps) std``.
+
+        Args:
+            eps: the risk of one row: a number, or (B,) one per agent (a mission budget's).
+
+        Returns:
+            (B, L, T) bounds, or ``None`` without obstacles.
+        """
+        if self.obstacle_bounds is None or self.obstacle_std is None:
+            return self.obstacle_bounds
+        quantile = chance_quantile(torch.as_tensor(eps, dtype=self.obstacle_bounds.dtype))
+        quantile = quantile[:, None, None] if quantile.dim() else quantile
+        return self.obstacle_bounds + quantile * self.obstacle_std
 
 
 def exchanges_variance(settings: ControllerSettings, method: str | Method | None = None) -> bool:
@@ -252,7 +268,7 @@ class LocalStep:
     def assemble(
         self, x0: Tensor, xref: Tensor, state: ADMMState, graph: Graph, rho: Tensor, eps_self: Tensor,
         rows: slice | Tensor = slice(None), linearization: Any = None, eps_nbr: Tensor | None = None,
-        u_prev: Tensor | None = None,
+        u_prev: Tensor | None = None, eps_obstacle: Tensor | None = None,
     ) -> Assembled:
         """Linearize around the current plans and assemble the local problems of agents ``rows``.
 
@@ -278,6 +294,8 @@ class LocalStep:
                 the pair's risk is ``eps``; a mission budget gives both ends their own).
             u_prev: (B, m) the selected agents' inputs applied at the previous step (the
                 input-rate term's ``U_{-1}``; ``None``: 0).
+            eps_obstacle: (B,) the risk of one obstacle row of each selected agent (a mission
+                budget's; default ``settings.obstacle_eps``).
         """
         cfg = self.settings
         conv = linearization if isinstance(linearization, Convexification) else \
@@ -300,7 +318,9 @@ class LocalStep:
             bounds=slot_distances(cfg, agent_ids, graph.slot_nbr[rows]) + margins, active=active, rho=rho,
             z_own=z_slot[r, c, side], z_nbr=z_slot[r, c, 1 - side],
             lam_own=lam_mine[r, c, side], lam_nbr=lam_mine[r, c, 1 - side],
-            halfspace_normals=conv.obstacle_normals, halfspace_bounds=conv.obstacle_bounds, u_prev=u_prev,
+            halfspace_normals=conv.obstacle_normals,
+            halfspace_bounds=conv.obstacle_bounds_with_margins(cfg.obstacle_eps if eps_obstacle is None else eps_obstacle),
+            u_prev=u_prev,
         )
         max_margin = margins[active].max() if bool(active.any()) else margins.new_zeros(())
         return Assembled(data, max_margin, own_var, conv)
@@ -324,25 +344,22 @@ class LocalStep:
         if self.method.chance:
             sigma = state_covariances(self.uncertainty, lin.var, lin.dyn_A, self.feedback)[:, 1:]
             own_var = projected_variances(normals, sigma)
-        obs_normals, obs_bounds = self._obstacle_rows(xbar, sigma, agent_ids)
-        return Convexification(lin, normals, own_var, obs_normals, obs_bounds)
+        return Convexification(lin, normals, own_var, *self._obstacle_rows(xbar, sigma, agent_ids))
 
     def _obstacle_rows(self, xbar: Tensor, sigma: Tensor | None,
-                       agent_ids: Tensor) -> tuple[Tensor | None, Tensor | None]:
-        """The agents' (``agent_ids`` (B,)) obstacle rows at the plans ``xbar`` (B, T+1, D), with the
-        own chance margin ``Phi^{-1}(1 - obstacle_eps) sqrt(n^T Sigma_tau n)`` when ``sigma``
-        (B, T, D, D) is given."""
+                       agent_ids: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
+        """The agents' (``agent_ids`` (B,)) obstacle rows at the plans ``xbar`` (B, T+1, D) without
+        margins, and the agents' standard deviations ``sqrt(n^T Sigma_tau n)`` along them when
+        ``sigma`` (B, T, D, D) is given: ``(normals, bounds, std)``."""
         if not self.num_obstacle_rows:
-            return None, None
+            return None, None, None
         pos = self.nominal.position
         radius = body_radii(self.settings, agent_ids)
         radius = radius[:, None, None] if isinstance(radius, Tensor) else radius  # over (T, rows)
         normals_p, bounds = obstacle_rows(self.settings.obstacles, xbar[:, 1:, pos], radius, self.num_obstacle_rows)
         normals = on_positions(normals_p, pos, xbar.shape[-1])
-        if sigma is not None:
-            quantile = chance_quantile(torch.as_tensor(self.settings.obstacle_eps, dtype=bounds.dtype))
-            bounds = bounds + quantile * safe_sqrt(projected_variances(normals, sigma))
-        return normals, bounds
+        std = None if sigma is None else safe_sqrt(projected_variances(normals, sigma))
+        return normals, bounds, std
 
     def solve(self, layer: nn.Module, data: LocalProblemData) -> LocalSolution:
         """One batched local solve; an exception escaping the layer fails every agent (kind
@@ -425,175 +442,3 @@ def edge_copies(sol: LocalSolution, graph: Graph) -> Tensor:
     copies = copies.index_put((e_idx, a_idx, a_idx), sol.X[k_idx])
     copies = copies.index_put((e_idx, a_idx, 1 - a_idx), sol.Y[k_idx, m_idx])
     return copies
-
-
-#: Penalty that pins the neighbour copies to the neighbours' plans in the safety fallback:
-#: moving a copy by d costs FIXED_OBSTACLE_RHO d^2 / 2, far above the collision slack's price.
-FIXED_OBSTACLE_RHO = 1e6
-
-
-def obstacle_problem(data: LocalProblemData, nbr_plans: Tensor) -> LocalProblemData:
-    """The local problems with the neighbours' plans as fixed obstacles (no consensus pull on
-    the own plan).
-
-    Args:
-        data: the last iteration's problems (their linearization, normals and full margins).
-        nbr_plans: the neighbours' latest own plans per slot, shape (B, M, T+1, D).
-    """
-    zero = torch.zeros_like(data.z_own)
-    return dataclasses.replace(data, rho=torch.zeros_like(torch.as_tensor(data.rho)).detach(),
-                               rho_nbr=torch.full_like(data.active, FIXED_OBSTACLE_RHO, dtype=torch.float64),
-                               z_own=zero, lam_own=zero, z_nbr=nbr_plans.detach(), lam_nbr=zero)
-
-
-def cell_planes(own_plans: Tensor, nbr_plans: Tensor, position: list[int]) -> tuple[Tensor, Tensor]:
-    """Each pair's buffered Voronoi plane at the agents' measured positions (tau = 0 of their plans).
-
-    Agent k's cell towards neighbour j is ``n^T p >= m + b / 2`` with ``n`` the unit vector from
-    j's position to k's and ``m = n^T (p_k + p_j) / 2``; j's cell, with ``-n``, is the other side
-    (Zhou et al., "Fast, on-line collision avoidance for dynamic vehicles using buffered Voronoi
-    cells", 2017). Coincident positions (never in a safe team) take the first axis.
-
-    Args:
-        own_plans: (B, T+1, D) the agents' plans. nbr_plans: (B, M, T+1, D) their neighbours'.
-        position: the state indices of the position.
-
-    Returns:
-        ``(n (B, M, P), m (B, M))``.
-    """
-    diff = own_plans[:, None, 0, position] - nbr_plans[:, :, 0, position]
-    length = torch.linalg.vector_norm(diff, dim=-1, keepdim=True)
-    axis = torch.zeros_like(diff)
-    axis[..., 0] = 1.0
-    n = torch.where(length > 1e-9, diff / length.clamp_min(1e-300), axis)
-    m = (n * 0.5 * (own_plans[:, None, 0, position] + nbr_plans[:, :, 0, position])).sum(-1)
-    return n, m
-
-
-def cell_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, position: list[int]) -> LocalProblemData:
-    """The safety fallback's re-plan: the local problems with each collision row replaced by the
-    agent's buffered Voronoi cell at every step, ``n^T p_tau >= m + b_tau / 2`` (:func:`cell_planes`;
-    ``b_tau`` the row's bound, chance margin included), and no consensus pull.
-
-    At tau = 1 two agents of a pair keep ``(b_k + b_j) / 2`` between them whether one or both
-    re-plan, as long as every agent that does not re-plan is inside its cell (the fallback's
-    trigger, :func:`leaves_cell`) and no re-plan needs slack. Staying where it is lies inside the
-    cell, so an agent that can stop at once (no velocity state) always has a re-plan without slack,
-    wind permitting.
-
-    Args:
-        data: the last iteration's problems (dynamics, margins); its collision normals are replaced.
-        own_plans: (B, T+1, D) the agents' latest plans (tau = 0: the measured states).
-        nbr_plans: (B, M, T+1, D) their neighbours' latest plans.
-        position: the state indices of the position.
-    """
-    n, m = cell_planes(own_plans.detach(), nbr_plans.detach(), position)
-    T, D = data.normals.shape[2], data.normals.shape[3]
-    normals = on_positions(n, position, D)[:, :, None].expand(-1, -1, T, -1)
-    # a virtual neighbour at m - b/2 along n turns the row n^T (X - Y) >= b into n^T X >= m + b / 2
-    anchor = (m[..., None, None] - 0.5 * data.bounds.detach()[..., None]) * normals
-    obstacles = torch.cat([anchor[:, :, :1], anchor], dim=2)  # tau = 0 has no row
-    return obstacle_problem(dataclasses.replace(data, normals=normals), obstacles)
-
-
-def leaves_cell(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, position: list[int]) -> Tensor:
-    """Which agents' own plans leave their buffered Voronoi cells (:func:`cell_planes`) at tau = 1
-    (the step applied) by more than ``tol``.
-
-    Args:
-        plans: (K, T+1, D) the agents' own plans (tau = 0: the measured states).
-        graph: the communication graph.
-        bounds: (K, M) each agent's collision bound per slot at tau = 1 (``-inf``: ignore the slot).
-        tol: allowance.
-        position: the state indices of the position.
-
-    Returns:
-        (K,) bool.
-    """
-    n, m = cell_planes(plans, plans[graph.slot_nbr], position)  # (K, M, P), (K, M)
-    height = (n * plans[:, None, 1, position]).sum(-1)
-    return ((height < m + 0.5 * bounds - tol) & graph.active).any(dim=1)
-
-
-def cell_agents(momentum: Tensor, graph: Graph) -> Tensor:
-    """(K,) bool: the agents whose safety fallback uses buffered Voronoi cells: those that, like all
-    their neighbours, can stop at once (``momentum`` (K,) bool: a velocity state). A cell's guarantee
-    needs every neighbour to keep to its own cell, which a vehicle with momentum cannot promise (a
-    cell can trap it mid-flight), so pairs with momentum keep the fixed-obstacle re-plan."""
-    nbr_momentum = (momentum[graph.slot_nbr] & graph.active).any(dim=1) if graph.num_slots else \
-        torch.zeros_like(momentum)
-    return ~momentum & ~nbr_momentum
-
-
-def fallback_agents(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, position: list[int],
-                    momentum: Tensor, unsafe: Tensor, rule: str) -> tuple[Tensor, Tensor]:
-    """Who re-plans after an unconverged stop, and how (the rule both backends apply).
-
-    Args:
-        plans: (K, T+1, D) the agents' own plans. graph: the communication graph.
-        bounds: (K, M) collision bounds at tau = 1 (``-inf``: unknown). tol: allowance.
-        position: the state indices of the position. momentum: (K,) bool.
-        unsafe: (K,) bool, agents in a pair unsafe at tau = 1 (:func:`pair_safety`).
-        rule: the ``safety_fallback`` setting, ``cells`` or ``obstacles``.
-
-    Returns:
-        ``(replan, cells)``, each (K,) bool: cell agents (:func:`cell_agents`) re-plan when their
-        plan leaves its cell (:func:`leaves_cell`), the others when ``unsafe``.
-    """
-    cells = cell_agents(momentum, graph) if rule == "cells" else torch.zeros_like(unsafe)
-    if not bool(cells.any()):
-        return unsafe, cells
-    return torch.where(cells, leaves_cell(plans, graph, bounds, tol, position), unsafe), cells
-
-
-def fallback_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, position: list[int],
-                     cells: Tensor) -> LocalProblemData:
-    """The safety fallback's re-plan of each agent: inside its buffered Voronoi cell
-    (:func:`cell_problem`) where ``cells`` (:func:`cell_agents`), else against its neighbours'
-    latest plans as fixed obstacles (:func:`obstacle_problem`).
-
-    Args:
-        data: the last iteration's problems. own_plans: (B, T+1, D). nbr_plans: (B, M, T+1, D).
-        position: the state indices of the position. cells: (B,) bool.
-    """
-    if not bool(cells.any()):
-        return obstacle_problem(data, nbr_plans)
-    cell = cell_problem(data, own_plans, nbr_plans, position)
-    if bool(cells.all()):
-        return cell
-    fixed = obstacle_problem(data, nbr_plans)
-    rows = cells[:, None, None, None]
-    return dataclasses.replace(fixed, normals=torch.where(rows, cell.normals, fixed.normals),
-                               z_nbr=torch.where(rows, cell.z_nbr, fixed.z_nbr))
-
-
-def pair_safety(plans: Tensor, graph: Graph, bounds: Tensor, tol: float,
-                position: list[int] | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """Are the agents' own plans safe at tau = 1 (the step they apply)?
-
-    A pair (k, j) is unsafe when ``||X_k^1 - X_j^1||`` is below the larger of its two rows'
-    bounds (``r_safe`` plus the pair's margin) by more than ``tol`` (the consensus tolerance:
-    copies agree with the plans only that well at convergence).
-
-    Args:
-        plans: (K, T+1, D) the agents' own plans.
-        graph: the communication graph.
-        bounds: (K, M) each agent's tau = 1 collision bound per slot.
-        tol: allowance below the bound.
-        position: the state indices of the position (``None``: every state).
-
-    Returns:
-        ``(unsafe (K,) bool, separation (K, K), required (K, K))``; off-edge entries are NaN.
-    """
-    if position is not None:
-        plans = plans[..., position]
-    K = plans.shape[0]
-    sep = torch.full((K, K), float("nan"), dtype=plans.dtype)
-    req = torch.full((K, K), float("nan"), dtype=plans.dtype)
-    k_idx, m_idx = torch.nonzero(graph.active, as_tuple=True)
-    j_idx = graph.slot_nbr[k_idx, m_idx]
-    sep[k_idx, j_idx] = torch.linalg.vector_norm(plans[k_idx, 1] - plans[j_idx, 1], dim=-1)
-    req[k_idx, j_idx] = bounds[k_idx, m_idx]
-    req = torch.fmax(req, req.T)
-    unsafe_pair = torch.nan_to_num(sep, nan=math.inf) < torch.nan_to_num(req, nan=-math.inf) - tol
-    return unsafe_pair.any(dim=1), sep, req

@@ -6,23 +6,30 @@ joint chance constraints made receding-horizon):
 
 1. Agent k starts with ``R_k = delta / K``; the team's budgets sum to delta.
 2. At every control step, agent k allots ``a_k = R_k / risk_pacing`` and gives each of its
-   d_k edges the risk ``eps_k = a_k / d_k`` (:func:`edge_allotments`); the pair's rows carry
-   the sound margin of ``eps_k + eps_j`` (``pair_margin = sum`` or ``joint``), for which the
-   agents exchange these numbers (one per edge and step).
+   d_k edges and each of its L obstacle rows the risk ``eps_k = a_k / (d_k + L)``
+   (:func:`row_allotments`, :func:`edge_allotments`); the pair's rows carry the sound margin of
+   ``eps_k + eps_j`` (``pair_margin = sum`` or ``joint``), for which the agents exchange these
+   numbers (one per edge and step), and each obstacle row the margin of ``eps_k`` alone.
 3. After the step is applied, the pair's collision probability at the next sample is
    bounded by ``p = Phi(-(n^T (x_k - x_j) - r_safe) / sqrt(s_k + s_j))`` on the applied plans at
    tau = 1 (:func:`pair_risk_bounds`): the collision disc lies beyond the linearized half-space
    ``n^T (p_k - p_j) >= r_safe`` (n a unit vector), and ``n^T (x_k - x_j)`` is Gaussian with the
    two agents' projected variances. Whenever the pair's row holds, ``p <= eps_k + eps_j``.
-4. Each agent is charged its share ``p eps_k / (eps_k + eps_j)`` (<= eps_k when the row holds;
-   :func:`agent_charges`), so ``R_k`` shrinks by at most ``a_k`` a step and never reaches 0.
-5. Then P(any collision) <= sum over steps and pairs of p = sum of the charges <= sum_k R_k(0)
-   = delta, for any run length.
+   Likewise an obstacle row ``n^T p_k >= b`` (a supporting half-space of the convex obstacle
+   grown by the body radius) bounds the agent's probability of hitting it by
+   ``Phi(-(n^T x_k - b) / sqrt(s_k))`` (:func:`obstacle_risk_bounds`), at most ``eps_k`` when
+   the row holds.
+4. Each agent is charged its share ``p eps_k / (eps_k + eps_j)`` of each pair's bound (<= eps_k
+   when the row holds; :func:`agent_charges`) and its obstacle rows' bounds, so ``R_k`` shrinks
+   by at most ``a_k`` a step and never reaches 0.
+5. Then P(any collision or obstacle hit) <= sum over steps, pairs and obstacle rows of p = sum
+   of the charges <= sum_k R_k(0) = delta, for any run length.
 
 Assumptions: each agent's one-step deviation from its plan is Gaussian with the variance its
 GP predicts (latent plus learned noise), independent between agents; the GP mean's
 linearization gives the plan's next state. Pairs outside the communication radius carry no
-rows and are charged nothing: the radius must exceed what two agents can close in one step.
+rows and are charged nothing: the radius must exceed what two agents can close in one step;
+likewise the obstacles beyond an agent's ``obstacle_rows`` nearest must be out of one step's reach.
 When a row is violated anyway (slack, an unconverged ADMM stop), the charge exceeds the
 allotment and the budget is overspent; ``risk_spent`` in the metrics shows it. ``gpmpc
 calibrate --mission`` tests the whole chain by Monte Carlo.
@@ -46,18 +53,29 @@ def starting_budgets(num_agents: int, risk_budget: float, like: Tensor | None = 
     return torch.full((num_agents,), risk_budget / num_agents, dtype=dtype)
 
 
-def edge_allotments(remaining: Tensor, graph: Graph, pacing: int) -> Tensor:
-    """This step's risk of each end of each edge: ``remaining_k / (pacing d_k)``.
+def row_allotments(remaining: Tensor, graph: Graph, pacing: int, obstacle_rows: int = 0) -> Tensor:
+    """This step's risk of each of an agent's rows: ``remaining_k / (pacing (d_k + L))``.
 
     Args:
         remaining: (K,) each agent's unspent budget.
-        graph: the communication graph (E edges, degrees d_k).
+        graph: the communication graph (degrees d_k).
         pacing: ``risk_pacing``: a step spends at most ``1 / pacing`` of what remains.
+        obstacle_rows: L, the obstacle rows each agent carries at a horizon step.
+
+    Returns:
+        (K,) the risk of one of agent k's edges or obstacle rows.
+    """
+    shares = (graph.degrees() + obstacle_rows).clamp_min(1).to(remaining.dtype)
+    return remaining.clamp_min(RISK_FLOOR) / (pacing * shares)
+
+
+def edge_allotments(remaining: Tensor, graph: Graph, pacing: int, obstacle_rows: int = 0) -> Tensor:
+    """This step's risk of each end of each edge (:func:`row_allotments`).
 
     Returns:
         (E, 2) risk of the edge's lower- and higher-indexed end.
     """
-    per_edge = remaining.clamp_min(RISK_FLOOR) / (pacing * graph.degrees().clamp_min(1).to(remaining.dtype))
+    per_edge = row_allotments(remaining, graph, pacing, obstacle_rows)
     return per_edge[graph.edges] if graph.num_edges else remaining.new_zeros(0, 2)
 
 
@@ -118,6 +136,25 @@ def pair_risk_bounds(separation: Tensor, variance: Tensor, r_safe: float | Tenso
     tail = torch.special.ndtr(-gap / torch.where(random, std, torch.ones_like(std)))
     bound = torch.where(random, tail, (gap < 0).to(gap.dtype))  # no variance: certain either way
     return bound.masked_fill(gap.isnan() | variance.isnan(), float("nan"))
+
+
+def obstacle_risk_bounds(plans: Tensor, normals: Tensor, bounds: Tensor, std: Tensor) -> Tensor:
+    """Each agent's bound on hitting each obstacle of its rows at the next sample,
+    ``Phi(-(n^T x^1 - b) / s)``: the obstacle, grown by the body radius, lies beyond the row's
+    half-space ``n^T x >= b``.
+
+    Args:
+        plans: (K, T+1, D) the applied plans.
+        normals: (K, L, T, D) the obstacle rows' normals (zero off the position states).
+        bounds: (K, L, T) their bounds without chance margins.
+        std: (K, L, T) the agents' standard deviations along the normals (0: a certain state).
+
+    Returns:
+        (K,) the sum over each agent's L rows of the bound at tau = 1.
+    """
+    separation = (normals[:, :, 0] * plans[:, None, 1]).sum(-1)
+    per_row = pair_risk_bounds(separation, std[:, :, 0].square(), bounds[:, :, 0])
+    return torch.nan_to_num(per_row, nan=0.0).sum(dim=1)
 
 
 def agent_charges(bounds: Tensor, eps_edge: Tensor, graph: Graph) -> Tensor:

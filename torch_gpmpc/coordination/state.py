@@ -109,7 +109,7 @@ class StepResult:
         lost_agents: agents a distributed run has lost (they follow their last plans).
         fallback: ADMM stopped unconverged and some agents re-planned (inside their buffered
             Voronoi cells, or with momentum against their neighbours' latest plans as fixed
-            obstacles; :func:`~torch_gpmpc.coordination.agent_step.fallback_problem`).
+            obstacles; :func:`~torch_gpmpc.coordination.fallback.fallback_problem`).
         unsafe_plan: after any fallback, some pair's applied plans are closer at tau = 1 than
             their collision rows require (``r_safe`` plus the pair's margin, less ``admm_tol``).
         pair_separation: (K, K) the applied plans' distance at tau = 1 per pair (NaN off edges).
@@ -117,6 +117,9 @@ class StepResult:
         pair_risk: (K, K) the bound on each pair's probability of colliding at the next sample,
             from the applied plans and the agents' variances at tau = 1 (NaN off edges; ``None``
             for methods without margins; :func:`~torch_gpmpc.coordination.mission_risk.pair_risk_bounds`).
+        obstacle_risk: (K,) each agent's summed bound on hitting an obstacle of its rows at the
+            next sample (``None`` without obstacles or margins;
+            :func:`~torch_gpmpc.coordination.mission_risk.obstacle_risk_bounds`).
         problem: the agents' local problems of the last iteration (its convexification; what
             :func:`~torch_gpmpc.coordination.centralized.solve_centralized` solves jointly).
 
@@ -152,6 +155,7 @@ class StepResult:
     pair_separation: Tensor | None = None
     pair_required: Tensor | None = None
     pair_risk: Tensor | None = None
+    obstacle_risk: Tensor | None = None
     problem: LocalProblemData | None = None
 
     def record(self, stats: IterationStats) -> None:

@@ -147,7 +147,7 @@ class TeamStep:
 
     def assemble(self, x0: Tensor, xref: Tensor, state: ADMMState, graph: Graph, rho: Tensor, eps_self: Tensor,
                  rows: slice | Tensor = slice(None), linearization: Any = None, eps_nbr: Tensor | None = None,
-                 u_prev: Tensor | None = None) -> Assembled:
+                 u_prev: Tensor | None = None, eps_obstacle: Tensor | None = None) -> Assembled:
         """Every agent's local problem, assembled by its model's step (arguments as
         :meth:`LocalStep.assemble <torch_gpmpc.coordination.agent_step.LocalStep.assemble>`, for all
         K agents; ``linearization`` is a previous call's, one per model)."""
@@ -160,7 +160,8 @@ class TeamStep:
             parts.append(step.assemble(
                 x0[idx], xref[idx], state, graph, rho[idx] if rho.dim() == 2 else rho, eps_self[idx], rows=idx,
                 linearization=None if linearization is None else linearization[g],
-                eps_nbr=None if eps_nbr is None else eps_nbr[idx], u_prev=None if u_prev is None else u_prev[idx]))
+                eps_nbr=None if eps_nbr is None else eps_nbr[idx], u_prev=None if u_prev is None else u_prev[idx],
+                eps_obstacle=None if eps_obstacle is None else eps_obstacle[idx]))
         data = merge_problems([p.data for p in parts], self.members, [step.nominal for step in self.groups])
         own_var = None if parts[0].own_variance is None else by_group(self.members, [p.own_variance for p in parts])
         return Assembled(data, torch.stack([p.max_margin for p in parts]).max(), own_var,

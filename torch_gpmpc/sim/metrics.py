@@ -317,15 +317,17 @@ def obstacle_metrics(positions: np.ndarray, obstacles: Any, r_safe: float,
 
 
 def risk_metrics(rollout: Rollout) -> dict[str, Any]:
-    """``risk_spent`` (the sum over applied steps and pairs in contact of the bound on the pair's
-    collision probability at the next sample: by Boole's inequality a bound on the probability
-    of any collision in the run, under the chance constraints' assumptions; ``None`` without
-    margins or in older files), ``risk_mode`` and ``risk_budget`` (``None`` under ``pair_step``).
+    """``risk_spent`` (the sum over applied steps of the bounds on each pair's collision
+    probability and each agent's obstacle hits at the next sample: by Boole's inequality a bound on
+    the probability of any collision or hit in the run, under the chance constraints' assumptions;
+    ``None`` without margins or in older files), ``risk_mode`` and ``risk_budget`` (``None`` under
+    ``pair_step``).
     """
     cfg = rollout.config or {}
     mode = str(cfg.get("risk_mode", "pair_step"))
-    risks = getattr(rollout, "pair_risk", None)
-    risks = None if risks is None else np.asarray(risks, dtype=np.float64)
+    parts = [np.asarray(r, dtype=np.float64).ravel() for r in (getattr(rollout, "pair_risk", None),
+                                                               getattr(rollout, "obstacle_risk", None)) if r is not None]
+    risks = np.concatenate(parts) if parts else None
     spent = None if risks is None or not np.isfinite(risks).any() else float(np.nansum(risks))
     return {"risk_spent": spent, "risk_mode": mode,
             "risk_budget": float(cfg.get("risk_budget", Config().risk_budget)) if mode == "mission" else None}

@@ -28,8 +28,8 @@ class StepInfo:
         primal: the last primal residual.
         violations_total: (step, pair) distances below r_safe so far.
         lost_agents: agents the distributed backend has lost (empty in-process).
-        risk_spent: the pairs' collision-probability bounds summed over the steps so far
-            (``metrics.json``'s ``risk_spent``; 0 without margins).
+        risk_spent: the pairs' collision-probability bounds and the obstacle rows' hit bounds
+            summed over the steps so far (``metrics.json``'s ``risk_spent``; 0 without margins).
         min_obstacle_distance: smallest distance from an agent's centre to an obstacle after the
             step (NaN without obstacles).
         step_s: wall-clock seconds of the step's planning (NaN where not measured).
@@ -87,7 +87,7 @@ class StepRecorder:
             "inputs", "plans", "adjacency", "admm_iterations", "converged", "primal", "dual",
             "slack_max", "state_slack_max", "infeasible_solves", "solve_time", "chance_margin", "messages",
             "failed_solves", "failed_by_kind", "fallback", "unsafe_plan", "pair_separation", "pair_required",
-            "pair_risk", "step_time")}
+            "pair_risk", "obstacle_risk", "step_time")}
         self.pairs = torch.triu_indices(num_agents, num_agents, 1).unbind()
         radii = torch.tensor(agent_radii(cfg.radii, cfg.r_safe, num_agents), dtype=torch.float64)
         #: each pair's required centre distance (r_safe, or r_k + r_j), (pairs,)
@@ -139,7 +139,8 @@ class StepRecorder:
         r["pair_separation"].append(self._per_pair(res.pair_separation))
         r["pair_required"].append(self._per_pair(res.pair_required))
         r["pair_risk"].append(self._per_pair(getattr(res, "pair_risk", None)))
-        self.risk_spent += float(np.nansum(r["pair_risk"][-1]))
+        r["obstacle_risk"].append(self._per_agent(getattr(res, "obstacle_risk", None)))
+        self.risk_spent += float(np.nansum(r["pair_risk"][-1])) + float(np.nansum(r["obstacle_risk"][-1]))
         pos = x_next[:, self.position]
         min_dist = pair_min_distance(pos)
         if self.num_agents > 1:
@@ -156,6 +157,12 @@ class StepRecorder:
         if self.cfg.obstacles is None or not len(self.cfg.obstacles):
             return math.nan
         return float(obstacle_geometry(self.cfg.obstacles, positions)[0].min())
+
+    def _per_agent(self, values: Tensor | None) -> np.ndarray:
+        """(K,) per-agent values as an array (NaN when not reported)."""
+        if values is None:
+            return np.full(self.num_agents, np.nan)
+        return values.detach().numpy()
 
     def _per_pair(self, matrix: Tensor | None) -> np.ndarray:
         """A (K, K) per-pair matrix as its P upper-triangle entries (NaN when not reported)."""
@@ -208,6 +215,7 @@ class StepRecorder:
             pair_separation=stack("pair_separation", (0, len(self.pairs[0]))),
             pair_required=stack("pair_required", (0, len(self.pairs[0]))),
             pair_risk=stack("pair_risk", (0, len(self.pairs[0]))),
+            obstacle_risk=stack("obstacle_risk", (0, k)) if cfg.obstacles is not None and len(cfg.obstacles) else None,
             position=None if position is None or position == list(range(D)) else list(position),
             prediction_error=np.asarray(pred["error"]) if pred["error"] else None,
             prediction_var=np.asarray(pred["var"]) if pred["var"] else None,

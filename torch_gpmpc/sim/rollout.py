@@ -58,6 +58,9 @@ class Rollout:
         pair_risk: the bound on each pair's probability of colliding at the next sample, from the
             applied plans and the agents' variances at tau = 1, shape (S, P), NaN for pairs not
             in contact or methods without margins (``None`` in older files).
+        obstacle_risk: each agent's summed bound on hitting an obstacle of its rows at the next
+            sample, shape (S, K), NaN for methods without margins (``None`` without obstacles and
+            in older files).
         (The last four are ``None`` in files written before they existed.)
         position: the state indices of the position (P of them); ``None``: every state.
         prediction_error: each agent's one-step GP prediction error of the residual it observed, shape
@@ -103,6 +106,7 @@ class Rollout:
     position: list[int] | None = None
     state_slack_max: np.ndarray | None = None
     pair_risk: np.ndarray | None = None
+    obstacle_risk: np.ndarray | None = None
     prediction_error: np.ndarray | None = None
     prediction_var: np.ndarray | None = None
     gp_update_time: np.ndarray | None = None
@@ -142,7 +146,7 @@ class Rollout:
         }
         for name in ("messages_per_iteration", "failed_solves", "failed_solves_by_kind", "fallback",
                      "unsafe_plan", "pair_separation", "pair_required", "state_slack_max", "pair_risk",
-                     "prediction_error", "prediction_var", "gp_update_time", "step_time"):
+                     "obstacle_risk", "prediction_error", "prediction_var", "gp_update_time", "step_time"):
             if getattr(self, name) is not None:
                 arrays[name] = np.asarray(getattr(self, name))
         meta = {"method": self.method, "seed": self.seed, "wall_time_s": self.wall_time_s,

@@ -32,9 +32,8 @@ from torch_gpmpc.config.schema import Config
 from torch_gpmpc.control.problem import FAILURE_KINDS, LocalSolution
 from torch_gpmpc.coordination.admm import consensus_update
 from torch_gpmpc.coordination.penalty import balance_penalty, edge_residuals, starting_penalties
-from torch_gpmpc.coordination.agent_step import (
-    edge_copies, fall_back_to_previous, fallback_agents, fallback_problem, pair_safety, slot_risks,
-)
+from torch_gpmpc.coordination.agent_step import edge_copies, fall_back_to_previous, slot_risks
+from torch_gpmpc.coordination.fallback import fallback_agents, fallback_problem, pair_safety
 from torch_gpmpc.coordination.controller import make_agent_step
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
 from torch_gpmpc.coordination.graph import graph_from_edges
