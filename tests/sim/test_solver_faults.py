@@ -75,11 +75,13 @@ def faulty_solver(real, fault, fail_call):
 
 
 def install(fault, fail_call):
-    """Every per-agent step built from now on gets faulty solvers."""
+    """Every per-agent step built from now on gets faulty solvers, and no rescue of inaccurate rows
+    by the reference path (as when that fails too), so the failure reaches the fallback."""
     import torch_gpmpc.coordination.agent_step as agent_step
 
     real_factory = agent_step.make_local_solver
     agent_step.make_local_solver = lambda *a, **k: faulty_solver(real_factory(*a, **k), fault, fail_call)
+    agent_step.LocalStep.rescue_inaccurate = lambda self, data, sol: sol
 '''
 
 SITECUSTOMIZE = '''
@@ -109,6 +111,7 @@ def test_solver_fault_falls_back_and_the_run_finishes_in_process(model, fault, t
 
     cfg = Config(**{**SHORT, **MODELS[model]})
     monkeypatch.setattr(agent_step, "make_local_solver", agent_step.make_local_solver)  # restored afterwards
+    monkeypatch.setattr(agent_step.LocalStep, "rescue_inaccurate", agent_step.LocalStep.rescue_inaccurate)
     load_faults(tmp_path).install(fault, FAILING_CALL)
     with caplog.at_level(logging.WARNING):
         rollout = simulate(cfg)
@@ -132,6 +135,7 @@ def test_solver_fault_in_a_mixed_team_fails_only_that_models_agents(fault, tmp_p
     cfg = Config(**{**SHORT, "scenario": "circle", "num_agents": 3,
                     "models": ["double-integrator", "single-integrator", "double-integrator"]})
     monkeypatch.setattr(agent_step, "make_local_solver", agent_step.make_local_solver)  # restored afterwards
+    monkeypatch.setattr(agent_step.LocalStep, "rescue_inaccurate", agent_step.LocalStep.rescue_inaccurate)
     load_faults(tmp_path).install(fault, FAILING_CALL)
     rollout = simulate(cfg)
     m = compute_metrics(rollout)

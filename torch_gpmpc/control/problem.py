@@ -8,6 +8,7 @@ other; this module imports no solver and no cvxpy.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -171,6 +172,44 @@ class LocalSolution:
     failure: Tensor | None = None
     failure_detail: str | None = None
     state_slack: Tensor | None = None
+
+
+#: LocalProblemData fields that may be a scalar shared by the whole batch
+SHARED_SCALARS = ("rho", "rho_nbr")
+
+
+def select_problems(data: LocalProblemData, rows: Tensor) -> LocalProblemData:
+    """The problems ``rows`` (int64 (B',)) of a batch (scalar penalties stay shared)."""
+    changes = {}
+    for f in fields(data):
+        value = getattr(data, f.name)
+        if value is not None and not (f.name in SHARED_SCALARS and value.dim() == 0):
+            changes[f.name] = value[rows]
+    return dataclasses.replace(data, **changes)
+
+
+def select_solution(solution: LocalSolution, rows: Tensor) -> LocalSolution:
+    """The solutions ``rows`` (int64 (B',)) of a batch."""
+    def pick(value: Tensor | None) -> Tensor | None:
+        return None if value is None else value[rows]
+
+    return LocalSolution(X=pick(solution.X), U=pick(solution.U), Y=pick(solution.Y), slack=pick(solution.slack),
+                         slack_active=pick(solution.slack_active), ok=pick(solution.ok), cost=pick(solution.cost),
+                         failure=pick(solution.failure), failure_detail=solution.failure_detail,
+                         state_slack=pick(solution.state_slack))
+
+
+def replace_rows(solution: LocalSolution, rows: Tensor, other: LocalSolution) -> LocalSolution:
+    """``solution`` with its rows ``rows`` (int64 (B',)) taken from ``other`` (B' rows), out of place
+    (gradients flow to both); a field ``other`` lacks keeps ``solution``'s."""
+    def put(mine: Tensor | None, theirs: Tensor | None) -> Tensor | None:
+        return mine if mine is None or theirs is None else mine.index_put((rows,), theirs.to(mine.dtype))
+
+    return LocalSolution(X=put(solution.X, other.X), U=put(solution.U, other.U), Y=put(solution.Y, other.Y),
+                         slack=put(solution.slack, other.slack), slack_active=put(solution.slack_active, other.slack_active),
+                         ok=put(solution.ok, other.ok), cost=put(solution.cost, other.cost),
+                         failure=put(solution.failure, other.failure), failure_detail=solution.failure_detail,
+                         state_slack=put(solution.state_slack, other.state_slack))
 
 
 def input_rate_cost(U: Tensor, u_prev: Tensor | None, beta: float) -> Tensor:

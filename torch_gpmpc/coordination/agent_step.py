@@ -22,7 +22,8 @@ from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.control.linearize import linearize_plan
 from torch_gpmpc.control.obstacle_rows import obstacle_rows
 from torch_gpmpc.control.problem import (
-    FAIL_EXCEPTION, FAIL_INACCURATE, FAIL_NONFINITE, FAILURE_KINDS, LocalProblemData, LocalSolution,
+    FAIL_EXCEPTION, FAIL_INACCURATE, FAIL_NONFINITE, FAILURE_KINDS, LocalProblemData, LocalSolution, replace_rows,
+    select_problems, select_solution,
 )
 from torch_gpmpc.control.risk import (
     chance_quantile, collision_normals, lqr_gain, pair_margins, pair_risks, projected_variances, safe_sqrt,
@@ -236,6 +237,9 @@ class LocalStep:
             A, B = self.nominal.A(dtype=torch.float64), self.nominal.B(dtype=torch.float64)
             self.feedback = B @ lqr_gain(A, B, 1.0, max(self.settings.alpha, 1e-9))
         self._solvers: dict[int, nn.Module] = {}
+        self._rescuers: dict[int, nn.Module] = {}  # the reference solvers of rescue_inaccurate
+        #: problems the fast solver left inaccurate and the reference path solved (a run's count)
+        self.rescued_solves = 0
         #: failure kinds already warned about (one warning per kind per run)
         self._warned: set[str] = set()
 
@@ -363,9 +367,12 @@ class LocalStep:
 
     def solve(self, layer: nn.Module, data: LocalProblemData) -> LocalSolution:
         """One batched local solve; an exception escaping the layer fails every agent (kind
-        ``exception``) instead of ending the run. Input errors (GpmpcError) still raise."""
+        ``exception``) instead of ending the run. Input errors (GpmpcError) still raise. With
+        ``solver = fast``, problems the compiled solver leaves inaccurate (no convergence within
+        its iteration cap: rare, on problems with heavily softened rows) are solved again by the
+        reference path (:meth:`rescue_inaccurate`)."""
         try:
-            return layer(data)
+            return self.rescue_inaccurate(data, layer(data))
         except GpmpcError:
             raise
         except Exception as exc:  # noqa: BLE001 - counted and warned by count_failures
@@ -381,6 +388,38 @@ class LocalStep:
                 slack_active=torch.zeros(batch, dtype=torch.bool), ok=torch.zeros(batch, dtype=torch.bool),
                 cost=nan.expand(batch).clone(), failure=torch.full((batch,), FAIL_EXCEPTION),
                 failure_detail=f"{type(exc).__name__}: {exc}")
+
+    def rescue_inaccurate(self, data: LocalProblemData, sol: LocalSolution) -> LocalSolution:
+        """``sol`` with the problems the fast solver left inaccurate re-solved by cvxpylayers with
+        clarabel (the reference path; differentiable too), where that succeeds.
+
+        Args:
+            data: the B problems. sol: the fast solver's solution of them.
+
+        Returns:
+            The :class:`LocalSolution`; unchanged with another solver or when no row is inaccurate.
+        """
+        if self.settings.solver != "fast" or sol.failure is None:
+            return sol
+        rows = (sol.failure == FAIL_INACCURATE).nonzero().flatten()
+        if not rows.numel():
+            return sol
+        num_slots = data.active.shape[1]
+        if num_slots not in self._rescuers:
+            s = self.settings
+            self._rescuers[num_slots] = make_local_solver(
+                horizon=s.horizon, dim=self.nominal.dim, num_neighbors=num_slots, nominal=self.nominal, u_max=None,
+                alpha=s.alpha, slack_penalty=s.slack_penalty, solver="clarabel", constraints=self.constraints,
+                num_halfspaces=self.num_obstacle_rows, input_rate_weight=s.input_rate_weight)
+        again = self._rescuers[num_slots](select_problems(data, rows))
+        if not bool(again.ok.any()):
+            return sol
+        self.rescued_solves += int(again.ok.sum())
+        level = logging.DEBUG if "rescued" in self._warned else logging.INFO
+        self._warned.add("rescued")
+        log.log(level, "the fast local solver did not converge for agent(s) %s; re-solved with the reference solver "
+                "(clarabel). Further re-solves are logged at debug level", rows[again.ok].tolist())
+        return replace_rows(sol, rows[again.ok], select_solution(again, again.ok.nonzero().flatten()))
 
     def count_failures(self, sol: LocalSolution, result: StepResult | IterationStats) -> None:
         """Add this iteration's failed solves to ``result`` (anything with ``failed_solves`` and

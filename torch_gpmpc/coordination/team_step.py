@@ -18,7 +18,7 @@ from torch import Tensor
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.config.team import TeamSpec
-from torch_gpmpc.control.problem import LocalProblemData, LocalSolution
+from torch_gpmpc.control.problem import SHARED_SCALARS, LocalProblemData, LocalSolution, select_problems
 from torch_gpmpc.coordination.agent_step import Assembled, LocalStep, as_settings
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult
@@ -26,20 +26,6 @@ from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 from torch_gpmpc.dynamics.team import TeamNominal, by_group
 from torch_gpmpc.errors import GpmpcError
-
-#: LocalProblemData fields that may be a scalar shared by the whole batch
-_SHARED_SCALARS = ("rho", "rho_nbr")
-
-
-def select_problems(data: LocalProblemData, rows: Tensor) -> LocalProblemData:
-    """The problems ``rows`` (int64 (B',)) of a batch (scalar penalties stay shared)."""
-    changes = {}
-    for f in dataclasses.fields(data):
-        value = getattr(data, f.name)
-        if value is not None and not (f.name in _SHARED_SCALARS and value.dim() == 0):
-            changes[f.name] = value[rows]
-    return dataclasses.replace(data, **changes)
-
 
 def merge_problems(parts: list[LocalProblemData], members: list[Tensor], models: list[NominalModel]) -> LocalProblemData:
     """One batch in agent order from each model's problems (``parts[g]`` holds agents ``members[g]``);
@@ -54,7 +40,7 @@ def merge_problems(parts: list[LocalProblemData], members: list[Tensor], models:
         values = [getattr(p, f.name) for p in parts]
         if all(v is None for v in values):
             merged[f.name] = None
-        elif f.name in _SHARED_SCALARS and values[0].dim() == 0:
+        elif f.name in SHARED_SCALARS and values[0].dim() == 0:
             merged[f.name] = values[0]
         else:
             merged[f.name] = by_group(members, values)

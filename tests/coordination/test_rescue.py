@@ -1,0 +1,52 @@
+"""The fast solver's rescue: problems the compiled interior point leaves inaccurate (no
+convergence within its iteration cap) are solved again on the reference path, row by row, and
+the other rows keep the fast answers bit for bit."""
+
+from __future__ import annotations
+
+import torch
+
+from torch_gpmpc import ControllerSettings, LocalStep, ModelSpec
+from torch_gpmpc.control.examples import crossing_instance
+from torch_gpmpc.control.problem import FAIL_INACCURATE
+
+
+def _step_and_data(solver: str = "fast"):
+    step = LocalStep(ControllerSettings(method="nominal", horizon=13, solver=solver), ModelSpec.single_integrator(2))
+    data = crossing_instance(batch=4, num_neighbors=2, method="nominal").problem_data()
+    return step, data
+
+
+def test_inaccurate_rows_are_resolved_by_the_reference_path_and_the_rest_kept():
+    step, data = _step_and_data()
+    layer = step.solver(2)
+    fast = layer(data)
+    assert bool(fast.ok.all())
+    layer.max_iter = 3  # no row converges in 3 Newton steps: every row is inaccurate
+    capped = layer(data)
+    assert bool((capped.failure == FAIL_INACCURATE).all())
+    sol = step.solve(layer, data)
+    reference = LocalStep(step.settings.replace(solver="clarabel"), step.nominal).solver(2)(data)
+    assert bool(sol.ok.all()) and step.rescued_solves == 4
+    torch.testing.assert_close(sol.X, reference.X, rtol=0, atol=0)  # the reference's own answers
+    torch.testing.assert_close(sol.X, fast.X, rtol=0, atol=1e-6)   # and the same plans as a converged fast solve
+    layer.max_iter = 100
+    again = step.solve(layer, data)
+    torch.testing.assert_close(again.X, fast.X, rtol=0, atol=0)  # nothing to rescue: the fast answers
+    assert step.rescued_solves == 4
+
+
+def test_a_rescued_row_keeps_its_gradient():
+    step, data = _step_and_data()
+    layer = step.solver(2)
+    layer.max_iter = 3
+    x0 = data.x0.clone().requires_grad_(True)
+    sol = step.solve(layer, type(data)(**{**data.__dict__, "x0": x0}))
+    sol.X[:, 1].sum().backward()
+    assert x0.grad is not None and bool(torch.isfinite(x0.grad).all()) and float(x0.grad.abs().sum()) > 0
+
+
+def test_other_solvers_are_left_alone():
+    step, data = _step_and_data("clarabel")
+    sol = step.solve(step.solver(2), data)
+    assert bool(sol.ok.all()) and step.rescued_solves == 0
