@@ -44,3 +44,20 @@ def test_rotorpy_study_runs_short(tmp_path):
     assert "swap/gp-chance" in (tmp_path / "table.md").read_text()
     assert (tmp_path / "figures" / "rotorpy_online_gp.png").is_file()
     assert (tmp_path / "figures" / "rotorpy_swap_3d.png").is_file()
+
+
+def test_admm_tail_counts_the_edges_that_hold_each_step(tmp_path):
+    """The short version of eval/admm_tail.py: a capped crossing, where every step stops unconverged."""
+    import json
+
+    out = subprocess.run([sys.executable, str(ROOT / "eval" / "admm_tail.py"), "--steps", "4", "--set", "method=nominal",
+                          "--set", "scenario=circle", "--set", "num_agents=4", "--set", "circle_radius=1",
+                          "--set", "admm_max_iter=12", "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = json.loads((tmp_path / "admm_tail.json").read_text())["rows"]
+    assert len(rows) == 4
+    for row in rows:
+        assert (row["unconverged_at_stop"] == 0) == row["converged"]
+        assert 0 <= row["unconverged_at_stop"] <= row["edges"] == 6
+    assert any(not row["converged"] for row in rows)
+    assert "| at the stop |" in (tmp_path / "admm_tail.md").read_text()

@@ -13,7 +13,7 @@ from torch_gpmpc.coordination.admm import consensus_update
 from torch_gpmpc.coordination.centralized import plan_cost, solve_centralized
 from torch_gpmpc.coordination.controller import make_controller
 from torch_gpmpc.coordination.penalty import (
-    RHO_BOUNDS, balance_penalty, edge_residuals, should_stop, starting_penalties, checks_dual,
+    RHO_BOUNDS, balance_penalty, edge_residuals, should_stop, starting_penalties, checks_dual, unconverged_edges,
 )
 from torch_gpmpc.dynamics.systems import system_from_config
 from torch_gpmpc.gp import fit_agent_gps
@@ -93,6 +93,14 @@ def test_stopping_rules():
     assert not should_stop(math.nan, 0.0, both)
 
 
+def test_unconverged_edges_count_what_the_stopping_test_waits_for():
+    res = _residuals([0.5, 2.0, 0.5, math.nan, 0.99], [0.5, 0.5, 3.0, 0.5, 0.2])
+    both, paper = Config(), Config(admm_stop="primal")
+    assert unconverged_edges(res, both) == 3  # primal 2.0, dual 3.0, and NaN
+    assert unconverged_edges(res, paper) == 2  # the paper's rule does not test the dual residual
+    assert unconverged_edges(_residuals([0.5], [0.5]), both) == 0
+
+
 @pytest.fixture(scope="module")
 def paper_crossing():
     """The paper scenario, noiseless, default settings, through the crossing: the step results."""
@@ -123,3 +131,15 @@ def test_default_admm_stops_within_one_percent_of_the_centralized_optimum(paper_
     nbr = graph.slot_nbr[k_idx]
     gap = (data.normals[k_idx] * (res.plans[k_idx[0], 1:] - res.plans[nbr, 1:])).sum(-1) - data.bounds[k_idx]
     assert float(gap.min()) > -5e-3
+
+
+def test_each_step_counts_its_unconverged_edges_per_iteration(paper_crossing):
+    """One count per iteration; a converged step ends at 0, a step stopped at its cap does not."""
+    cfg, admm, results = paper_crossing
+    for _, graph, res in results:
+        assert len(res.unconverged_edges) == res.iterations
+        assert all(0 <= c <= graph.num_edges for c in res.unconverged_edges)
+        assert (res.unconverged_edges[-1] == 0) == res.converged
+    xref, graph, res = results[18]
+    capped = admm.solve_step(res.plans[:, 0], xref, graph, max_iter=1)
+    assert not capped.converged and capped.unconverged_edges == [graph.num_edges]

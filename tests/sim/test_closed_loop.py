@@ -99,8 +99,8 @@ def test_tensorboard_serves_our_scalar_tags(tmp_path):
                 break
             time.sleep(0.5)
         run_tags = set().union(*(set(v) for v in tags.values()))
-        for tag in ("admm/primal_residual", "admm/iterations", "safety/min_distance", "perf/solve_ms",
-                    "perf/step_ms"):
+        for tag in ("admm/primal_residual", "admm/iterations", "admm/unconverged_edges", "safety/min_distance",
+                    "perf/solve_ms", "perf/step_ms"):
             assert tag in run_tags, run_tags
         run = next(iter(tags))
         query = urllib.parse.urlencode({"run": run, "tag": "admm/iterations"})

@@ -56,7 +56,9 @@ from torch_gpmpc.coordination.mission_risk import (
     RISK_FLOOR, agent_charges, edge_allotments, edge_separations, obstacle_risk_bounds, pair_matrix,
     pair_risk_bounds, row_allotments, slot_risks_from_edges, starting_budgets,
 )
-from torch_gpmpc.coordination.penalty import balance_penalty, edge_residuals, should_stop, starting_penalties
+from torch_gpmpc.coordination.penalty import (
+    balance_penalty, edge_residuals, should_stop, starting_penalties, unconverged_edges,
+)
 from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult, adapt_state, initial_state
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
@@ -293,6 +295,7 @@ class ADMM:
             stats.primal, stats.dual = res.primal.max(), res.dual.max()
             stats.primal_ratio = float(stop.primal_ratio.max().detach())
             stats.dual_ratio = float(stop.dual_ratio.max().detach())
+            stats.unconverged_edges = unconverged_edges(stop, s)
             if adaptive:
                 rho_now = balance_penalty(rho_now, res)
         pvar = state.pvar

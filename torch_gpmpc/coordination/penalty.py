@@ -102,6 +102,15 @@ def should_stop(primal_ratio: float, dual_ratio: float, cfg: ControllerSettings)
     return primal_ratio < 1.0 and (dual_ratio < 1.0 or not checks_dual(cfg))
 
 
+def unconverged_edges(residuals: EdgeResiduals, cfg: ControllerSettings) -> int:
+    """How many edges have not met the stopping test of :func:`should_stop` on their own: the primal
+    ratio, and the dual one where the rule tests it (:func:`checks_dual`), not below 1."""
+    left = ~(residuals.primal_ratio < 1.0)  # NaN has not converged, as in should_stop
+    if checks_dual(cfg):
+        left = left | ~(residuals.dual_ratio < 1.0)
+    return int(left.sum())
+
+
 def starting_penalties(carried: Tensor | None, rho: Tensor, num_edges: int) -> Tensor:
     """(E,) penalties at the start of a step: carried over from the warm start where known
     (not NaN), else ``rho``."""

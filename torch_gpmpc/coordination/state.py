@@ -95,6 +95,10 @@ class StepResult:
         converged: whether the stopping criterion was met.
         primal_residuals: per iteration, largest ``||y_{e,k} - z_e||``.
         dual_residuals: per iteration, largest ``rho ||z_e - z_e_prev||``.
+        unconverged_edges: per iteration, the edges that have not met the stopping test yet
+            (:attr:`IterationStats.unconverged_edges`); empty where not counted (the distributed
+            backend). A stop at the cap held by a handful of edges reads very differently from one
+            where the whole team disagrees.
         slack_max: largest collision slack of the final iterate.
         state_slack_max: how far the final plans leave the soft state constraints (state box,
             rows, norm bound, workspace), the largest over agents and steps (0 inside).
@@ -140,6 +144,7 @@ class StepResult:
     converged: bool
     primal_residuals: list[float] = field(default_factory=list)
     dual_residuals: list[float] = field(default_factory=list)
+    unconverged_edges: list[int] = field(default_factory=list)
     slack_max: float = 0.0
     state_slack_max: float = 0.0
     infeasible_solves: int = 0
@@ -163,6 +168,7 @@ class StepResult:
         self.iterations += 1
         self.primal_residuals.append(float(stats.primal.detach()))
         self.dual_residuals.append(float(stats.dual.detach()))
+        self.unconverged_edges.append(stats.unconverged_edges)
         self.solve_time_s += stats.solve_time_s
         self.failed_solves += stats.failed_solves
         for kind, count in stats.failed_by_kind.items():
@@ -181,6 +187,8 @@ class IterationStats:
         primal: largest per-edge primal residual ``||y_{e,k} - z_e||``, 0-d (keeps gradients).
         dual: largest per-edge dual residual ``rho_e ||z_e - z_e_prev||``, 0-d (keeps gradients).
         primal_ratio, dual_ratio: the largest residual over its stopping tolerance (< 1: met).
+        unconverged_edges: edges whose own residuals have not met the stopping test
+            (:func:`~torch_gpmpc.coordination.penalty.unconverged_edges`); 0 without edges.
         max_margin: largest chance margin of an active row.
         solve_time_s: seconds in the local solves.
         failed_solves, failed_by_kind: failed local solves, split by kind.
@@ -193,6 +201,7 @@ class IterationStats:
     dual: Tensor
     primal_ratio: float = 0.0
     dual_ratio: float = 0.0
+    unconverged_edges: int = 0
     max_margin: float = 0.0
     solve_time_s: float = 0.0
     failed_solves: int = 0

@@ -60,6 +60,8 @@ def log_step(tb, t: int, info: StepInfo, res: StepResult) -> None:
     tb.scalar("admm/primal_residual", info.primal, t)
     tb.scalar("admm/dual_residual", res.dual_residuals[-1] if res.dual_residuals else math.nan, t)
     tb.scalar("admm/iterations", res.iterations, t)
+    if res.unconverged_edges:  # the in-process backend counts them
+        tb.scalar("admm/unconverged_edges", res.unconverged_edges[-1], t)
     tb.scalar("safety/min_distance", info.min_distance, t)
     tb.scalar("safety/violations", info.violations_total, t)
     tb.scalar("safety/chance_margin", res.max_margin, t)

@@ -49,6 +49,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from torch_gpmpc.control.solvers.ipm_cache import ensure_fresh, newest_source_time
 from torch_gpmpc.control.solvers.ipm_linalg import (
     absmax, absmax2, backward_solve, cholesky, copy_into, fill, forward_solve,
 )
@@ -480,8 +481,10 @@ def warm_up() -> None:
     """Compile (or load from the on-disk cache) both entry points on a tiny problem.
 
     Call before starting several processes that use the kernel, so they load the cache
-    instead of each compiling it (about 10 s of one core, once per installation).
+    instead of each compiling it (about 10 s of one core, once per installation, and again after
+    a kernel source changes: :func:`~.ipm_cache.ensure_fresh`).
     """
+    ensure_fresh()
     B, M, T, D = 1, 1, 1, 1
     R, n, m = M * T, T * D, 2 * M * T + 4 * T
     canonical = (np.eye(n)[None], np.zeros((B, n)), np.ones(B), np.zeros((B, n)), np.ones((B, M)),
@@ -496,7 +499,8 @@ def warm_up() -> None:
 
 def is_cached() -> bool:
     """Whether numba's on-disk cache next to this module holds every compiled function, newer
-    than this source (if not, the first solve compiles them: about 20-30 s, once)."""
+    than every kernel source (:mod:`~.ipm_cache`; if not, the first solve compiles them: about
+    20-30 s, once)."""
     from pathlib import Path
 
     source = Path(__file__)
@@ -504,4 +508,5 @@ def is_cached() -> bool:
     wanted = {f"{source.stem}.{name}-{obj.py_func.__code__.co_firstlineno}" for name, obj in globals().items()
               if hasattr(obj, "py_func") and obj.py_func.__module__ == __name__}
     index = {p.name.rsplit(".", 2)[0]: p for p in (source.parent / "__pycache__").glob(f"{source.stem}.*.nbi")}
-    return wanted <= set(index) and all(index[key].stat().st_mtime >= source.stat().st_mtime for key in wanted)
+    newest = newest_source_time(source.parent)
+    return wanted <= set(index) and all(index[key].stat().st_mtime >= newest for key in wanted)

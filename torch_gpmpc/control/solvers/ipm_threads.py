@@ -18,6 +18,7 @@ from typing import Callable, Sequence
 
 import torch
 
+from torch_gpmpc.control.solvers import ipm_cache
 from torch_gpmpc.control.solvers import ipm_kernel as ipm
 
 #: Argument positions of :func:`~.ipm_kernel.solve_batch` that are per-problem arrays (first
@@ -39,12 +40,14 @@ _pools: dict[tuple[int, int], ThreadPoolExecutor] = {}
 def solve_batch(*args) -> None:
     """:func:`~.ipm_kernel.solve_batch` (same arguments, outputs written in place) on the
     available threads."""
+    ipm_cache.ensure_fresh()
     run_in_blocks(ipm.solve_batch, args, SOLVE_ROWS)
 
 
 def adjoint_batch(*args) -> None:
     """:func:`~.ipm_kernel.adjoint_batch` (same arguments, outputs written in place) on the
     available threads."""
+    ipm_cache.ensure_fresh()
     run_in_blocks(ipm.adjoint_batch, args, ADJOINT_ROWS)
 
 
