@@ -263,6 +263,17 @@ def test_distance_penalty_uses_each_pairs_radii():
     assert float(distance_penalty(plans, 0.4, width)) < 2e-3 * float(got)  # r_safe alone: outside
 
 
+def test_instances_push_starts_apart_to_each_pairs_radii():
+    """Perturbed starts closer than 1.05 (r_k + r_j) are pushed apart; without radii, 1.05 r_safe."""
+    settings = TuneSettings(perturb_std=0.6)
+    radii = [0.3, 0.8, 0.5]  # 3 of these 8 instances had a pair within 1.05 (r_k + r_j) when pushed to r_safe
+    for cfg in (Config(**SMALL, radii=radii), Config(**SMALL)):
+        need = torch.tensor(radii if cfg.radii else [cfg.r_safe / 2] * 3, dtype=torch.float64)
+        for inst in make_instances(cfg, range(8), settings):
+            gap = torch.cdist(inst.x0, inst.x0) - 1.05 * (need[:, None] + need[None, :])
+            assert float(gap.fill_diagonal_(0.0).min()) >= 0.0
+
+
 def test_cli_tune_errors_are_one_line(tmp_path, capsys):
     assert main(["tune", "--out", str(tmp_path / "x"), "--resume"]) == 2
     err = capsys.readouterr().err

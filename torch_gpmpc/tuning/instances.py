@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 from torch_gpmpc.coordination.admm import ADMM, ADMMState
 from torch_gpmpc.config.schema import Config
+from torch_gpmpc.config.settings import agent_radii
 from torch_gpmpc.coordination.graph import communication_graph
 from torch_gpmpc.dynamics.systems import NominalModel
 from torch_gpmpc.sim.scenarios import Scenario, make_scenario
@@ -66,8 +67,8 @@ def make_instances(
     Instance ``s``: the reference position at :func:`crossing_index` plus a seeded
     Gaussian perturbation (std ``perturb_std``), and ``mpc_steps`` steps of
     standard-normal noise, all from ``torch.Generator().manual_seed(s)``. Starts closer
-    than ``r_safe`` are pushed apart along their difference (so the local problems
-    start feasible).
+    than their collision distance (``r_safe``, or ``r_k + r_j`` with ``radii``) are pushed apart
+    along their difference (so the local problems start feasible).
 
     Args:
         cfg: run configuration (scenario, horizon, r_safe, ...).
@@ -83,11 +84,13 @@ def make_instances(
     nominal = NominalModel(cfg.model_spec())
     t0 = crossing_index(scenario, settings.crossing_distance)
     base = scenario.reference_window(t0, 0)[:, 0]  # (K, P) positions
+    radii = torch.tensor(agent_radii(cfg.radii, cfg.r_safe, base.shape[0]), dtype=torch.float64)
+    distances = radii[:, None] + radii[None, :]  # each pair's r_k + r_j (r_safe without radii)
     out = []
     for seed in seeds:
         gen = torch.Generator().manual_seed(int(seed))
         p0 = base + settings.perturb_std * torch.randn(base.shape, generator=gen, dtype=torch.float64)
-        x0 = nominal.states_at(_separate(p0, cfg.r_safe))
+        x0 = nominal.states_at(_separate(p0, distances))
         noise = torch.randn(settings.mpc_steps, base.shape[0], len(nominal.residual), generator=gen,
                             dtype=torch.float64)
         out.append(TuneInstance(x0=x0, scenario=scenario, t0=t0, noise=noise, name=f"{scenario.name}@t{t0}/s{seed}"))
@@ -141,8 +144,13 @@ def with_warm_starts(admm: ADMM, instances: Sequence[TuneInstance], rho: float =
     return out
 
 
-def _separate(x: Tensor, r_safe: float, iters: int = 20) -> Tensor:
-    """Push pairs closer than ``1.05 r_safe`` apart symmetrically (a few sweeps)."""
+def _separate(x: Tensor, distances: Tensor, iters: int = 20) -> Tensor:
+    """Push pairs closer than 1.05 times their distance apart symmetrically (a few sweeps).
+
+    Args:
+        x: (K, P) positions.
+        distances: (K, K) each pair's collision distance ``r_k + r_j`` (``r_safe`` without radii).
+    """
     x = x.clone()
     for _ in range(iters):
         moved = False
@@ -150,9 +158,10 @@ def _separate(x: Tensor, r_safe: float, iters: int = 20) -> Tensor:
             for j in range(i + 1, x.shape[0]):
                 d = x[i] - x[j]
                 dist = float(d.norm())
-                if dist < 1.05 * r_safe:
+                need = 1.05 * float(distances[i, j])
+                if dist < need:
                     direction = d / dist if dist > 1e-12 else torch.eye(x.shape[1], dtype=x.dtype)[0]
-                    push = 0.5 * (1.05 * r_safe - dist) + 1e-9
+                    push = 0.5 * (need - dist) + 1e-9
                     x[i] += push * direction
                     x[j] -= push * direction
                     moved = True
