@@ -37,6 +37,18 @@ def test_communication_radius_selects_pairs():
     x = torch.tensor([[0.0, 0.0], [1.0, 0.0], [3.0, 0.0]], dtype=torch.float64)
     assert communication_graph(x, 1.5).edges.tolist() == [[0, 1]]
     assert communication_graph(x, None).edges.tolist() == [[0, 1], [0, 2], [1, 2]]
+    assert communication_graph(x, 1.0).edges.tolist() == []  # strictly closer than the radius
+    assert communication_graph(x[:1], 1.0).num_edges == 0 and communication_graph(x[:0], None).num_edges == 0
+
+
+def test_communication_graph_equals_the_pairwise_test_on_a_crowd():
+    """The vectorized graph has exactly the edges of testing every pair by its distance."""
+    x = 20 * torch.rand(300, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    dist = torch.cdist(x, x)
+    pairs = [[i, j] for i in range(300) for j in range(i + 1, 300) if float(dist[i, j]) < 2.5]
+    graph = communication_graph(x, 2.5)
+    assert len(pairs) > 1000 and graph.edges.tolist() == pairs
+    assert (graph.degrees() == (dist < 2.5).sum(1) - 1).all()
 
 
 def _centralized(cfg: Config, x0, xref, dyn_A, dyn_c, edges, normals, bounds):
