@@ -50,6 +50,7 @@ def test_bench_cli_scale_short(tmp_path, monkeypatch):
     rows = result["sections"]["scale"]["table"]
     assert [r["agents"] for r in rows] == [3, 6]
     assert all(r["ms_per_step_per_agent"] > 0 for r in rows)
+    assert result["sections"]["scale"]["per_agent_1000_over_100"] is None  # neither size measured here
     runs = result["sections"]["scale"]["whole_runs"]
     assert [(r["method"], r["agents"], r["steps"]) for r in runs] == [("gp-chance", 4, 3), ("nonlinear", 4, 3)]
     assert all(0 < r["step_s_median"] <= r["step_s_max"] and r["step_s_mean"] <= r["step_s_max"] for r in runs)

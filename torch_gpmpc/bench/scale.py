@@ -1,6 +1,6 @@
 """``gpmpc bench`` section ``scale``: controller cost per agent as the team grows.
 
-The ``circle`` scenario with K = 3, 10, 30, 100 agents, starts spaced ``SPACING`` apart
+The ``circle`` scenario with K = 3, 10, 30, 100, 1000 agents, starts spaced ``SPACING`` apart
 on the circle (radius grows with K) and neighbours limited to ``COMM_RADIUS``, so each
 agent keeps a bounded number of neighbours. Method ``nonlinear`` (no GP fitting, so
 only the controller is timed), a few closed-loop steps with a fixed number of ADMM
@@ -37,7 +37,7 @@ from torch_gpmpc.sim.scenarios import make_scenario
 
 SPACING = 1.0
 COMM_RADIUS = 2.5
-TEAM_SIZES = (3, 10, 30, 100)
+TEAM_SIZES = (3, 10, 30, 100, 1000)
 #: The whole-run crowd: agents, half-side of the square they start and end in, and methods.
 CROWD_AGENTS, CROWD_RADIUS = 100, 10.0
 CROWD_METHODS = ("gp-chance", "nonlinear")
@@ -162,7 +162,10 @@ def run(quick: bool = False, out: Path | str | None = None) -> dict:
     steps, iterations = (2, 3) if quick else (3, 10)
     rows = [measure(k, steps, iterations) for k in sizes]
     per_agent = np.array([r["ms_per_step_per_agent"] for r in rows])
+    by_size = {r["agents"]: r["ms_per_step_per_agent"] for r in rows}
     result = {"table": rows, "flatness_max_over_min": float(per_agent.max() / per_agent.min()),
+              # the scale issue's bar: K = 1000 costs at most 2x K = 100's per agent and step
+              "per_agent_1000_over_100": by_size[1000] / by_size[100] if 1000 in by_size else None,
               "default_stopping": [measure_default_stopping(k, 2 if quick else 5) for k in sizes]}
     crowd, crowd_steps = (QUICK_CROWD_AGENTS, QUICK_CROWD_STEPS) if quick else (CROWD_AGENTS, None)
     result["whole_runs"] = [measure_whole_run(crowd_config(crowd, method, max_steps=crowd_steps))
