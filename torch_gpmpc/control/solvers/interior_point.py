@@ -285,7 +285,8 @@ def _polish(arrays: list[np.ndarray], point: _Iterate, kkt_error: np.ndarray, we
             limits: KernelLimits, penalty: float, tol: float) -> tuple[_Iterate, np.ndarray, np.ndarray, np.ndarray]:
     """Continue from ``point`` to ``POLISH_FACTOR * tol`` (at most ``POLISH_ITERATIONS`` more
     iterations): gradients are more sensitive than solutions to the barrier perturbation (a
-    nearly degenerate row counts as half active).
+    nearly degenerate row counts as half active). Rows whose main solve already ended there
+    are not passed to the kernel (it would return them unchanged after recomputing their error).
 
     Returns:
         ``(polished, improved (B,), iterations (B,), kkt_error (B,))``; ``improved``: the polish
@@ -293,9 +294,16 @@ def _polish(arrays: list[np.ndarray], point: _Iterate, kkt_error: np.ndarray, we
     """
     B = point.u.shape[0]
     polished = point.copy()
-    p_conv, p_iter, p_err = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
-    ipm_threads.solve_batch(*arrays, limits.couple, *weights, *limits.args(), penalty, POLISH_FACTOR * tol,
-                            POLISH_ITERATIONS, polished.u, polished.y, polished.w, polished.z, True, p_conv, p_iter, p_err)
+    p_conv, p_iter, p_err = kkt_error <= POLISH_FACTOR * tol, np.zeros(B, dtype=np.int64), kkt_error.copy()
+    rows = np.flatnonzero(~p_conv)
+    if rows.size:
+        sub = _Iterate(point.u[rows], point.y[rows], point.w[rows], point.z[rows])
+        conv, iters, err = np.empty(rows.size, dtype=np.bool_), np.empty(rows.size, dtype=np.int64), np.empty(rows.size)
+        ipm_threads.solve_batch(*[a[rows] for a in arrays], limits.couple, *weights, *limits.args(), penalty,
+                                POLISH_FACTOR * tol, POLISH_ITERATIONS, sub.u, sub.y, sub.w, sub.z, True, conv, iters,
+                                err)
+        polished.u[rows], polished.y[rows], polished.w[rows], polished.z[rows] = sub.u, sub.y, sub.w, sub.z
+        p_conv[rows], p_iter[rows], p_err[rows] = conv, iters, err
     return polished, p_conv | (p_err <= kkt_error), p_iter, p_err
 
 
