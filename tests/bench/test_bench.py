@@ -82,12 +82,13 @@ def test_bench_run_short_breakdown_times_every_iteration_once():
     result = bench_run.run(quick=True)  # 10 steps, no child process
     rows = {r["part"]: r for r in result["table"]}
     assert result["steps"] == 10 and result["admm_iterations"] >= 10
-    # the timers saw exactly the rollout's own ADMM iteration count (one solve, two kernel
-    # calls (solve, polish), one assembly per iteration; one ADMM step per closed-loop step) and fit 1 time
+    # the timers saw exactly the rollout's own ADMM iteration count (one solve, one or two kernel
+    # calls (solve, and the polish unless every problem is polished already), one assembly per
+    # iteration; one ADMM step per closed-loop step) and fit 1 time
     calls = result["calls"]
     for label in ("solve", "assembly", "canonicalize"):
         assert calls[label] == result["admm_iterations"], label
-    assert calls["kernel"] == 2 * result["admm_iterations"]  # the solve and its polish
+    assert result["admm_iterations"] < calls["kernel"] <= 2 * result["admm_iterations"]
     # the linearization points are held within a step (relinearize=false): one linearization per step
     assert calls["linearize"] == result["steps"]
     assert calls["admm_step"] == 10 and calls["gp_fit"] == 1

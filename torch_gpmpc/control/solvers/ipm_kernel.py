@@ -61,8 +61,8 @@ from torch_gpmpc.control.solvers.ipm_residuals import (
 #: duality measure mu falls: ``max(STEP_FRACTION, 1 - END_GAME mu)`` (from mu < 1e-4 on). A fixed
 #: 0.99 cuts the last complementarity products by only 100x per step, so every solve spent its
 #: last 3-5 Newton steps (and the polish) on that; letting the fraction tend to 1 gives the
-#: method's fast local convergence back (the constraint-family problems: 16 % fewer Newton steps,
-#: and the polish usually needs none).
+#: method's fast local convergence back (the constraint-family problems: 16 % fewer Newton steps
+#: in the main solves, and the polish usually needs none).
 STEP_FRACTION, END_GAME = 0.99, 100.0
 
 #: After each step every U_t is projected onto the ball of this multiple of u_max.
