@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torch_gpmpc.config.settings import ControllerSettings
+from torch_gpmpc.config.settings import ControllerSettings, agent_radii
 
 
 def body_radii(settings: ControllerSettings, agent_ids: Tensor) -> Tensor | float:
@@ -42,3 +42,10 @@ def edge_distances(settings: ControllerSettings, edges: Tensor) -> Tensor | floa
         return settings.r_safe
     radii = torch.tensor(settings.radii, dtype=torch.float64)
     return radii[edges[:, 0]] + radii[edges[:, 1]]
+
+
+def pair_distances(radii: tuple[float, ...] | None, r_safe: float, num_agents: int) -> Tensor:
+    """The required centre distance of every pair, (K, K) float64: ``r_k + r_j`` (``r_safe``
+    without radii)."""
+    r = torch.tensor(agent_radii(radii, r_safe, num_agents), dtype=torch.float64)
+    return r[:, None] + r[None, :]

@@ -59,8 +59,8 @@ from torch_gpmpc.config.obstacles import (
 )
 from torch_gpmpc.config.reader import read_table
 from torch_gpmpc.config.schema import REFERENCES, Config
-from torch_gpmpc.config.settings import agent_radii
 from torch_gpmpc.config.workspace import Workspace
+from torch_gpmpc.coordination.bodies import pair_distances
 from torch_gpmpc.errors import GpmpcError
 
 logger = logging.getLogger(__name__)
@@ -213,7 +213,8 @@ def make_scenario(cfg: Config, path: str | Path | None = None) -> Scenario:
         return doorway_scenario(cfg)
     else:  # pragma: no cover - Config already restricts the choices
         raise GpmpcError(f"config key 'scenario': unknown scenario {cfg.scenario!r}")
-    _check_start_separation(starts, _required(cfg.radii, cfg.r_safe, starts.shape[0]), f"scenario {cfg.scenario!r}",
+    _check_start_separation(starts, pair_distances(cfg.radii, cfg.r_safe, starts.shape[0]),
+                            f"scenario {cfg.scenario!r}",
                             "raise circle_radius, lower num_agents or lower r_safe (or radii)")
     return Scenario(starts, targets, cfg.reference, cfg.ref_points, cfg.scenario)
 
@@ -273,7 +274,7 @@ def doorway_scenario(cfg: Config) -> Scenario:
     walls = [{"min": [-half_wall, half_gap] + [-h for h in height], "max": [half_wall, H] + height},
              {"min": [-half_wall, -H] + [-h for h in height], "max": [half_wall, -half_gap] + height}]
     workspace = Workspace((-X, -H) + tuple(-h for h in height), (X, H) + tuple(height))
-    _check_start_separation(starts, _required(cfg.radii, cfg.r_safe, K), "scenario 'doorway'",
+    _check_start_separation(starts, pair_distances(cfg.radii, cfg.r_safe, K), "scenario 'doorway'",
                             "raise min_separation or lower the radii")
     return Scenario(starts, targets, cfg.reference, cfg.ref_points, "doorway", workspace=workspace,
                     obstacles=ObstacleField.parse(walls))
@@ -395,7 +396,7 @@ def load_scenario_file(path: str | Path, cfg: Config) -> Scenario:
     if not isinstance(name, str):
         raise GpmpcError(f"{where}: 'name' must be a string, got {name!r}")
     radii = _parse_radii(data["radii"], starts.shape[0], where) if "radii" in data else None
-    required = _required(radii if radii is not None else cfg.radii, cfg.r_safe, starts.shape[0])
+    required = pair_distances(radii if radii is not None else cfg.radii, cfg.r_safe, starts.shape[0])
     _check_start_separation(starts, required, where, "move them apart or lower r_safe (or radii)")
     _warn_close_targets(targets, required, where)
     workspace = None
@@ -486,12 +487,6 @@ def _parse_ref_points(value: Any, where: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 2:
         raise GpmpcError(f"{where}: 'ref_points' is {value!r}; give an integer >= 2")
     return value
-
-
-def _required(radii: tuple[float, ...] | None, r_safe: float, num_agents: int) -> Tensor:
-    """The required centre distance of every pair (K, K): ``r_k + r_j`` (``r_safe`` without radii)."""
-    r = torch.tensor(agent_radii(radii, r_safe, num_agents), dtype=torch.float64)
-    return r[:, None] + r[None, :]
 
 
 def _name(required: Tensor) -> str:

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 from torch_gpmpc.coordination.admm import ADMM, ADMMState
 from torch_gpmpc.config.schema import Config
-from torch_gpmpc.config.settings import agent_radii
+from torch_gpmpc.coordination.bodies import pair_distances
 from torch_gpmpc.coordination.graph import communication_graph
 from torch_gpmpc.dynamics.systems import NominalModel
 from torch_gpmpc.sim.scenarios import Scenario, make_scenario
@@ -84,8 +84,7 @@ def make_instances(
     nominal = NominalModel(cfg.model_spec())
     t0 = crossing_index(scenario, settings.crossing_distance)
     base = scenario.reference_window(t0, 0)[:, 0]  # (K, P) positions
-    radii = torch.tensor(agent_radii(cfg.radii, cfg.r_safe, base.shape[0]), dtype=torch.float64)
-    distances = radii[:, None] + radii[None, :]  # each pair's r_k + r_j (r_safe without radii)
+    distances = pair_distances(cfg.radii, cfg.r_safe, base.shape[0])
     out = []
     for seed in seeds:
         gen = torch.Generator().manual_seed(int(seed))
