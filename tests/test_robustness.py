@@ -953,14 +953,14 @@ def test_fast_solver_rejects_bad_problem_and_run_falls_back(monkeypatch, caplog)
     real_forward = FastLocalMPC.forward
     calls = {"n": 0, "injected": 0}
 
-    def corrupting_forward(self, data):
+    def corrupting_forward(self, data, guess=None):
         calls["n"] += 1
         if calls["n"] in {2, 3, 5}:
             xref = data.xref.clone()
             xref[1] = float("nan")
             data = dataclasses.replace(data, xref=xref)
             calls["injected"] += 1
-        return real_forward(self, data)
+        return real_forward(self, data, guess)
 
     monkeypatch.setattr(FastLocalMPC, "forward", corrupting_forward)
     cfg = Config(**{**FAULT_CFG, "solver": "fast"})

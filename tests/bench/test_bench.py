@@ -10,7 +10,10 @@ from torch_gpmpc.cli import main
 
 def test_bench_local_short(monkeypatch):
     import torch_gpmpc.bench.local as bench_local
+    import torch_gpmpc.bench.warm as bench_warm
+    from torch_gpmpc.config.schema import Config
 
+    monkeypatch.setattr(bench_warm, "WORKLOADS", {"paper, 4 steps": (Config(max_steps=4), 4)})
     monkeypatch.setattr(bench_local, "BATCHES", (2, 4))
     monkeypatch.setattr(bench_local, "THREAD_BATCHES", (8,))
     monkeypatch.setattr(bench_local, "available_cores", lambda: 2)
@@ -34,6 +37,10 @@ def test_bench_local_short(monkeypatch):
         assert check["fast_vs_clarabel"]["max_abs_plan_diff"] < 1e-6
         assert check["fast_vs_clarabel"]["max_rel_grad_diff"] < 1e-5
     assert result["checks"][0]["fast_vs_reference"]["max_abs_plan_diff"] < 1e-6
+    [warm] = result["warm_start"]  # the warm active-set solves: the cold path's plans, most problems warm
+    assert warm["workload"] == "paper, 4 steps" and warm["local_problems"] > 0
+    assert warm["max_abs_plan_diff"] < 1e-6 and warm["same_acceptance"] and warm["warm_fraction"] > 0.5
+    assert warm["admm_iterations_warm"] == warm["admm_iterations_cold"] and warm["speedup"] > 0
     targets = result["targets"]
     assert set(targets) == {"fast_batch4_forward", "fast_batch4_forward+backward"}
     assert all(t["speedup_vs_default"] > 0 and isinstance(t["met"], bool) for t in targets.values())
@@ -82,17 +89,19 @@ def test_bench_run_short_breakdown_times_every_iteration_once():
     result = bench_run.run(quick=True)  # 10 steps, no child process
     rows = {r["part"]: r for r in result["table"]}
     assert result["steps"] == 10 and result["admm_iterations"] >= 10
-    # the timers saw exactly the rollout's own ADMM iteration count (one solve, one or two kernel
-    # calls (solve, and the polish unless every problem is polished already), one assembly per
-    # iteration; one ADMM step per closed-loop step) and fit 1 time
+    # the timers saw exactly the rollout's own ADMM iteration count (one solve, one assembly per
+    # iteration; one ADMM step per closed-loop step) and fit 1 time; every solve after the first
+    # starts warm (one warm kernel call), and the cold kernel (the solve and its polish) runs only
+    # for what the warm one leaves
     calls = result["calls"]
     for label in ("solve", "assembly", "canonicalize"):
         assert calls[label] == result["admm_iterations"], label
-    assert result["admm_iterations"] < calls["kernel"] <= 2 * result["admm_iterations"]
+    assert calls["kernel_warm"] == result["admm_iterations"] - 1
+    assert 1 <= calls["kernel"] <= 2 * result["admm_iterations"]
     # the linearization points are held within a step (relinearize=false): one linearization per step
     assert calls["linearize"] == result["steps"]
     assert calls["admm_step"] == 10 and calls["gp_fit"] == 1
     rows.pop("closed loop")
     rows.pop("GP fit (3 agents)")
     assert all(r["total_s"] >= 0 for r in rows.values())  # nested timers: remainders are not negative
-    assert rows["solve: kernel"]["total_s"] > 0 and rows["linearize"]["total_s"] > 0
+    assert rows["solve: kernel (warm active set)"]["total_s"] > 0 and rows["linearize"]["total_s"] > 0

@@ -15,6 +15,10 @@ respect to rho, z and bounds):
 - ``cvxpy+clarabel``: the same DPP problem solved by plain cvxpy with Clarabel, one
   problem after another (forward only, not differentiable).
 
+``fast`` is timed cold (``warm_start=False``): each timing solves the same problems again, which
+a warm start would answer from their own solutions. ``warm_start`` times the warm path where it
+applies, on the sequences of problems ADMM makes (:mod:`~torch_gpmpc.bench.warm`).
+
 ``families``: every constraint family of the local problem (input norm, input box, both, state
 box, state norm, state rows, workspace, half-spaces, all at once) on a 3D double integrator,
 ``fast`` against cvxpylayers' default solver on the same problems (:func:`run_families`).
@@ -37,6 +41,7 @@ from typing import Callable
 import cvxpy as cp
 import torch
 
+from torch_gpmpc.bench.warm import run_warm_start
 from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
 from torch_gpmpc.control.examples import crossing_instance
 from torch_gpmpc.control.problem import LocalProblemData
@@ -158,13 +163,14 @@ def run(quick: bool = False, out: Path | str | None = None) -> dict:
         torch.set_num_threads(threads)
     result["families"] = run_families(quick)
     result["threads"] = run_threads(quick)
+    result["warm_start"] = run_warm_start(quick)
     return result
 
 
 def _run(quick: bool) -> dict:
     fast_repeats, slow_repeats = (3, 1) if quick else (10, 2)
     nominal = NominalModel(DIM)
-    fast = InteriorPointMPC(HORIZON, DIM, NEIGHBORS, nominal, U_MAX, ALPHA)
+    fast = InteriorPointMPC(HORIZON, DIM, NEIGHBORS, nominal, U_MAX, ALPHA, warm_start=False)
     layers = {name: CvxpyLayerMPC(HORIZON, DIM, NEIGHBORS, nominal, U_MAX, ALPHA, solver=name)
               for name in ("clarabel", "reference")}
     rows, checks = [], []
@@ -298,7 +304,7 @@ def run_families(quick: bool = False) -> dict:
         for family in FAMILIES:
             nominal, constraints, _ = family_problem(family, 1)
             args = (HORIZON, 6, NEIGHBORS, nominal, None, ALPHA)
-            fast = InteriorPointMPC(*args, constraints=constraints, num_halfspaces=_HALFSPACES)
+            fast = InteriorPointMPC(*args, constraints=constraints, num_halfspaces=_HALFSPACES, warm_start=False)
             layer = CvxpyLayerMPC(*args, solver="clarabel", constraints=constraints, num_halfspaces=_HALFSPACES)
             default = lambda d, layer=layer: _solve_default(layer, d)  # noqa: E731
             for batch in BATCHES:
@@ -352,8 +358,8 @@ def run_threads(quick: bool = False) -> dict:
     threads, cores = torch.get_num_threads(), available_cores()
     nominal, constraints, _ = family_problem("all", 1)
     layers = {"all": InteriorPointMPC(HORIZON, 6, NEIGHBORS, nominal, None, ALPHA, constraints=constraints,
-                                      num_halfspaces=_HALFSPACES),
-              "crossing": InteriorPointMPC(HORIZON, DIM, NEIGHBORS, NominalModel(DIM), U_MAX, ALPHA)}
+                                      num_halfspaces=_HALFSPACES, warm_start=False),
+              "crossing": InteriorPointMPC(HORIZON, DIM, NEIGHBORS, NominalModel(DIM), U_MAX, ALPHA, warm_start=False)}
     rows = []
     try:
         for name, layer in layers.items():

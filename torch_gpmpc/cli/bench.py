@@ -64,6 +64,7 @@ def main(args) -> int:
         _print_table(f"{name}: whole runs of a crowd", section.get("whole_runs", []))
         _print_table(f"{name}: one thread vs every core", section.get("threads", {}).get("table", []))
         _print_table(f"{name}: constraint families", section.get("families", {}).get("table", []))
+        _print_table(f"{name}: warm active-set solves vs cold", section.get("warm_start", []))
     write_json(out / "bench.json", result)
     print(f"\nwrote {out / 'bench.json'}")
     return 0

@@ -82,6 +82,9 @@ class Config:
         seed: seed for data, noise and scenario generation.
         solver: ``fast`` (structure-exploiting interior point compiled with numba, :mod:`~torch_gpmpc.control.solvers.interior_point`),
             ``clarabel`` (cvxpylayers + diffcp with Clarabel) or ``reference`` (cvxpylayers' default).
+        solver_warm: with ``fast``, solve each ADMM iteration's problems first by the exact
+            active-set method from the previous iteration's solutions (falling back to the cold
+            interior point per problem); ``false``: every solve cold. Gradient tuning always solves cold.
         method: one of :data:`METHODS`.
         dim: position dimension (2 or 3) of the built-in models; the single integrator's state
             and input have this dimension, the double integrator's state has twice it.
@@ -192,6 +195,7 @@ class Config:
     num_agents: int = 3
     seed: int = 0
     solver: str = "fast"
+    solver_warm: bool = True
     method: str = "gp-chance"
     dim: int = 2
     model: str | ModelSpec = "single-integrator"

@@ -85,6 +85,8 @@ class ControllerSettings:
         input_rate_weight: weight beta of the input changes ``sum_t ||U_t - U_{t-1}||^2`` (with
             ``U_{-1}`` the input applied last; 0: not in the cost).
         solver: ``fast`` (compiled interior point), ``clarabel`` or ``reference`` (cvxpylayers).
+        solver_warm: with ``fast``, warm active-set solves from the previous ADMM iteration's
+            solutions (:mod:`~torch_gpmpc.control.solvers.ipm_active`); ``False``: every solve cold.
         r_safe, eps, risk_split: safety radius, pair risk, lower-indexed agent's share.
         radii: each agent's body radius (a pair keeps ``r_k + r_j`` between centres, an agent
             ``r_k`` from every obstacle), or ``None``: ``r_safe / 2`` each.
@@ -125,6 +127,7 @@ class ControllerSettings:
     input_rate_weight: float = 0.0
     slack_penalty: float = 1e4
     solver: str = "fast"
+    solver_warm: bool = True
     r_safe: float = 0.5
     eps: float = 0.1
     risk_split: float = 0.5

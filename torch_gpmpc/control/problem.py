@@ -8,6 +8,8 @@ other; this module imports no solver and no cvxpy.
 
 from __future__ import annotations
 
+from typing import Any
+
 import dataclasses
 from dataclasses import dataclass, fields
 
@@ -152,6 +154,8 @@ class LocalSolution:
             bound, workspace, half-spaces) at tau = 1..T, shape (B, T) (0 inside; see
             :meth:`~torch_gpmpc.control.constraints.LocalConstraints.state_violation`); ``None`` if
             not computed.
+        solver_point: the solver's primal-dual points of this batch (opaque; the fast solver's),
+            to pass as the next solve's ``guess`` (its warm start); ``None`` if the solver keeps none.
 
     Example:
         >>> from torch_gpmpc import NominalModel, make_local_solver
@@ -172,6 +176,7 @@ class LocalSolution:
     failure: Tensor | None = None
     failure_detail: str | None = None
     state_slack: Tensor | None = None
+    solver_point: Any = None
 
 
 #: LocalProblemData fields that may be a scalar shared by the whole batch
@@ -209,7 +214,7 @@ def replace_rows(solution: LocalSolution, rows: Tensor, other: LocalSolution) ->
                          slack=put(solution.slack, other.slack), slack_active=put(solution.slack_active, other.slack_active),
                          ok=put(solution.ok, other.ok), cost=put(solution.cost, other.cost),
                          failure=put(solution.failure, other.failure), failure_detail=solution.failure_detail,
-                         state_slack=put(solution.state_slack, other.state_slack))
+                         state_slack=put(solution.state_slack, other.state_slack), solver_point=solution.solver_point)
 
 
 def input_rate_cost(U: Tensor, u_prev: Tensor | None, beta: float) -> Tensor:

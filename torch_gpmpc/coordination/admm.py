@@ -276,7 +276,7 @@ class ADMM:
         ctx.convexification = assembled.linearization
         data = assembled.data
         t0 = time.perf_counter()
-        sol = step.solve(ctx.layer, data)
+        sol = step.solve(ctx.layer, data, state.solver_point)
         solve_time = time.perf_counter() - t0
         stats = IterationStats(solution=sol, problem=data, primal=ctx.x0.new_zeros(()), dual=ctx.x0.new_zeros(()),
                                max_margin=float(assembled.max_margin.detach()), solve_time_s=solve_time)
@@ -302,7 +302,7 @@ class ADMM:
         if assembled.own_variance is not None:
             pvar = edge_variances(assembled.own_variance, graph, state.pvar)
         return ADMMState(sol.X, sol.U, graph.edges, z_new, lam, pvar, rho_now if adaptive else None,
-                         state.risk_left), stats
+                         state.risk_left, solver_point=sol.solver_point), stats
 
     def solve_step(
         self,

@@ -255,7 +255,7 @@ class LocalStep:
                 horizon=s.horizon, dim=self.nominal.dim, num_neighbors=num_slots, nominal=self.nominal,
                 u_max=None, alpha=s.alpha, slack_penalty=s.slack_penalty, solver=s.solver,
                 constraints=self.constraints, num_halfspaces=self.num_obstacle_rows,
-                input_rate_weight=s.input_rate_weight,
+                input_rate_weight=s.input_rate_weight, warm_start=s.solver_warm,
             )
         return self._solvers[num_slots]
 
@@ -365,14 +365,15 @@ class LocalStep:
         std = None if sigma is None else safe_sqrt(projected_variances(normals, sigma))
         return normals, bounds, std
 
-    def solve(self, layer: nn.Module, data: LocalProblemData) -> LocalSolution:
-        """One batched local solve; an exception escaping the layer fails every agent (kind
+    def solve(self, layer: nn.Module, data: LocalProblemData, guess: Any = None) -> LocalSolution:
+        """One batched local solve (``guess``: the last solve's ``solver_point``, the fast solver's
+        warm start, or ``None``); an exception escaping the layer fails every agent (kind
         ``exception``) instead of ending the run. Input errors (GpmpcError) still raise. With
         ``solver = fast``, problems the compiled solver leaves inaccurate (no convergence within
         its iteration cap: rare, on problems with heavily softened rows) are solved again by the
         reference path (:meth:`rescue_inaccurate`)."""
         try:
-            return self.rescue_inaccurate(data, layer(data))
+            return self.rescue_inaccurate(data, call_layer(layer, data, guess))
         except GpmpcError:
             raise
         except Exception as exc:  # noqa: BLE001 - counted and warned by count_failures
@@ -449,6 +450,15 @@ class LocalStep:
                 log.debug("local MPC solve failed (%s) for agent(s) %s; previous plans used", kind, agents)
 
 
+def call_layer(layer: Any, data: LocalProblemData, guess: Any = None) -> LocalSolution:
+    """``layer(data)``, with the warm start ``guess`` for a layer that declares ``accepts_guess``
+    (the fast solver): any module mapping LocalProblemData to LocalSolution (a user's solver, a
+    wrapper around the fast one) is still called with the data alone."""
+    if guess is not None and getattr(layer, "accepts_guess", False):
+        return layer(data, guess=guess)
+    return layer(data)
+
+
 def fall_back_to_previous(sol: LocalSolution, state: ADMMState, graph: Graph) -> LocalSolution:
     """Replace failed agents' solutions by their previous plans (a safe, feasible guess): at the
     first ADMM iteration of a step the last step's plan shifted (the warm start), later the previous iterate."""
@@ -463,7 +473,8 @@ def fall_back_to_previous(sol: LocalSolution, state: ADMMState, graph: Graph) ->
                          slack_active=sol.slack_active, ok=sol.ok, cost=sol.cost, failure=sol.failure,
                          failure_detail=sol.failure_detail,
                          state_slack=None if sol.state_slack is None else
-                         torch.where(bad[:, None], torch.zeros_like(sol.state_slack), sol.state_slack))
+                         torch.where(bad[:, None], torch.zeros_like(sol.state_slack), sol.state_slack),
+                         solver_point=sol.solver_point)
 
 
 def edge_copies(sol: LocalSolution, graph: Graph) -> Tensor:

@@ -8,6 +8,7 @@ duals ``lam`` per edge); :class:`IterationStats` is what one ADMM iteration repo
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -36,6 +37,10 @@ class ADMMState:
             from step to step; ``None``: not in use, or a fresh mission.
         applied: (K, m) each agent's first planned input of the step before :meth:`shifted` (the
             input it applied last: ``U_{-1}`` of the input-rate term); ``None``: not known.
+        solver_point: the local solver's points of the last iteration's solves (opaque, the fast
+            solver's warm start: :attr:`~torch_gpmpc.control.problem.LocalSolution.solver_point`);
+            kept by :meth:`shifted` (the next step's first solve starts from its active sets);
+            ``None``: none yet.
 
     Example:
         >>> import torch
@@ -58,6 +63,7 @@ class ADMMState:
     rho: Tensor | None = None
     risk_left: Tensor | None = None
     applied: Tensor | None = None
+    solver_point: Any = None
 
     def detached(self) -> "ADMMState":
         """The same iterate with every tensor detached from the autograd graph."""
@@ -65,7 +71,7 @@ class ADMMState:
                          None if self.pvar is None else self.pvar.detach(),
                          None if self.rho is None else self.rho.detach(),
                          None if self.risk_left is None else self.risk_left.detach(),
-                         None if self.applied is None else self.applied.detach())
+                         None if self.applied is None else self.applied.detach(), self.solver_point)
 
     def shifted(self) -> "ADMMState":
         """Shift everything one step forward in time (drop the first point, hold the last); the
@@ -80,6 +86,7 @@ class ADMMState:
             rho=self.rho,
             risk_left=self.risk_left,
             applied=self.inputs[:, 0],
+            solver_point=self.solver_point,
         )
 
 
@@ -255,4 +262,5 @@ def adapt_state(state: ADMMState, graph: Graph) -> ADMMState:
                 pvar[i] = state.pvar[old[tuple(e)]]
             if rho is not None:
                 rho = rho.index_put((torch.tensor(i),), state.rho[old[tuple(e)]])
-    return ADMMState(state.plans, state.inputs, graph.edges, z, lam, pvar, rho, state.risk_left, state.applied)
+    return ADMMState(state.plans, state.inputs, graph.edges, z, lam, pvar, rho, state.risk_left, state.applied,
+                     state.solver_point)

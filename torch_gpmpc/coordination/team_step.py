@@ -19,7 +19,7 @@ from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.config.team import TeamSpec
 from torch_gpmpc.control.problem import SHARED_SCALARS, LocalProblemData, LocalSolution, select_problems
-from torch_gpmpc.coordination.agent_step import Assembled, LocalStep, as_settings
+from torch_gpmpc.coordination.agent_step import Assembled, LocalStep, as_settings, call_layer
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult
 from torch_gpmpc.dynamics.methods import Method
@@ -62,13 +62,19 @@ def merge_solutions(parts: list[LocalSolution], members: list[Tensor]) -> LocalS
 class TeamLayer:
     """The batched local solvers of a mixed team: model g's layer solves agents ``members[g]``."""
 
+    #: takes a ``guess`` (one per model) as the fast solver does (:func:`~.agent_step.call_layer`)
+    accepts_guess = True
+
     def __init__(self, layers: list, members: list[Tensor]) -> None:
         self.layers, self.members = layers, members
 
-    def __call__(self, data: LocalProblemData) -> LocalSolution:
-        """Solve every agent's problem with its model's solver; data and solution in agent order."""
-        return merge_solutions([layer(select_problems(data, rows)) for layer, rows in zip(self.layers, self.members)],
-                               self.members)
+    def __call__(self, data: LocalProblemData, guess: tuple | None = None) -> LocalSolution:
+        """Solve every agent's problem with its model's solver; data and solution in agent order
+        (``guess``: the last solution's ``solver_point``, one per model, or ``None``)."""
+        guesses = guess or (None,) * len(self.layers)
+        parts = [call_layer(layer, select_problems(data, rows), g) for layer, rows, g in zip(self.layers, self.members, guesses)]
+        return dataclasses.replace(merge_solutions(parts, self.members),
+                                   solver_point=tuple(p.solver_point for p in parts))
 
 
 class TeamStep:
@@ -153,10 +159,14 @@ class TeamStep:
         return Assembled(data, torch.stack([p.max_margin for p in parts]).max(), own_var,
                          tuple(p.linearization for p in parts))
 
-    def solve(self, layer: TeamLayer, data: LocalProblemData) -> LocalSolution:
-        """Every agent's local solve with its model's solver, failures isolated per model."""
-        return merge_solutions([step.solve(sub, select_problems(data, rows))
-                                for step, sub, rows in zip(self.groups, layer.layers, self.members)], self.members)
+    def solve(self, layer: TeamLayer, data: LocalProblemData, guess: tuple | None = None) -> LocalSolution:
+        """Every agent's local solve with its model's solver, failures isolated per model
+        (``guess``: the last solution's ``solver_point``, one per model, or ``None``)."""
+        guesses = guess or (None,) * len(self.groups)
+        parts = [step.solve(sub, select_problems(data, rows), g)
+                 for step, sub, rows, g in zip(self.groups, layer.layers, self.members, guesses)]
+        return dataclasses.replace(merge_solutions(parts, self.members),
+                                   solver_point=tuple(p.solver_point for p in parts))
 
     def count_failures(self, sol: LocalSolution, result: StepResult | IterationStats) -> None:
         """Add failed solves to ``result`` and warn once per kind (see ``LocalStep.count_failures``)."""

@@ -27,6 +27,7 @@ def make_local_solver(
     constraints: LocalConstraints | None = None,
     num_halfspaces: int = 0,
     input_rate_weight: float = 0.0,
+    warm_start: bool = True,
 ) -> nn.Module:
     """A new batched local-problem module for (T, n, M, model, constants, backend).
 
@@ -36,6 +37,8 @@ def make_local_solver(
     ``num_halfspaces`` is the number L of per-problem half-space rows the data carries;
     ``input_rate_weight`` (beta >= 0) adds ``beta sum_t ||U_t - U_{t-1}||^2`` to the cost, with
     ``U_{-1}`` the data's ``u_prev`` (smooth plans for vehicles that cannot jump their acceleration).
+    ``warm_start`` (``fast`` only): solve first by the exact active-set method from the previous
+    call's solutions when no gradient is wanted (:mod:`~torch_gpmpc.control.solvers.ipm_active`).
 
     ``solver='fast'`` (the default, as in the run configuration) gives the compiled interior
     point :class:`~torch_gpmpc.control.solvers.interior_point.InteriorPointMPC`; ``clarabel`` and
@@ -59,7 +62,8 @@ def make_local_solver(
 
         return InteriorPointMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max),
                                 float(alpha), float(slack_penalty), constraints=constraints,
-                                num_halfspaces=num_halfspaces, input_rate_weight=float(input_rate_weight))
+                                num_halfspaces=num_halfspaces, input_rate_weight=float(input_rate_weight),
+                                warm_start=warm_start)
     # cvxpy and cvxpylayers are imported only when a cvxpylayers path is asked for
     from torch_gpmpc.control.solvers.conic import CvxpyLayerMPC
 

@@ -238,7 +238,8 @@ class CvxpyLayerMPC(nn.Module):
                        *[terms.normals[:, j] for j in range(M)], terms.bounds]
         return params
 
-    def forward(self, data: LocalProblemData, solver_args: dict[str, Any] | None = None) -> LocalSolution:
+    def forward(self, data: LocalProblemData, solver_args: dict[str, Any] | None = None,
+                guess: Any = None) -> LocalSolution:
         """Solve the B local problems with one batched layer call.
 
         A solver exception does not propagate: the batch is retried agent by agent and
@@ -248,6 +249,7 @@ class CvxpyLayerMPC(nn.Module):
         Args:
             data: inputs with shapes as in :class:`LocalProblemData`.
             solver_args: overrides of the solver arguments (e.g. tolerances).
+            guess: ignored (this path keeps no warm start; the fast solver's takes one).
 
         Returns:
             The :class:`LocalSolution`.

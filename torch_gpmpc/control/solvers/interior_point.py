@@ -4,9 +4,12 @@
 (same :class:`~torch_gpmpc.control.solvers.conic.LocalProblemData` in, same
 :class:`~torch_gpmpc.control.solvers.conic.LocalSolution` out) with a primal-dual interior-point method
 and differentiates it implicitly through its KKT conditions (a ``torch.autograd.Function``).
-Data flow: :func:`canonicalize` (torch, differentiable: condensed dynamics, so only the
-inputs, the neighbour copies and the collision slacks remain) -> the compiled kernel
-:mod:`torch_gpmpc.control.solvers.ipm_kernel` (NumPy arrays, CPU) -> outputs and gradients back in torch.
+Data flow: :func:`~torch_gpmpc.control.solvers.canonical.canonicalize` (torch, differentiable:
+condensed dynamics, so only the inputs, the neighbour copies and the collision slacks remain) -> the
+compiled kernels (NumPy arrays, CPU): with a guess (a previous solution's ``solver_point``) the warm
+active-set solves of :mod:`torch_gpmpc.control.solvers.ipm_active`, then the interior point of
+:mod:`torch_gpmpc.control.solvers.ipm_kernel` for every problem not solved warm -> outputs and
+gradients back in torch.
 """
 
 from __future__ import annotations
@@ -21,9 +24,12 @@ from torch import Tensor, nn
 
 from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.control.solvers import ipm_threads
+from torch_gpmpc.control.solvers.canonical import (  # noqa: F401 (condense_dynamics: re-exported)
+    CanonicalData, CondensedCache, canonicalize, condense_dynamics, with_state_rows,
+)
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.control.problem import (
-    ConsensusTerms, FAIL_INACCURATE, FAIL_NONFINITE, SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures,
+    FAIL_INACCURATE, FAIL_NONFINITE, SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures,
     input_rate_cost,
 )
 from torch_gpmpc.dynamics.systems import NominalModel
@@ -34,155 +40,15 @@ logger = logging.getLogger(__name__)
 #: ``POLISH_FACTOR * tol`` (at most ``POLISH_ITERATIONS`` extra iterations; :func:`_polish`).
 POLISH_FACTOR = 1e-2
 POLISH_ITERATIONS = 6
+#: Rounds (one linear solve each) the warm active-set solve may take before a problem is solved
+#: cold: a right guess needs one, a norm row one or two more Newton rounds, a few changed rows one
+#: round each.
+ACTIVE_SET_ROUNDS = 8
 
 
 def _mv(mat: Tensor, vec: Tensor) -> Tensor:
     """Batched matrix-vector product, (B, p, q) x (B, q) -> (B, p)."""
     return torch.bmm(mat, vec.unsqueeze(-1)).squeeze(-1)
-
-
-# --------------------------------------------------------------------------- problem data
-def condense_dynamics(x0: Tensor, dyn_A: Tensor, dyn_c: Tensor, dyn_B: Tensor) -> tuple[Tensor, Tensor]:
-    """Eliminate the dynamics: ``X_{1..T} = G U + h`` (differentiable).
-
-    With ``X_0 = x0`` and ``X_{t+1} = A_t X_t + B_t U_t + c_t``, block row ``t`` of ``G``
-    is ``A_{t-1} ... A_{k+1} B_k`` in block column ``k < t`` and ``B_{t-1}`` for ``k = t - 1``.
-
-    Args:
-        x0: initial states, shape (B, D).
-        dyn_A: state matrices, shape (B, T, D, D).
-        dyn_c: offsets, shape (B, T, D).
-        dyn_B: input matrices, shape (B, T, D, Du), or one (D, Du) matrix for every step.
-
-    Returns:
-        ``(G, h)`` with G of shape (B, T*D, T*Du) and h of shape (B, T*D), states and
-        inputs flattened time-major (index ``t * D + d``, ``t * Du + j``).
-    """
-    batch, horizon, dim = dyn_c.shape
-    dyn_B = dyn_B.expand(batch, horizon, *dyn_B.shape[-2:])
-    du = dyn_B.shape[-1]
-    n = horizon * du
-    # What step t adds to the augmented block row [G_t | h_t]: B_t in block column t and
-    # c_t in the last column; shape (B, T, D, n + 1).
-    eye = torch.eye(horizon, dtype=dyn_c.dtype, device=dyn_c.device)
-    blocks = torch.einsum("ts,btdj->btdsj", eye, dyn_B).reshape(batch, horizon, dim, n)
-    inject = torch.cat([blocks, dyn_c[..., None]], dim=3)
-    row = torch.cat([x0.new_zeros(batch, dim, n), x0[:, :, None]], dim=2)
-    rows = []
-    for t in range(horizon):
-        row = torch.baddbmm(inject[:, t], dyn_A[:, t], row)  # A_t [G_{t-1} | h_{t-1}] + inject_t
-        rows.append(row)
-    stacked = torch.cat(rows, dim=1)  # (B, n, n + 1)
-    return stacked[:, :, :n], stacked[:, :, n]
-
-
-@dataclass
-class CanonicalData:
-    """The local problem in the solver's variables (all differentiable functions of the data).
-
-    Objective (up to constants) over ``u = vec(U)``, ``Y_{j,1..T}`` and ``s``::
-
-        c_X ||G u + h||^2 - l_X . (G u + h) + alpha ||u||^2 + beta ||D u||^2 + g_u . u
-        + sum_j (rho_y_j / 2 ||Y_j||^2 - w_y_j . Y_j) + slack_penalty * sum(s)
-
-    (``beta ||D u||^2 + g_u . u`` is the input-rate term ``beta sum_t ||U_t - U_{t-1}||^2`` up to a
-    constant; D takes first differences, ``g_u = -2 beta U_{-1}`` on U_0.)
-
-    Attributes:
-        G: condensed input-to-state map, shape (B, T*D, T*Du).
-        h: condensed free response, shape (B, T*D).
-        c_x: quadratic weight of the states, ``1 + sum_{active j} rho_j / 2``, shape (B,).
-        l_x: linear weight of X_{1..T}, ``2 Xref + sum_{active j} (rho_j z_own_j - lam_own_j)``,
-            shape (B, T*D).
-        rho_y: weight of the neighbour copies (1 on inactive slots), shape (B, M).
-        w_y: linear weight of Y_{j,1..T}, ``rho_j z_nbr_j - lam_nbr_j`` (0 inactive),
-            shape (B, M, T, D).
-        y0: the closed-form copies at step 0, ``w_y / rho_y`` at tau = 0, shape (B, M, D).
-        normals: collision normals (0 inactive), shape (B, M, T, D); after
-            :func:`with_state_rows` also the soft state rows, (B, M + L, T, D).
-        bounds: collision bounds (-1 inactive), shape (B, M, T) (then (B, M + L, T)).
-        g_u: linear input weight of the input-rate term, shape (B, T*Du).
-    """
-
-    G: Tensor
-    h: Tensor
-    c_x: Tensor
-    l_x: Tensor
-    rho_y: Tensor
-    w_y: Tensor
-    y0: Tensor
-    normals: Tensor
-    bounds: Tensor
-    g_u: Tensor
-
-
-def input_rate_linear(data: LocalProblemData, beta: float, horizon: int, input_dim: int) -> Tensor:
-    """``g_u = -2 beta U_{-1}`` on U_0 and 0 after it, shape (B, T*Du): the linear part of
-    ``beta ||U_0 - U_{-1}||^2`` (``data.u_prev`` is U_{-1}; ``None``: 0)."""
-    batch = data.x0.shape[0]
-    g_u = data.x0.new_zeros(batch, horizon * input_dim)
-    if beta != 0.0 and data.u_prev is not None:
-        g_u = torch.cat([-2.0 * beta * data.u_prev, g_u[:, input_dim:]], dim=1)
-    return g_u
-
-
-class CondensedCache:
-    """The last :func:`condense_dynamics` result, reused while its inputs are the same tensor
-    objects, unmodified, under the same autograd mode: within one control step ADMM solves the
-    same dynamics at every iteration (only the consensus terms change), and condensing them was
-    a quarter of a 3D double-integrator iteration."""
-
-    def __init__(self) -> None:
-        self._key: tuple | None = None
-        self._value: tuple[Tensor, Tensor] | None = None
-
-    def __call__(self, x0: Tensor, dyn_A: Tensor, dyn_c: Tensor, dyn_B: Tensor) -> tuple[Tensor, Tensor]:
-        """``condense_dynamics(x0, dyn_A, dyn_c, dyn_B)``, from the cache when it is the same input."""
-        inputs = (x0, dyn_A, dyn_c, dyn_B)
-        key = (torch.is_grad_enabled(), tuple(t._version for t in inputs))
-        if self._key is not None and self._key[0] == key and all(a is b for a, b in zip(self._key[1], inputs)):
-            return self._value
-        self._value = condense_dynamics(*inputs)
-        self._key = (key, inputs)  # holding the inputs keeps their identity unique
-        return self._value
-
-
-def canonicalize(data: LocalProblemData, B: Tensor, condense=condense_dynamics, beta: float = 0.0) -> CanonicalData:
-    """Map :class:`LocalProblemData` to :class:`CanonicalData` (differentiable).
-
-    Inactive slots get ``rho = 1``, ``w = 0`` (so ``Y_j = 0``), normal 0 and bound -1,
-    and contribute nothing to the state cost (as in :class:`~torch_gpmpc.control.solvers.conic.CvxpyLayerMPC`).
-    ``B`` (D, Du) is the nominal input matrix, used when ``data.dyn_B`` is ``None``; ``condense``
-    is :func:`condense_dynamics` or a :class:`CondensedCache`; ``beta`` is the input-rate weight.
-    """
-    terms = ConsensusTerms.of(data)
-    l_x = (2.0 * data.xref[:, 1:] + terms.w_own[:, :, 1:].sum(dim=1)).flatten(1)
-    G, h = condense(data.x0, data.dyn_A, data.dyn_c, B if data.dyn_B is None else data.dyn_B)
-    y0 = terms.w_nbr[:, :, 0] / terms.rho_y[:, :, None]
-    T = data.xref.shape[1] - 1
-    g_u = input_rate_linear(data, beta, T, G.shape[2] // T)
-    return CanonicalData(G=G, h=h, c_x=terms.c_x, l_x=l_x, rho_y=terms.rho_y, w_y=terms.w_nbr[:, :, 1:], y0=y0,
-                         normals=terms.normals, bounds=terms.bounds, g_u=g_u)
-
-
-def with_state_rows(canon: CanonicalData, rows: list[tuple[Tensor, Tensor]]) -> CanonicalData:
-    """``canon`` with soft state rows appended as slots without a neighbour copy (``rho_y = 1``,
-    ``w_y = 0``, so their copies stay 0; the kernel's ``couple`` flag is 0 for them).
-
-    Args:
-        rows: ``(normals (B, L, T, D), bounds (B, L, T))`` blocks (per-problem half-spaces, the
-            model's and workspace's constant rows expanded over B and T).
-    """
-    if not rows:
-        return canon
-    B, T, D = canon.h.shape[0], canon.normals.shape[2], canon.normals.shape[3]
-    L = sum(n.shape[1] for n, _ in rows)
-    return CanonicalData(
-        G=canon.G, h=canon.h, c_x=canon.c_x, l_x=canon.l_x,
-        rho_y=torch.cat([canon.rho_y, canon.rho_y.new_ones(B, L)], dim=1),
-        w_y=torch.cat([canon.w_y, canon.w_y.new_zeros(B, L, T, D)], dim=1), y0=canon.y0,
-        normals=torch.cat([canon.normals, *[n for n, _ in rows]], dim=1),
-        bounds=torch.cat([canon.bounds, *[b for _, b in rows]], dim=1), g_u=canon.g_u)
 
 
 # ------------------------------------------------------------------------ differentiation
@@ -307,37 +173,79 @@ def _polish(arrays: list[np.ndarray], point: _Iterate, kkt_error: np.ndarray, we
     return polished, p_conv | (p_err <= kkt_error), p_iter, p_err
 
 
+def _cold_solve(arrays: list[np.ndarray], weights: tuple[float, float], limits: KernelLimits, penalty: float,
+                tol: float, max_iter: int) -> tuple[_Iterate, _Iterate, np.ndarray, np.ndarray, np.ndarray]:
+    """The interior point from its default start, then :func:`_polish`, on the B problems of ``arrays``.
+
+    Returns:
+        ``(point, at, converged (B,), iterations (B,), kkt_error (B,))``: ``point`` is returned,
+        ``at`` differentiated (the polished point, also where the main solve did not converge).
+    """
+    B, n = arrays[1].shape[0], arrays[0].shape[2]
+    _, M, T, D = arrays[6].shape
+    R = M * T
+    m, _, _ = limits.sizes(R, n, T)
+    point = _Iterate(np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m)))
+    converged, iterations, kkt_error = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
+    ipm_threads.solve_batch(*arrays, limits.couple, *weights, *limits.args(), penalty, tol, max_iter,
+                            point.u, point.y, point.w, point.z, False, converged, iterations, kkt_error)
+    # Return (and differentiate at) the polished point: the backward differentiates the exact
+    # KKT conditions, and the returned point must be the one they hold at, else a nearly
+    # degenerate row (active, multiplier ~1e-3) makes the returned map's derivative differ
+    # from the gradient by O(tol / multiplier^2) (measured: 1.6e-4 relative at tol 1e-10).
+    polished, improved, p_iter, p_err = _polish(arrays, point, kkt_error, weights, limits, penalty, tol)
+    better = converged & improved
+    # an unconverged row (flagged as failed) is returned as solved but differentiated polished
+    at = _where_rows(~converged | improved, polished, point)
+    point = _where_rows(better, polished, point)
+    return point, at, converged, iterations + np.where(better, p_iter, 0), np.where(better, p_err, kkt_error)
+
+
+def fits(guess: _Iterate, point: _Iterate) -> bool:
+    """Whether a guess (a previous solve's points) has the shapes of ``point`` (the same batch and
+    problem size): only then can it start the warm active-set solves."""
+    return all(a.shape == b.shape for a, b in zip((guess.u, guess.y, guess.w, guess.z),
+                                                  (point.u, point.y, point.w, point.z)))
+
+
 class _LocalQpFunction(torch.autograd.Function):
     """Batched interior-point solve with implicit differentiation of its KKT conditions.
 
     Inputs are the :class:`CanonicalData` tensors (G, h, c_x, l_x, rho_y, w_y, normals,
     bounds, g_u; M' = M + L slots) and a settings tuple ``((alpha, beta), limits, penalty, tol,
-    max_iter, stats)``; outputs ``(u (B, n), y (B, M', T, D),
+    max_iter, stats, guess)`` (``guess``: a previous solve's points, which start the warm active-set
+    solves, or ``None``: every problem cold; never pass one when gradients are wanted: a warm point
+    has exact complementarity, which the adjoint cannot take; ``stats["point"]`` receives this
+    solve's points); outputs ``(u (B, n), y (B, M', T, D),
     s (B, M', T), converged (B,))``.
     """
 
     @staticmethod
     def forward(ctx, G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, settings):  # noqa: D102
-        weights, limits, penalty, tol, max_iter, stats = settings
+        weights, limits, penalty, tol, max_iter, stats, guess = settings
         arrays = _kernel_arrays((G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u))
         B, M, T, D = normals.shape
         R, n = M * T, G.shape[2]
         m, _, _ = limits.sizes(R, n, T)
         point = _Iterate(np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m)))
-        converged, iterations, kkt_error = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
-        ipm_threads.solve_batch(*arrays, limits.couple, *weights, *limits.args(), penalty, tol, max_iter,
-                                point.u, point.y, point.w, point.z, False, converged, iterations, kkt_error)
-        # Return (and differentiate at) the polished point: the backward differentiates the exact
-        # KKT conditions, and the returned point must be the one they hold at, else a nearly
-        # degenerate row (active, multiplier ~1e-3) makes the returned map's derivative differ
-        # from the gradient by O(tol / multiplier^2) (measured: 1.6e-4 relative at tol 1e-10).
-        polished, improved, p_iter, p_err = _polish(arrays, point, kkt_error, weights, limits, penalty, tol)
-        better = converged & improved
-        # an unconverged row (flagged as failed) is returned as solved but differentiated polished
-        at = _where_rows(~converged | improved, polished, point)
-        point = _where_rows(better, polished, point)
-        kkt_error = np.where(better, p_err, kkt_error)
-        stats["iterations"] = int((iterations + np.where(better, p_iter, 0)).max(initial=0))
+        converged, iterations, kkt_error = np.zeros(B, dtype=np.bool_), np.zeros(B, dtype=np.int64), np.empty(B)
+        if isinstance(guess, _Iterate) and fits(guess, point):
+            # exact solves from the previous points' active sets; what they miss is solved cold
+            point = guess.copy()
+            ipm_threads.active_set_batch(*arrays, limits.couple, *weights, *limits.args(), penalty,
+                                         POLISH_FACTOR * tol, ACTIVE_SET_ROUNDS, point.u, point.y, point.w, point.z,
+                                         False, converged, iterations, kkt_error)
+        stats["warm_rows"] = int(converged.sum())
+        at = point.copy()
+        cold = np.flatnonzero(~converged)
+        if cold.size:
+            sub = [a[cold] for a in arrays] if cold.size < B else arrays
+            c_point, c_at, c_conv, c_iter, c_err = _cold_solve(sub, weights, limits, penalty, tol, max_iter)
+            point.u[cold], point.y[cold], point.w[cold], point.z[cold] = c_point.u, c_point.y, c_point.w, c_point.z
+            at.u[cold], at.y[cold], at.w[cold], at.z[cold] = c_at.u, c_at.y, c_at.w, c_at.z
+            converged[cold], iterations[cold], kkt_error[cold] = c_conv, c_iter, c_err
+        stats["iterations"] = int(iterations.max(initial=0))
+        stats["point"] = point
         ctx.at = at
         ctx.weights, ctx.limits = weights, limits
         ctx.save_for_backward(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u)
@@ -462,6 +370,10 @@ class InteriorPointMPC(nn.Module):
         num_halfspaces: L, the per-problem half-space rows the data carries (0: none).
         input_rate_weight: beta, the weight of the input changes (``U_{-1}`` is ``data.u_prev``,
             the input applied last; 0: not in the problem).
+        warm_start: when a call gets a ``guess`` (a previous solution's ``solver_point``, e.g. ADMM's
+            last iteration) and no gradient is wanted, solve each problem first by the exact
+            active-set method of :mod:`~torch_gpmpc.control.solvers.ipm_active` from it, and cold
+            only what that does not solve; ``False``: every problem cold (the earlier path).
 
     Example:
         >>> from torch_gpmpc import InteriorPointMPC, NominalModel
@@ -472,10 +384,13 @@ class InteriorPointMPC(nn.Module):
         ((3, 14, 2), True)
     """
 
+    #: :meth:`forward` takes a ``guess`` (``coordination.agent_step.call_layer`` passes ADMM's)
+    accepts_guess = True
+
     def __init__(self, horizon: int, dim: int, num_neighbors: int, nominal: NominalModel, u_max: float | None,
                  alpha: float, slack_penalty: float = 1e4, tol: float = 1e-10, max_iter: int = 100,
                  constraints: LocalConstraints | None = None, num_halfspaces: int = 0,
-                 input_rate_weight: float = 0.0) -> None:
+                 input_rate_weight: float = 0.0, warm_start: bool = True) -> None:
         super().__init__()
         if horizon < 1 or dim < 1 or num_neighbors < 0 or num_halfspaces < 0:
             raise GpmpcError(f"InteriorPointMPC needs horizon >= 1, dim >= 1, num_neighbors >= 0, num_halfspaces >= 0; "
@@ -496,15 +411,27 @@ class InteriorPointMPC(nn.Module):
         self._limits = KernelLimits.of(self.constraints, num_neighbors, num_halfspaces + self.constraints.num_rows)
         #: Iterations used by the last call (for benchmarks and logging).
         self.last_iterations = 0
+        #: Problems of the last call solved warm (by the active-set method).
+        self.last_warm_rows = 0
+        self.warm_start = bool(warm_start)
         self._condensed = CondensedCache()
         self._B: Tensor | None = None
 
-    def forward(self, data: LocalProblemData) -> LocalSolution:
+    def with_warm_start(self, warm_start: bool) -> "InteriorPointMPC":
+        """A new layer for the same problem (sizes, model, weights, constraints, tolerances) with
+        the given ``warm_start`` and no previous point."""
+        return InteriorPointMPC(self.horizon, self.dim, self.num_neighbors, self.nominal, self.u_max, self.alpha,
+                                self.slack_penalty, self.tol, self.max_iter, self.constraints, self.num_halfspaces,
+                                self.input_rate_weight, warm_start)
+
+    def forward(self, data: LocalProblemData, guess=None) -> LocalSolution:
         """Solve the B local problems.
 
         Args:
             data: inputs with shapes as in :class:`~torch_gpmpc.control.solvers.conic.LocalProblemData`
                 (float64 recommended; computations run in the dtype of ``x0``).
+            guess: a previous solution's ``solver_point`` (same batch and sizes), the warm start
+                (``warm_start``); ``None``: solve cold. The layer keeps no state between calls.
 
         Returns:
             The :class:`~torch_gpmpc.control.solvers.conic.LocalSolution`; differentiable with respect to
@@ -521,11 +448,15 @@ class InteriorPointMPC(nn.Module):
         canon = with_state_rows(canonicalize(data, self._B, self._condensed, beta), self._state_rows(data, batch))
         canon, valid = _sanitize(canon)
         stats: dict = {}
-        settings = ((self.alpha, beta), self._limits, self.slack_penalty, self.tol, self.max_iter, stats)
+        wants_grad = torch.is_grad_enabled() and any(
+            t.requires_grad for t in (canon.G, canon.h, canon.c_x, canon.l_x, canon.rho_y, canon.w_y, canon.normals,
+                                      canon.bounds, canon.g_u))
+        guess = guess if self.warm_start and not wants_grad else None
+        settings = ((self.alpha, beta), self._limits, self.slack_penalty, self.tol, self.max_iter, stats, guess)
         u, y1, slack, converged = _LocalQpFunction.apply(canon.G, canon.h, canon.c_x, canon.l_x, canon.rho_y,
                                                          canon.w_y, canon.normals, canon.bounds, canon.g_u, settings)
         y1, slack = y1[:, :M], slack[:, :M]  # the state rows' copies are 0; their slacks show in state_slack
-        self.last_iterations = stats["iterations"]
+        self.last_iterations, self.last_warm_rows = stats["iterations"], stats["warm_rows"]
         x0 = torch.where(valid[:, None], data.x0, torch.zeros_like(data.x0))
         X = torch.cat([x0[:, None], (_mv(canon.G, u) + canon.h).view(batch, T, D)], dim=1)
         U = u.view(batch, T, self.input_dim)
@@ -549,7 +480,7 @@ class InteriorPointMPC(nn.Module):
             + input_rate_cost(U, data.u_prev, beta)
         state_slack = self.constraints.state_violation(X, data.halfspace_normals, data.halfspace_bounds)
         return LocalSolution(X=X, U=U, Y=Y, slack=slack, slack_active=slack_active, ok=ok, cost=cost,
-                             failure=failure, state_slack=state_slack)
+                             failure=failure, state_slack=state_slack, solver_point=stats["point"])
 
     def _state_rows(self, data: LocalProblemData, batch: int) -> list[tuple[Tensor, Tensor]]:
         """The soft state rows as slot blocks: the data's half-spaces, then the constant rows."""

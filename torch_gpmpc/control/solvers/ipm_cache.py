@@ -1,7 +1,7 @@
 """The compiled kernel's on-disk cache, kept in step with every source it is compiled from.
 
 numba's cache (``cache=True``) checks only the source file of the function it caches, so an entry
-point of :mod:`~.ipm_kernel` keeps its machine code when only a file it calls into changes
+point of :mod:`~.ipm_kernel` (or :mod:`~.ipm_active`) keeps its machine code when only a file it calls into changes
 (:mod:`~.ipm_residuals`, :mod:`~.ipm_linalg`: their functions are compiled into the caller's
 code). Seen here: after an edit of ``ipm_residuals.initial_point`` in an editable install, the
 kernel ran the old start until its cache files were removed. So before the first solve of a
@@ -18,7 +18,7 @@ from pathlib import Path
 logger = logging.getLogger(__name__)
 
 #: The modules whose numba functions the kernel is compiled from.
-KERNEL_MODULES = ("ipm_kernel", "ipm_residuals", "ipm_linalg")
+KERNEL_MODULES = ("ipm_kernel", "ipm_active", "ipm_residuals", "ipm_linalg")
 
 _fresh_in_this_process = False
 

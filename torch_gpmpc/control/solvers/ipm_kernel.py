@@ -46,9 +46,12 @@ are reproducible; compiled code is cached on disk (``cache=True``).
 
 from __future__ import annotations
 
+import sys
+
 import numba
 import numpy as np
 
+from torch_gpmpc.control.solvers import ipm_active
 from torch_gpmpc.control.solvers.ipm_cache import ensure_fresh, newest_source_time
 from torch_gpmpc.control.solvers.ipm_linalg import (
     absmax, absmax2, backward_solve, cholesky, copy_into, fill, forward_solve,
@@ -483,7 +486,8 @@ def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u_data, couple,
 
 
 def warm_up() -> None:
-    """Compile (or load from the on-disk cache) both entry points on a tiny problem.
+    """Compile (or load from the on-disk cache) the entry points (the solve, the warm active-set
+    solve of :mod:`~.ipm_active` and the adjoint) on a tiny problem.
 
     Call before starting several processes that use the kernel, so they load the cache
     instead of each compiling it (about 10 s of one core, once per installation, and again after
@@ -498,6 +502,7 @@ def warm_up() -> None:
     u, y, w, z = np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m))
     flags, counts, errors = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
     solve_batch(*canonical, 1e-3, 0.0, *limits, 1e4, 1e-8, 30, u, y, w, z, False, flags, counts, errors)
+    ipm_active.solve_batch(*canonical, 1e-3, 0.0, *limits, 1e4, 1e-8, 3, u, y, w, z, False, flags, counts, errors)
     adjoint_batch(*canonical, 1e-3, 0.0, *limits, u, w, z, np.ones((B, n)), np.ones((B, R, D)), np.ones((B, R)),
                   np.empty((B, n)), np.empty((B, R, D)), np.empty((B, R)), np.empty((B, T)), flags)
 
@@ -510,8 +515,9 @@ def is_cached() -> bool:
 
     source = Path(__file__)
     # numba names an index file <module>.<function>-<first line>.<python>.nbi
-    wanted = {f"{source.stem}.{name}-{obj.py_func.__code__.co_firstlineno}" for name, obj in globals().items()
-              if hasattr(obj, "py_func") and obj.py_func.__module__ == __name__}
-    index = {p.name.rsplit(".", 2)[0]: p for p in (source.parent / "__pycache__").glob(f"{source.stem}.*.nbi")}
+    wanted = {f"{Path(module.__file__).stem}.{name}-{obj.py_func.__code__.co_firstlineno}"
+              for module in (sys.modules[__name__], ipm_active) for name, obj in vars(module).items()
+              if hasattr(obj, "py_func") and obj.py_func.__module__ == module.__name__}
+    index = {p.name.rsplit(".", 2)[0]: p for p in (source.parent / "__pycache__").glob("ipm_*.nbi")}
     newest = newest_source_time(source.parent)
     return wanted <= set(index) and all(index[key].stat().st_mtime >= newest for key in wanted)

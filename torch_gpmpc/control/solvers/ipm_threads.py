@@ -18,7 +18,7 @@ from typing import Callable, Sequence
 
 import torch
 
-from torch_gpmpc.control.solvers import ipm_cache
+from torch_gpmpc.control.solvers import ipm_active, ipm_cache
 from torch_gpmpc.control.solvers import ipm_kernel as ipm
 
 #: Argument positions of :func:`~.ipm_kernel.solve_batch` that are per-problem arrays (first
@@ -42,6 +42,13 @@ def solve_batch(*args) -> None:
     available threads."""
     ipm_cache.ensure_fresh()
     run_in_blocks(ipm.solve_batch, args, SOLVE_ROWS)
+
+
+def active_set_batch(*args) -> None:
+    """:func:`~.ipm_active.solve_batch` (the warm-started active-set solves; the arguments of
+    :func:`~.ipm_kernel.solve_batch` at the same positions) on the available threads."""
+    ipm_cache.ensure_fresh()
+    run_in_blocks(ipm_active.solve_batch, args, SOLVE_ROWS)
 
 
 def adjoint_batch(*args) -> None:

@@ -159,7 +159,8 @@ class AgentController:
                                    x0.new_zeros(0, 2, 2, cfg.horizon + 1, D))
         else:
             self.state = ADMMState(self.state.plans.clone(), self.state.inputs, self.state.edges,
-                                   self.state.z, self.state.lam, self.state.pvar, self.state.rho)
+                                   self.state.z, self.state.lam, self.state.pvar, self.state.rho,
+                                   solver_point=self.state.solver_point)
         self.known[k] = True
         self._next_nbrs = sorted(int(j) for j in nbr_ids if int(j) != k)
         return [j for j in self._next_nbrs if j not in self.nbrs]
@@ -221,7 +222,7 @@ class AgentController:
         self.assembled = assembled
         data, max_margin = assembled.data, assembled.max_margin
         t0 = time.perf_counter()
-        sol = self.local.solve(self.layer, data)
+        sol = self.local.solve(self.layer, data, state.solver_point)
         self.result.solve_time_s += time.perf_counter() - t0
         full = embed_row(sol, k, state)
         self.local.count_failures(full, self.result)
@@ -286,7 +287,8 @@ class AgentController:
         rho_next = None
         if self.adaptive and self.graph.num_edges:  # both ends balance the same residuals: the same rho_e
             rho_next = balance_penalty(state.rho, res)
-        self.state = ADMMState(plans, inputs, self.graph.edges, z_new, lam, pvar, rho_next)
+        self.state = ADMMState(plans, inputs, self.graph.edges, z_new, lam, pvar, rho_next,
+                               solver_point=sol.solver_point)
         self.result.iterations += 1
         self.counters["iterations_total"] += 1
         return float(primal), float(dual), *ratios
