@@ -33,7 +33,9 @@ import numba
 import numpy as np
 
 from torch_gpmpc.control.solvers.ipm_linalg import absmax, absmax2, backward_solve, cholesky, fill, forward_solve
-from torch_gpmpc.control.solvers.ipm_residuals import kkt_error, offsets, residuals, setup, state_values
+from torch_gpmpc.control.solvers.ipm_residuals import (
+    add_state_norm_curvature, kkt_error, offsets, residuals, setup, state_values,
+)
 
 _jit = numba.njit(cache=True, error_model="numpy", nogil=True)
 
@@ -221,15 +223,8 @@ def _solve_one(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, p
                 S[t * Du + d, t * Du + d] += zt
         for t in range(Ts):
             i = R + Tq + 2 * nb + t
-            zt = max(zc[i], 0.0) if cls[i] != INACTIVE else 0.0
-            if zt != 0.0:
-                for a in range(sbi.shape[0]):
-                    rr = t * D + sbi[a]
-                    for p in range(n):
-                        gp = zt * G[rr, p]
-                        if gp != 0.0:
-                            for q in range(p + 1):
-                                S[p, q] += gp * G[rr, q]
+            if cls[i] != INACTIVE:
+                add_state_norm_curvature(S, G, sbi, D, t, max(zc[i], 0.0))
         if not cholesky(S, n):
             return False, rnd, err
         # r = H u + g0 - sum_saturated zmax grad g (the stationarity without the active multipliers)

@@ -57,7 +57,7 @@ from torch_gpmpc.control.solvers.ipm_linalg import (
     absmax, absmax2, backward_solve, cholesky, copy_into, fill, forward_solve,
 )
 from torch_gpmpc.control.solvers.ipm_residuals import (
-    coupled_rows, initial_point, kkt_error, offsets, residuals, setup, state_values,
+    add_state_norm_curvature, coupled_rows, initial_point, kkt_error, offsets, residuals, setup, state_values,
 )
 
 #: Fraction of the step to the boundary of the positive orthant, and how it tends to 1 as the
@@ -109,14 +109,7 @@ def _factor(H, A, N, rho, G, sbi, D, Du, v_max, off, Rc, u, w, z, xs, deff, aug,
         if nb:
             S[i, i] += z[ob + i] / w[ob + i] + z[ob + nb + i] / w[ob + nb + i]
     for t in range(Ts):  # Hessian of the state-norm rows: z_v G_t^T P^T P G_t
-        zt = z[ov + t]
-        for a in range(sbi.shape[0]):
-            r = t * D + sbi[a]
-            for i in range(n):
-                gi = zt * G[r, i]
-                if gi != 0.0:
-                    for j in range(i + 1):
-                        S[i, j] += gi * G[r, j]
+        add_state_norm_curvature(S, G, sbi, D, t, z[ov + t])
     for k in range(R):
         nn = 0.0
         for d in range(D_):

@@ -102,6 +102,20 @@ def state_values(G, h, sbi, D, u, xs) -> None:
 
 
 @_jit
+def add_state_norm_curvature(S, G, sbi, D, t, zt) -> None:
+    """``S += zt G_t^T P^T P G_t`` on the lower triangle: the Hessian of state-norm row ``t``
+    (``P`` selects the indices ``sbi``) times its multiplier ``zt``; S (n, n)."""
+    n = S.shape[0]
+    for a in range(sbi.shape[0]):
+        r = t * D + sbi[a]
+        for i in range(n):
+            gi = zt * G[r, i]
+            if gi != 0.0:
+                for j in range(i + 1):
+                    S[i, j] += gi * G[r, j]
+
+
+@_jit
 def initial_point(N, bt, rho, wy, G, h, sbi, D, box, u_max2, v_max, penalty, off, u, y, w, z, xs) -> None:
     """Infeasible start: ``u = 0``, unconstrained copies, ``z_c + z_s = P`` (dual feasible
     in s) and ``s z_s = 1``, so every complementarity product starts near 1; likewise the
