@@ -39,7 +39,7 @@ TIMED = (
     ("torch_gpmpc.coordination.agent_step", "linearize_plan", "linearize"),
     ("torch_gpmpc.coordination.agent_step.LocalStep", "solve", "solve"),
     ("torch_gpmpc.control.solvers.interior_point", "canonicalize", "canonicalize"),
-    ("torch_gpmpc.control.solvers.ipm_kernel", "solve_batch", "kernel"),
+    ("torch_gpmpc.control.solvers.ipm_kernel", "solve_polish_batch", "kernel"),
     ("torch_gpmpc.control.solvers.ipm_active", "solve_batch", "kernel_warm"),
     ("torch_gpmpc.coordination.admm", "consensus_update", "consensus"),
 )

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torch_gpmpc.control.acceptance import failure_codes
 from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.errors import GpmpcError
 
@@ -31,6 +32,7 @@ FEASIBILITY_TOL = 1e-5
 #: finite answer that violates a constraint by more than :data:`FEASIBILITY_TOL`.
 FAILURE_KINDS = ("exception", "non-finite", "inaccurate")
 FAIL_NONE, FAIL_EXCEPTION, FAIL_NONFINITE, FAIL_INACCURATE = 0, 1, 2, 3
+_CODES = np.array([FAIL_NONE, FAIL_NONFINITE, FAIL_INACCURATE], dtype=np.int64)
 
 @dataclass
 class LocalProblemData:
@@ -282,40 +284,24 @@ def acceptance_failures(data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor,
 
     A finite answer is accepted when the initial condition, the dynamics (``nominal_B`` (D, Du)
     where ``data.dyn_B`` is None), the input bounds, ``slack >= 0`` and the (softened) collision
-    rows of active slots hold within :data:`FEASIBILITY_TOL` relative to the plan's scale. The
-    soft state constraints hold by construction (their slacks are free). Computed in NumPy on
-    detached copies: a check of a few small arrays, where torch's per-call overhead would cost
-    more than the compiled solve it checks.
+    rows of active slots hold within :data:`FEASIBILITY_TOL` relative to the plan's scale
+    (``1 + max |X|``; the input bounds relative to ``1 +`` their size). The soft state constraints
+    hold by construction (their slacks are free). Evaluated on detached copies by the compiled
+    :func:`~torch_gpmpc.control.acceptance.failure_codes`: torch's (or NumPy's) per-call overhead on
+    these small arrays would cost more than the compiled solve it checks.
     """
     def arr(t: Tensor) -> np.ndarray:
-        return t.detach().cpu().numpy()
+        return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
 
-    Xr, Ur, Yr, Sr = arr(X), arr(U), arr(Y), arr(slack)
-    batch = Xr.shape[0]
-    finite = np.isfinite(Xr.reshape(batch, -1)).all(1) & np.isfinite(Ur.reshape(batch, -1)).all(1) \
-        & np.isfinite(Sr.reshape(batch, -1)).all(1) & np.isfinite(Yr.reshape(batch, -1)).all(1)
-    clean = bool(finite.all())  # the usual case: no copies needed
-    Xs, Us, Ss, Ys = (a if clean else np.nan_to_num(a) for a in (Xr, Ur, Sr, Yr))
-    scale = 1.0 + np.abs(Xs.reshape(batch, -1)).max(1, initial=0.0)
-    if data.dyn_B is None:
-        drive = Us @ arr(nominal_B).astype(Xs.dtype).T
-    else:
-        drive = (arr(data.dyn_B) @ Us[..., None])[..., 0]
-    pred = (arr(data.dyn_A) @ Xs[:, :-1, :, None])[..., 0] + drive + arr(data.dyn_c)
-    dyn_res = np.abs(Xs[:, 1:] - pred).reshape(batch, -1).max(1, initial=0.0)
-    init_res = np.abs(Xs[:, 0] - arr(data.x0)).max(1, initial=0.0)
-    u_res = constraints.input_violation(Us)
-    s_res = np.clip(-Ss, 0.0, None).reshape(batch, -1).max(1, initial=0.0)
-    c_res = np.zeros(batch)
-    if Yr.shape[1] > 0 and Sr.size:
-        # collision rows n^T (X_tau - Y_j,tau) + s_j,tau >= bound_j,tau, tau = 1..T, active slots only
-        gap = (arr(data.normals) * (Xs[:, None, 1:] - Ys[:, :, 1:])).sum(-1)
-        viol = np.clip(arr(data.bounds) - gap - Ss, 0.0, None)
-        viol = np.where(arr(data.active).astype(bool)[:, :, None], viol, 0.0)
-        c_res = viol.reshape(batch, -1).max(1, initial=0.0)
-    tol = FEASIBILITY_TOL
-    feasible = (dyn_res <= tol * scale) & (init_res <= tol * scale) \
-        & (u_res <= tol * (1 + constraints.input_scale)) & (s_res <= tol * scale) & (c_res <= tol * scale)
-    code = np.where(feasible, FAIL_NONE, FAIL_INACCURATE)
-    code = np.where(finite, code, FAIL_NONFINITE).astype(np.int64)
+    Xr = arr(X)
+    batch, T = Xr.shape[0], Xr.shape[1] - 1
+    Ur = arr(U)
+    Bd = arr(nominal_B) if data.dyn_B is None else arr(data.dyn_B)
+    Bd = np.ascontiguousarray(np.broadcast_to(Bd, (batch, T, *Bd.shape[-2:])))
+    box = np.asarray(constraints.input_box or (), dtype=np.float64)
+    u_norm = np.inf if constraints.input_norm is None else float(constraints.input_norm)
+    code = np.empty(batch, dtype=np.int64)
+    failure_codes(Xr, Ur, arr(Y), arr(slack), arr(data.x0), arr(data.dyn_A), Bd, arr(data.dyn_c), arr(data.normals),
+                  arr(data.bounds), np.ascontiguousarray(data.active.detach().cpu().numpy(), dtype=np.bool_), box,
+                  u_norm, float(constraints.input_scale), FEASIBILITY_TOL, _CODES, code)
     return torch.from_numpy(code).to(X.device)

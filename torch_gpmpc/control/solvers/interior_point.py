@@ -37,7 +37,7 @@ from torch_gpmpc.dynamics.systems import NominalModel
 logger = logging.getLogger(__name__)
 
 #: The forward pass returns, and the backward pass differentiates at, a point polished to
-#: ``POLISH_FACTOR * tol`` (at most ``POLISH_ITERATIONS`` extra iterations; :func:`_polish`).
+#: ``POLISH_FACTOR * tol`` (at most ``POLISH_ITERATIONS`` extra iterations; :func:`_cold_solve`).
 POLISH_FACTOR = 1e-2
 POLISH_ITERATIONS = 6
 #: Rounds (one linear solve each) the warm active-set solve may take before a problem is solved
@@ -104,7 +104,12 @@ class _Iterate:
 
 
 def _where_rows(rows: np.ndarray, a: _Iterate, b: _Iterate) -> _Iterate:
-    """Per batch row (B,), ``a`` where ``rows`` else ``b``."""
+    """Per batch row (B,), ``a`` where ``rows`` else ``b`` (``a`` or ``b`` itself when ``rows`` is
+    uniform)."""
+    if rows.all():
+        return a
+    if not rows.any():
+        return b
     return _Iterate(*(np.where(rows.reshape(-1, *[1] * (x.ndim - 1)), x, y)
                       for x, y in zip((a.u, a.y, a.w, a.z), (b.u, b.y, b.w, b.z))))
 
@@ -147,53 +152,39 @@ class KernelLimits:
         return ov + 2 * Ts, ov, Ts
 
 
-def _polish(arrays: list[np.ndarray], point: _Iterate, kkt_error: np.ndarray, weights: tuple[float, float],
-            limits: KernelLimits, penalty: float, tol: float) -> tuple[_Iterate, np.ndarray, np.ndarray, np.ndarray]:
-    """Continue from ``point`` to ``POLISH_FACTOR * tol`` (at most ``POLISH_ITERATIONS`` more
-    iterations): gradients are more sensitive than solutions to the barrier perturbation (a
-    nearly degenerate row counts as half active). Rows whose main solve already ended there
-    are not passed to the kernel (it would return them unchanged after recomputing their error).
-
-    Returns:
-        ``(polished, improved (B,), iterations (B,), kkt_error (B,))``; ``improved``: the polish
-        reached its tolerance or did not make the KKT error worse.
-    """
-    B = point.u.shape[0]
-    polished = point.copy()
-    p_conv, p_iter, p_err = kkt_error <= POLISH_FACTOR * tol, np.zeros(B, dtype=np.int64), kkt_error.copy()
-    rows = np.flatnonzero(~p_conv)
-    if rows.size:
-        sub = _Iterate(point.u[rows], point.y[rows], point.w[rows], point.z[rows])
-        conv, iters, err = np.empty(rows.size, dtype=np.bool_), np.empty(rows.size, dtype=np.int64), np.empty(rows.size)
-        ipm_threads.solve_batch(*[a[rows] for a in arrays], limits.couple, *weights, *limits.args(), penalty,
-                                POLISH_FACTOR * tol, POLISH_ITERATIONS, sub.u, sub.y, sub.w, sub.z, True, conv, iters,
-                                err)
-        polished.u[rows], polished.y[rows], polished.w[rows], polished.z[rows] = sub.u, sub.y, sub.w, sub.z
-        p_conv[rows], p_iter[rows], p_err[rows] = conv, iters, err
-    return polished, p_conv | (p_err <= kkt_error), p_iter, p_err
-
-
 def _cold_solve(arrays: list[np.ndarray], weights: tuple[float, float], limits: KernelLimits, penalty: float,
                 tol: float, max_iter: int) -> tuple[_Iterate, _Iterate, np.ndarray, np.ndarray, np.ndarray]:
-    """The interior point from its default start, then :func:`_polish`, on the B problems of ``arrays``.
+    """The interior point from its default start on the B problems of ``arrays``, each then polished:
+    continued to ``POLISH_FACTOR * tol`` (at most ``POLISH_ITERATIONS`` more iterations). Gradients
+    are more sensitive than solutions to the barrier perturbation (a nearly degenerate row counts
+    as half active).
 
     Returns:
-        ``(point, at, converged (B,), iterations (B,), kkt_error (B,))``: ``point`` is returned,
-        ``at`` differentiated (the polished point, also where the main solve did not converge).
+        ``(point, at, converged (B,), iterations (B,), kkt_error (B,))``: ``point`` is returned (the
+        polished point where the solve converged and the polish reached its tolerance or did not
+        make the KKT error worse), ``at`` differentiated (the polished point, also where the main
+        solve did not converge).
     """
     B, n = arrays[1].shape[0], arrays[0].shape[2]
     _, M, T, D = arrays[6].shape
     R = M * T
     m, _, _ = limits.sizes(R, n, T)
-    point = _Iterate(np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m)))
+
+    def new_point() -> _Iterate:
+        return _Iterate(np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m)))
+
+    point, polished = new_point(), new_point()
     converged, iterations, kkt_error = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
-    ipm_threads.solve_batch(*arrays, limits.couple, *weights, *limits.args(), penalty, tol, max_iter,
-                            point.u, point.y, point.w, point.z, False, converged, iterations, kkt_error)
+    p_conv, p_iter, p_err = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
+    ipm_threads.solve_polish_batch(*arrays, limits.couple, *weights, *limits.args(), penalty, tol, max_iter,
+                                   point.u, point.y, point.w, point.z, False, converged, iterations, kkt_error,
+                                   POLISH_FACTOR * tol, POLISH_ITERATIONS, polished.u, polished.y, polished.w,
+                                   polished.z, p_conv, p_iter, p_err)
     # Return (and differentiate at) the polished point: the backward differentiates the exact
     # KKT conditions, and the returned point must be the one they hold at, else a nearly
     # degenerate row (active, multiplier ~1e-3) makes the returned map's derivative differ
     # from the gradient by O(tol / multiplier^2) (measured: 1.6e-4 relative at tol 1e-10).
-    polished, improved, p_iter, p_err = _polish(arrays, point, kkt_error, weights, limits, penalty, tol)
+    improved = p_conv | (p_err <= kkt_error)
     better = converged & improved
     # an unconverged row (flagged as failed) is returned as solved but differentiated polished
     at = _where_rows(~converged | improved, polished, point)
@@ -213,7 +204,8 @@ class _LocalQpFunction(torch.autograd.Function):
 
     Inputs are the :class:`CanonicalData` tensors (G, h, c_x, l_x, rho_y, w_y, normals,
     bounds, g_u; M' = M + L slots) and a settings tuple ``((alpha, beta), limits, penalty, tol,
-    max_iter, stats, guess)`` (``guess``: a previous solve's points, which start the warm active-set
+    max_iter, stats, guess, arrays)`` (``arrays``: those tensors as :func:`_kernel_arrays`, made once
+    by the caller; ``guess``: a previous solve's points, which start the warm active-set
     solves, or ``None``: every problem cold; never pass one when gradients are wanted: a warm point
     has exact complementarity, which the adjoint cannot take; ``stats["point"]`` receives this
     solve's points); outputs ``(u (B, n), y (B, M', T, D),
@@ -222,8 +214,7 @@ class _LocalQpFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, settings):  # noqa: D102
-        weights, limits, penalty, tol, max_iter, stats, guess = settings
-        arrays = _kernel_arrays((G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u))
+        weights, limits, penalty, tol, max_iter, stats, guess, arrays = settings
         B, M, T, D = normals.shape
         R, n = M * T, G.shape[2]
         m, _, _ = limits.sizes(R, n, T)
@@ -446,41 +437,56 @@ class InteriorPointMPC(nn.Module):
             self._B = self.nominal.B(data.x0.dtype, data.x0.device)  # one object: the cache keys on it
         beta = self.input_rate_weight
         canon = with_state_rows(canonicalize(data, self._B, self._condensed, beta), self._state_rows(data, batch))
-        canon, valid = _sanitize(canon)
+        inputs = (canon.G, canon.h, canon.c_x, canon.l_x, canon.rho_y, canon.w_y, canon.normals, canon.bounds,
+                  canon.g_u)
+        arrays = _kernel_arrays(inputs)
+        valid = _valid_rows(arrays, canon.y0)
+        if not valid.all():
+            canon = _benign_rows(canon, torch.from_numpy(valid).to(data.x0.device))
+            inputs = (canon.G, canon.h, canon.c_x, canon.l_x, canon.rho_y, canon.w_y, canon.normals, canon.bounds,
+                      canon.g_u)
+            arrays = _kernel_arrays(inputs)
         stats: dict = {}
-        wants_grad = torch.is_grad_enabled() and any(
-            t.requires_grad for t in (canon.G, canon.h, canon.c_x, canon.l_x, canon.rho_y, canon.w_y, canon.normals,
-                                      canon.bounds, canon.g_u))
+        wants_grad = torch.is_grad_enabled() and any(t.requires_grad for t in inputs)
         guess = guess if self.warm_start and not wants_grad else None
-        settings = ((self.alpha, beta), self._limits, self.slack_penalty, self.tol, self.max_iter, stats, guess)
-        u, y1, slack, converged = _LocalQpFunction.apply(canon.G, canon.h, canon.c_x, canon.l_x, canon.rho_y,
-                                                         canon.w_y, canon.normals, canon.bounds, canon.g_u, settings)
+        settings = ((self.alpha, beta), self._limits, self.slack_penalty, self.tol, self.max_iter, stats, guess,
+                    arrays)
+        u, y1, slack, converged = _LocalQpFunction.apply(*inputs, settings)
         y1, slack = y1[:, :M], slack[:, :M]  # the state rows' copies are 0; their slacks show in state_slack
         self.last_iterations, self.last_warm_rows = stats["iterations"], stats["warm_rows"]
-        x0 = torch.where(valid[:, None], data.x0, torch.zeros_like(data.x0))
+        x0, xref = data.x0, data.xref
+        if not valid.all():
+            keep = torch.from_numpy(valid).to(x0.device)
+            x0 = torch.where(keep[:, None], x0, torch.zeros_like(x0))
+            xref = torch.where(keep[:, None, None], xref, torch.zeros_like(xref))
         X = torch.cat([x0[:, None], (_mv(canon.G, u) + canon.h).view(batch, T, D)], dim=1)
         U = u.view(batch, T, self.input_dim)
         Y = torch.cat([canon.y0[:, :, None], y1], dim=2)
-        # the same acceptance rule as the cvxpylayers path; unconverged or invalid rows fail too
-        failure = acceptance_failures(data, X.detach(), U.detach(), Y.detach(), slack.detach(),
-                                      self._B, self.constraints)
-        failure = torch.where(~valid, torch.full_like(failure, FAIL_NONFINITE), failure)  # bad input data
-        failure = torch.where(~converged & (failure == 0), torch.full_like(failure, FAIL_INACCURATE), failure)
-        ok = failure == 0
-        if M > 0:
-            used = torch.where(data.active.to(torch.bool)[:, :, None], slack, torch.zeros_like(slack))
-            slack_active = (used > SLACK_ACTIVE_TOL).flatten(1).any(dim=1) & ok
-        else:
-            slack_active = torch.zeros(batch, dtype=torch.bool)
-        if not bool(ok.all()):  # ADMM counts and warns (once per kind); keep the details here
-            logger.debug("InteriorPointMPC: %d of %d local problems rejected (tol %g, %d iterations)",
-                         int((~ok).sum()), batch, self.tol, self.max_iter)
-        xref = torch.where(valid[:, None, None], data.xref, torch.zeros_like(data.xref))
+        failure, ok, slack_active = self._verdicts(data, X, U, Y, slack, valid, converged)
         cost = ((X - xref) ** 2).sum(dim=(1, 2)) + self.alpha * (U ** 2).sum(dim=(1, 2)) \
             + input_rate_cost(U, data.u_prev, beta)
         state_slack = self.constraints.state_violation(X, data.halfspace_normals, data.halfspace_bounds)
         return LocalSolution(X=X, U=U, Y=Y, slack=slack, slack_active=slack_active, ok=ok, cost=cost,
                              failure=failure, state_slack=state_slack, solver_point=stats["point"])
+
+    def _verdicts(self, data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor, valid: np.ndarray,
+                  converged: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(failure, ok, slack_active)``, each (B,): the acceptance rule of the cvxpylayers path,
+        then invalid input data (``valid`` False) as non-finite and unconverged solves as inaccurate;
+        ``slack_active``: an accepted solve that softened a collision row of an active slot.
+        In NumPy: a dozen torch calls on (B,) flags cost more than the check itself."""
+        failure = acceptance_failures(data, X, U, Y, slack, self._B, self.constraints).cpu().numpy()
+        failure = np.where(valid, failure, FAIL_NONFINITE)
+        failure = np.where(~converged.cpu().numpy() & (failure == 0), FAIL_INACCURATE, failure)
+        ok = failure == 0
+        used = slack.detach().cpu().numpy() * data.active.detach().cpu().numpy()[:, :, None]
+        slack_active = (used > SLACK_ACTIVE_TOL).reshape(ok.shape[0], -1).any(axis=1) & ok
+        if not ok.all():  # ADMM counts and warns (once per kind); keep the details here
+            logger.debug("InteriorPointMPC: %d of %d local problems rejected (tol %g, %d iterations)",
+                         int((~ok).sum()), ok.shape[0], self.tol, self.max_iter)
+        device = X.device
+        return (torch.from_numpy(failure).to(device), torch.from_numpy(ok).to(device),
+                torch.from_numpy(slack_active).to(device))
 
     def _state_rows(self, data: LocalProblemData, batch: int) -> list[tuple[Tensor, Tensor]]:
         """The soft state rows as slot blocks: the data's half-spaces, then the constant rows."""
@@ -496,21 +502,24 @@ class InteriorPointMPC(nn.Module):
         return rows
 
 
-def _sanitize(canon: CanonicalData) -> tuple[CanonicalData, Tensor]:
-    """Replace problems with non-finite data or ``rho <= 0`` by a benign one.
+def _valid_rows(arrays: list[np.ndarray], y0: Tensor) -> np.ndarray:
+    """Which problems have finite canonical data (``arrays`` as :func:`_kernel_arrays`, and the
+    step-0 copies y0 (B, M, D)) and ``rho > 0`` on every slot, (B,) bool (NumPy, on the arrays the
+    kernel reads: a few calls, where the same test in torch cost more than a warm solve)."""
+    B = arrays[1].shape[0]
+    total = y0.detach().cpu().numpy().reshape(B, -1).sum(1)
+    for a in arrays:
+        total = total + a.reshape(B, -1).sum(1)
+    valid = np.isfinite(total)
+    rho_y = arrays[4]
+    if rho_y.size:
+        valid &= (rho_y > 0).all(1)
+    return valid
 
-    Returns:
-        ``(canon, valid (B,))``; rows with ``valid = False`` are the problem with
-        ``G = 0, h = 0, c_x = 1, l_x = 0, rho_y = 1, w_y = 0``, no collision rows.
-    """
-    parts = [canon.G.flatten(1), canon.h, canon.c_x[:, None], canon.l_x, canon.rho_y, canon.w_y.flatten(1),
-             canon.y0.flatten(1), canon.normals.flatten(1), canon.bounds.flatten(1), canon.g_u]
-    total = torch.cat([p.detach() for p in parts], dim=1).sum(1)
-    valid = torch.isfinite(total)
-    if canon.rho_y.numel():
-        valid = valid & (canon.rho_y.detach() > 0).all(1)
-    if bool(valid.all()):
-        return canon, valid
+
+def _benign_rows(canon: CanonicalData, valid: Tensor) -> CanonicalData:
+    """``canon`` with the problems where ``valid (B,)`` is False replaced by a benign one:
+    ``G = 0, h = 0, c_x = 1, l_x = 0, rho_y = 1, w_y = 0``, no collision rows."""
 
     def keep(t: Tensor, fill: float) -> Tensor:
         mask = valid.view(-1, *([1] * (t.dim() - 1)))
@@ -519,7 +528,7 @@ def _sanitize(canon: CanonicalData) -> tuple[CanonicalData, Tensor]:
     return CanonicalData(G=keep(canon.G, 0.0), h=keep(canon.h, 0.0), c_x=keep(canon.c_x, 1.0),
                          l_x=keep(canon.l_x, 0.0), rho_y=keep(canon.rho_y, 1.0), w_y=keep(canon.w_y, 0.0),
                          y0=keep(canon.y0, 0.0), normals=keep(canon.normals, 0.0),
-                         bounds=keep(canon.bounds, -1.0), g_u=keep(canon.g_u, 0.0)), valid
+                         bounds=keep(canon.bounds, -1.0), g_u=keep(canon.g_u, 0.0))
 
 
 #: The name this backend had before; kept for existing code.

@@ -51,6 +51,7 @@ import sys
 import numba
 import numpy as np
 
+from torch_gpmpc.control import acceptance
 from torch_gpmpc.control.solvers import ipm_active
 from torch_gpmpc.control.solvers.ipm_cache import ensure_fresh, newest_source_time
 from torch_gpmpc.control.solvers.ipm_linalg import (
@@ -389,6 +390,22 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha,
     new arrays would make the compiled code call back into Python, where a pending
     KeyboardInterrupt surfaces as a SystemError.
     """
+    solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, u_max, box, sbi, v_max,
+                       penalty, tol, max_iter, u, y, w, z, warm, converged, iterations, kkt_error, tol, 0,
+                       u[:0], y[:0], w[:0], z[:0], converged[:0], iterations[:0], kkt_error[:0])
+
+
+@_jit
+def solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, u_max, box, sbi,
+                       v_max, penalty, tol, max_iter, u, y, w, z, warm, converged, iterations, kkt_error,
+                       polish_tol, polish_iter, pu, py, pw, pz, p_conv, p_iter, p_err) -> None:
+    """:func:`solve_batch`, then each problem continued from its point to ``polish_tol`` (at most
+    ``polish_iter`` more iterations) in ``pu (B, n), py (B, R, D), pw, pz (B, m)`` with
+    ``p_conv (B,) bool, p_iter (B,) int64, p_err (B,)`` (a problem already there is copied with
+    0 iterations): the same iterates as a second :func:`solve_batch` from the point with
+    ``warm``, without building the problem twice. ``polish_iter = 0`` and empty polish arrays:
+    no polish (:func:`solve_batch`).
+    """
     B, n = h.shape[0], G.shape[2]
     M, T, D = normals.shape[1], normals.shape[2], normals.shape[3]
     R, Du = M * T, n // T
@@ -398,6 +415,7 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha,
     H, g0, A = np.empty((n, n)), np.empty(n), np.empty((R, n))
     bt, rho, N, wy = np.empty(R), np.empty(R), np.empty((R, D)), np.empty((R, D))
     xs = np.empty((off[6], sbi.shape[0]))
+    polish = pu.shape[0] > 0
     for b in range(B):
         setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u[b], couple, alpha, beta,
                H, g0, A, bt, rho, N, wy)
@@ -407,6 +425,18 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha,
         converged[b], iterations[b], kkt_error[b] = _iterate(H, g0, A, N, bt, rho, wy, G[b], h[b], sbi, D, Du, box,
                                                              u_max2, v_max, penalty, off, Rc, tol, max_iter,
                                                              u[b], y[b], w[b], z[b])
+        if not polish:
+            continue
+        copy_into(u[b], pu[b])
+        pw[b, :] = w[b]
+        pz[b, :] = z[b]
+        py[b, :, :] = y[b]
+        if kkt_error[b] <= polish_tol:
+            p_conv[b], p_iter[b], p_err[b] = True, 0, kkt_error[b]
+        else:
+            p_conv[b], p_iter[b], p_err[b] = _iterate(H, g0, A, N, bt, rho, wy, G[b], h[b], sbi, D, Du, box, u_max2,
+                                                      v_max, penalty, off, Rc, polish_tol, polish_iter,
+                                                      pu[b], py[b], pw[b], pz[b])
 
 
 @_jit
@@ -479,8 +509,10 @@ def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u_data, couple,
 
 
 def warm_up() -> None:
-    """Compile (or load from the on-disk cache) the entry points (the solve, the warm active-set
-    solve of :mod:`~.ipm_active` and the adjoint) on a tiny problem.
+    """Compile (or load from the on-disk cache) the entry points (the solve and the solve with its
+    polish, the warm active-set
+    solve of :mod:`~.ipm_active` and the adjoint) on a tiny problem, and the acceptance check
+    (:mod:`~torch_gpmpc.control.acceptance`).
 
     Call before starting several processes that use the kernel, so they load the cache
     instead of each compiling it (about 10 s of one core, once per installation, and again after
@@ -495,9 +527,12 @@ def warm_up() -> None:
     u, y, w, z = np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m))
     flags, counts, errors = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
     solve_batch(*canonical, 1e-3, 0.0, *limits, 1e4, 1e-8, 30, u, y, w, z, False, flags, counts, errors)
+    solve_polish_batch(*canonical, 1e-3, 0.0, *limits, 1e4, 1e-8, 30, u, y, w, z, False, flags, counts, errors, 1e-10,
+                       6, u.copy(), y.copy(), w.copy(), z.copy(), flags.copy(), counts.copy(), errors.copy())
     ipm_active.solve_batch(*canonical, 1e-3, 0.0, *limits, 1e4, 1e-8, 3, u, y, w, z, False, flags, counts, errors)
     adjoint_batch(*canonical, 1e-3, 0.0, *limits, u, w, z, np.ones((B, n)), np.ones((B, R, D)), np.ones((B, R)),
                   np.empty((B, n)), np.empty((B, R, D)), np.empty((B, R)), np.empty((B, T)), flags)
+    acceptance.warm_up()  # the check of every solve
 
 
 def is_cached() -> bool:

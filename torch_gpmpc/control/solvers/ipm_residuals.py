@@ -51,10 +51,18 @@ def setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta,
     nx, n = G.shape
     M, T, D = normals.shape
     c2 = 2.0 * c_x
+    # G is causal (an input moves only later states): column i is 0 above row lead[i]. Sums start
+    # there; the skipped terms are exact zeros, so H, g0 and A are bit for bit the full sums.
+    lead = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        r = 0
+        while r < nx and G[r, i] == 0.0:
+            r += 1
+        lead[i] = r
     for i in range(n):
         for j in range(i + 1):
             v = 0.0
-            for r in range(nx):
+            for r in range(max(lead[i], lead[j]), nx):
                 v += G[r, i] * G[r, j]
             H[i, j] = c2 * v
             H[j, i] = c2 * v
@@ -68,7 +76,7 @@ def setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta,
                 H[i + Du, i] -= 2.0 * beta
     for i in range(n):
         v = g_u[i]
-        for r in range(nx):
+        for r in range(lead[i], nx):
             v += G[r, i] * (c2 * h[r] - l_x[r])
         g0[i] = v
     for j in range(M):
@@ -83,8 +91,9 @@ def setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta,
             bt[k] = b
             for i in range(n):
                 v = 0.0
-                for d in range(D):
-                    v += normals[j, t, d] * G[t * D + d, i]
+                if (t + 1) * D > lead[i]:
+                    for d in range(D):
+                        v += normals[j, t, d] * G[t * D + d, i]
                 A[k, i] = v
 
 

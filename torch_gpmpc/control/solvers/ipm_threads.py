@@ -26,6 +26,9 @@ from torch_gpmpc.control.solvers import ipm_kernel as ipm
 #: ``converged, iterations, kkt_error``; the rest (``couple``, weights, limits, tolerances,
 #: ``warm``) are shared by every problem.
 SOLVE_ROWS = frozenset(range(9)) | {19, 20, 21, 22, 24, 25, 26}
+#: The same for :func:`~.ipm_kernel.solve_polish_batch`: those of ``solve_batch`` and the polished
+#: point and its outputs.
+POLISH_ROWS = SOLVE_ROWS | frozenset(range(29, 36))
 #: The same for :func:`~.ipm_kernel.adjoint_batch`: the canonical arrays, the point
 #: ``u, w, z``, the right-hand side ``g_u, g_y, g_s`` and the outputs.
 ADJOINT_ROWS = frozenset(range(9)) | frozenset(range(16, 27))
@@ -37,11 +40,11 @@ MIN_ROWS_PER_THREAD = 4
 _pools: dict[tuple[int, int], ThreadPoolExecutor] = {}
 
 
-def solve_batch(*args) -> None:
-    """:func:`~.ipm_kernel.solve_batch` (same arguments, outputs written in place) on the
+def solve_polish_batch(*args) -> None:
+    """:func:`~.ipm_kernel.solve_polish_batch` (same arguments, outputs written in place) on the
     available threads."""
     ipm_cache.ensure_fresh()
-    run_in_blocks(ipm.solve_batch, args, SOLVE_ROWS)
+    run_in_blocks(ipm.solve_polish_batch, args, POLISH_ROWS)
 
 
 def active_set_batch(*args) -> None:
