@@ -52,37 +52,49 @@ def _mv(mat: Tensor, vec: Tensor) -> Tensor:
 
 
 # ------------------------------------------------------------------------ differentiation
-def _stationarity_pairing(G: Tensor, h: Tensor, c_x: Tensor, l_x: Tensor, rho_y: Tensor, w_y: Tensor,
-                          normals: Tensor, bounds: Tensor, g_u: Tensor, u: Tensor, y: Tensor, zc: Tensor,
-                          a_u: Tensor, a_y: Tensor, xi: Tensor, norm_idx: list[int], zv: Tensor,
-                          xi_v: Tensor) -> Tensor:
-    """``a^T grad_v L(v, z; theta) + xi^T g(v; theta)`` summed over the batch (a scalar).
+def _stationarity_vjp(arrays: list[np.ndarray], u: np.ndarray, y: np.ndarray, zc: np.ndarray, a_u: np.ndarray,
+                      a_y: np.ndarray, xi: np.ndarray, norm_idx: np.ndarray, zv: np.ndarray,
+                      xi_v: np.ndarray) -> list[np.ndarray]:
+    """Gradients, with respect to the nine canonical arrays, of the pairing
+    ``a^T grad_v L(v, z; theta) + xi^T g(v; theta)`` summed over the batch, negated: the
+    implicit-function-theorem vector-Jacobian product (in closed form, NumPy).
 
-    Only the terms that depend on the problem data theta are kept; its gradient with
-    respect to theta, negated, is the implicit-function-theorem vector-Jacobian product.
-    The rows with data are the linear rows (collision and state rows) and the state-norm rows
-    ``(v^2 + 2 v sigma - ||P x_tau||^2) / 2 >= 0`` (``x = G u + h``); the input bounds hold no data.
+    Only the terms of the pairing that depend on the problem data theta matter. With
+    ``x = G u + h``, ``dx = G a_u`` (per step ``x_t``, ``dx_t``; rows ``k = j T + t``)::
 
-    Shapes: G (B, n, n), h (B, n), c_x (B,), l_x (B, n), rho_y (B, M), w_y (B, M, T, D),
-    normals (B, M, T, D), bounds (B, M, T); g_u, u, a_u (B, n); y, a_y (B, R, D); zc, xi (B, R);
-    zv, xi_v (B, Ts) (multiplier and adjoint of the state-norm rows, Ts = T or 0).
+        (2 c_x x - l_x) . dx + g_u . a_u + sum_k (rho_j y_k - w_k) . a_y_k
+        - sum_k zc_k n_k . (dx_t - a_y_k) + sum_k xi_k (n_k . (x_t - y_k) - b_k)
+        + sum_t zv_t (P x_t) . (P dx_t) - 1/2 sum_t xi_v_t ||P x_t||^2
+
+    (the last line: the state-norm rows ``(v^2 + 2 v sigma - ||P x_t||^2) / 2 >= 0``, P selecting
+    ``norm_idx``; the input bounds hold no data).
+
+    Args:
+        arrays: G (B, nx, n), h (B, nx), c_x (B,), l_x (B, nx), rho_y (B, M), w_y (B, M, T, D),
+            normals (B, M, T, D), bounds (B, M, T), g_u (B, n) (nx = T D, M slots).
+        u, a_u (B, n); y, a_y (B, R, D); zc, xi (B, R) (R = M T); zv, xi_v (B, Ts), Ts = T or 0.
+
+    Returns:
+        The nine gradients, shaped like ``arrays``.
     """
+    G, h, c_x, _, _, _, normals, _, _ = arrays
     B, M, T, D = normals.shape
-    x1 = _mv(G, u) + h
-    dx1 = _mv(G, a_u)
-    if zv.shape[1]:  # -z_v grad g_v . a = z_v (P x) . (P dx); xi_v g_v's data part = -xi_v ||P x||^2 / 2
-        xs, dxs = x1.view(B, T, D)[..., norm_idx], dx1.view(B, T, D)[..., norm_idx]
-        extra = (zv * (xs * dxs).sum(-1)).sum() - 0.5 * (xi_v * (xs * xs).sum(-1)).sum()
-    else:
-        extra = x1.new_zeros(())
-    obj = ((2.0 * c_x[:, None] * x1 - l_x) * dx1).sum() + (g_u * a_u).sum()
-    rho = rho_y[:, :, None].expand(B, M, T).reshape(B, -1, 1)
-    obj = obj + ((rho * y - w_y.reshape(B, -1, D)) * a_y).sum()
-    N = normals.reshape(B, -1, D)
-    x_rows = x1.view(B, 1, T, D).expand(B, M, T, D).reshape(B, -1, D)
-    dx_rows = dx1.view(B, 1, T, D).expand(B, M, T, D).reshape(B, -1, D)
-    obj = obj - (zc * (N * (dx_rows - a_y)).sum(-1)).sum()
-    return obj + (xi * ((N * (x_rows - y)).sum(-1) - bounds.reshape(B, -1))).sum() + extra
+    x = (G @ u[..., None])[..., 0] + h
+    dx = (G @ a_u[..., None])[..., 0]
+    X, dX = x.reshape(B, T, D), dx.reshape(B, T, D)
+    Y, AY = y.reshape(B, M, T, D), a_y.reshape(B, M, T, D)
+    ZC, XI = zc.reshape(B, M, T, 1), xi.reshape(B, M, T, 1)
+    c2 = 2.0 * c_x[:, None, None]
+    g_x = c2 * dX + (XI * normals).sum(1)  # d/dx
+    g_dx = c2 * X - arrays[3].reshape(B, T, D) - (ZC * normals).sum(1)  # d/d(dx)
+    if zv.shape[1]:
+        xs, dxs = X[:, :, norm_idx], dX[:, :, norm_idx]
+        g_x[:, :, norm_idx] += zv[:, :, None] * dxs - xi_v[:, :, None] * xs
+        g_dx[:, :, norm_idx] += zv[:, :, None] * xs
+    g_x, g_dx = g_x.reshape(B, -1), g_dx.reshape(B, -1)
+    grads = [g_x[:, :, None] * u[:, None, :] + g_dx[:, :, None] * a_u[:, None, :], g_x, 2.0 * (x * dx).sum(1), -dx,
+             (Y * AY).sum((2, 3)), -AY, -ZC * (dX[:, None] - AY) + XI * (X[:, None] - Y), -XI[..., 0], a_u]
+    return [-g for g in grads]
 
 
 def _kernel_arrays(tensors: tuple[Tensor, ...]) -> list[np.ndarray]:
@@ -272,18 +284,10 @@ class _LocalQpFunction(torch.autograd.Function):
         failed = np.empty(B, dtype=np.bool_)
         ipm_threads.adjoint_batch(*arrays, limits.couple, *weights, *limits.args(), at.u, at.w, at.z,
                                   arr(g_u, B, n), arr(g_y, B, R, D), arr(g_s, B, R), a_u, a_y, xi, xi_v, failed)
-        a_u, a_y, xi, xi_v = (ten(np.nan_to_num(a)) for a in (a_u, a_y, xi, xi_v))
-        needs = ctx.needs_input_grad[:9]
-        with torch.enable_grad():
-            leaves = [t.detach().requires_grad_(n) for t, n in zip(inputs, needs)]
-            pairing = _stationarity_pairing(*leaves, ten(at.u), ten(at.y), ten(at.z[:, :R]), a_u, a_y, xi,
-                                            limits.norm_idx.tolist(), ten(at.z[:, ov:ov + Ts]), xi_v)
-            wanted = [leaf for leaf, n in zip(leaves, needs) if n]
-            grads = iter(torch.autograd.grad(pairing, wanted, allow_unused=True)) if wanted else iter(())
-        out = []
-        for leaf, n in zip(leaves, needs):
-            grad = next(grads) if n else None
-            out.append(None if grad is None else -grad)
+        a_u, a_y, xi, xi_v = (np.nan_to_num(a) for a in (a_u, a_y, xi, xi_v))
+        grads = _stationarity_vjp(arrays, at.u, at.y, at.z[:, :R], a_u, a_y, xi, limits.norm_idx,
+                                  at.z[:, ov:ov + Ts], xi_v)
+        out = [ten(g) if n else None for g, n in zip(grads, ctx.needs_input_grad[:9])]
         return (*out, None)
 
 
