@@ -427,10 +427,7 @@ def solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple,
                                                              u[b], y[b], w[b], z[b])
         if not polish:
             continue
-        copy_into(u[b], pu[b])
-        pw[b, :] = w[b]
-        pz[b, :] = z[b]
-        py[b, :, :] = y[b]
+        pu[b, :], py[b, :, :], pw[b, :], pz[b, :] = u[b], y[b], w[b], z[b]
         if kkt_error[b] <= polish_tol:
             p_conv[b], p_iter[b], p_err[b] = True, 0, kkt_error[b]
         else:
@@ -509,10 +506,9 @@ def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u_data, couple,
 
 
 def warm_up() -> None:
-    """Compile (or load from the on-disk cache) the entry points (the solve and the solve with its
-    polish, the warm active-set
-    solve of :mod:`~.ipm_active` and the adjoint) on a tiny problem, and the acceptance check
-    (:mod:`~torch_gpmpc.control.acceptance`).
+    """Compile (or load from the on-disk cache) the entry points (the solve, the solve with its
+    polish, the warm active-set solve of :mod:`~.ipm_active` and the adjoint) on a tiny problem,
+    and the acceptance check (:mod:`~torch_gpmpc.control.acceptance`).
 
     Call before starting several processes that use the kernel, so they load the cache
     instead of each compiling it (about 10 s of one core, once per installation, and again after

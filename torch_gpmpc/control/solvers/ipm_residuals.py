@@ -51,8 +51,9 @@ def setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta,
     nx, n = G.shape
     M, T, D = normals.shape
     c2 = 2.0 * c_x
-    # G is causal (an input moves only later states): column i is 0 above row lead[i]. Sums start
-    # there; the skipped terms are exact zeros, so H, g0 and A are bit for bit the full sums.
+    # G is causal (an input moves only later states), so its columns start with zeros: lead[i] is
+    # column i's first nonzero row. Sums start there; the skipped terms are exact zeros, so H, g0
+    # and A are bit for bit the full sums, in a third of the work.
     lead = np.empty(n, dtype=np.int64)
     for i in range(n):
         r = 0
