@@ -54,3 +54,4 @@ def test_closed_form_matches_autograd(norm_idx):
     for k, (a, b) in enumerate(zip(got, want)):
         assert a.shape == tuple(b.shape), k
         np.testing.assert_allclose(a, -b.numpy(), rtol=1e-12, atol=1e-12, err_msg=f"input {k}")
+

@@ -377,3 +377,30 @@ def test_a_forked_process_gets_worker_threads_of_its_own():
     if child.is_alive():
         child.kill()
     assert child.exitcode == 0
+
+
+def test_structure_cache_reuses_only_equal_problems(monkeypatch):
+    """The layer builds ``G^T G`` and the row gradients once for repeated dynamics and rows (ADMM's
+    iterations within a step) and again for other ones; every answer is a fresh layer's, bit for bit."""
+    from torch_gpmpc.bench.local import ALPHA, HORIZON, NEIGHBORS, _HALFSPACES, family_problem
+    from torch_gpmpc.control.solvers import ipm_threads
+    from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
+
+    built = []
+    original = ipm_threads.structure_batch
+    monkeypatch.setattr(ipm_threads, "structure_batch", lambda *a: built.append(1) or original(*a))
+    nominal, constraints, _ = family_problem("all", 1)
+
+    def layer():
+        return InteriorPointMPC(HORIZON, 6, NEIGHBORS, nominal, None, ALPHA, constraints=constraints,
+                                num_halfspaces=_HALFSPACES)
+
+    first, second = family_problem("all", 3, seed=1)[2], family_problem("all", 3, seed=2)[2]
+    moved = family_problem("all", 3, seed=1)[2]
+    moved.z_own = moved.z_own + 0.05  # another consensus target: same dynamics and rows
+    shared = layer()
+    with torch.no_grad():
+        answers = [shared(d).X for d in (first, moved, second, first)]
+        assert len(built) == 3  # first; moved reuses it; second and first again rebuild
+        for d, got in zip((first, moved, second, first), answers):
+            assert torch.equal(got, layer()(d).X)

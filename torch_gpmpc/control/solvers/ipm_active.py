@@ -34,7 +34,7 @@ import numpy as np
 
 from torch_gpmpc.control.solvers.ipm_linalg import absmax, absmax2, backward_solve, cholesky, fill, forward_solve
 from torch_gpmpc.control.solvers.ipm_residuals import (
-    add_state_norm_curvature, kkt_error, offsets, residuals, setup, state_values,
+    add_state_norm_curvature, kkt_error, offsets, residuals, state_values, weights,
 )
 
 _jit = numba.njit(cache=True, error_model="numpy", nogil=True)
@@ -323,14 +323,15 @@ def _solve_one(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, p
 
 
 @_jit
-def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, u_max, box, sbi, v_max,
-                penalty, tol, max_rounds, u, y, w, z, unused, converged, iterations, kkt_error) -> None:
+def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A_all, couple, alpha, beta, u_max, box, sbi,
+                v_max, penalty, tol, max_rounds, u, y, w, z, unused, converged, iterations, kkt_error) -> None:
     """Solve B problems from the guesses ``(u, w, z)`` (kernel layout, e.g. the previous solve's
     points; ``y`` is output only), one after another.
 
-    The arguments are those of :func:`~torch_gpmpc.control.solvers.ipm_kernel.solve_batch` (same
-    positions, so :mod:`~.ipm_threads` splits both alike), with ``max_rounds`` in place of
-    ``max_iter`` and ``unused`` in place of ``warm``. Rows with ``converged = False`` hold no
+    The arguments are those of :func:`~torch_gpmpc.control.solvers.ipm_kernel.solve_polish_batch`
+    up to ``kkt_error`` (same positions, so :mod:`~.ipm_threads` splits both alike; ``GtG, A_all``:
+    the problems' :func:`~torch_gpmpc.control.solvers.ipm_kernel.structure_batch`), with
+    ``max_rounds`` in place of ``max_iter`` and ``unused`` in place of ``warm``. Rows with ``converged = False`` hold no
     solution (solve them cold); the others hold the optimum with ``kkt_error <= tol`` and exact
     complementarity (``w z = 0``). ``iterations`` counts the rounds (one linear solve each).
     """
@@ -341,7 +342,7 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha,
     Tq, nb, Ts, m = off[4], off[5], off[6], off[7]
     mc = _constraint_count(R, Tq, nb, Ts)
     u_max2 = u_max * u_max
-    H, g0, A = np.empty((n, n)), np.empty(n), np.empty((R, n))
+    H, g0 = np.empty((n, n)), np.empty(n)
     bt, rho, N, wy = np.empty(R), np.empty(R), np.empty((R, D)), np.empty((R, D))
     S, E, V, Sch = np.empty((n, n)), np.empty((mc, n)), np.empty((mc, n)), np.empty((mc, mc))
     first, act, cls = np.zeros(mc, dtype=np.int64), np.zeros(mc, dtype=np.int64), np.zeros(mc, dtype=np.int64)
@@ -350,8 +351,9 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha,
     xs = np.empty((Ts, sbi.shape[0]))
     r_u, r_y, r_s, r_p = np.empty(n), np.empty((R, D)), np.empty(R + Ts), np.empty(m)
     for b in range(B):
-        setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u[b], couple, alpha, beta,
-              H, g0, A, bt, rho, N, wy)
+        weights(GtG[b], G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u[b], couple, alpha,
+                beta, H, g0, bt, rho, N, wy)
+        A = A_all[b]
         converged[b], iterations[b], kkt_error[b] = _solve_one(
             H, g0, A, N, bt, rho, wy, G[b], h[b], sbi, D, Du, box, u_max2, v_max, penalty, off, tol, max_rounds,
             u[b], y[b], w[b], z[b], cls, zc, S, E, V, Sch, first, act, r, x, rhs2, zn, xs, r_u, r_y, r_s, r_p)

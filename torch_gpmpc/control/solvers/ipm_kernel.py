@@ -59,6 +59,7 @@ from torch_gpmpc.control.solvers.ipm_linalg import (
 )
 from torch_gpmpc.control.solvers.ipm_residuals import (
     add_state_norm_curvature, coupled_rows, initial_point, kkt_error, offsets, residuals, setup, state_values,
+    structure, weights,
 )
 
 #: Fraction of the step to the boundary of the positive orthant, and how it tends to 1 as the
@@ -390,19 +391,33 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha,
     new arrays would make the compiled code call back into Python, where a pending
     KeyboardInterrupt surfaces as a SystemError.
     """
-    solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, u_max, box, sbi, v_max,
-                       penalty, tol, max_iter, u, y, w, z, warm, converged, iterations, kkt_error, tol, 0,
+    B, n = h.shape[0], G.shape[2]
+    R = normals.shape[1] * normals.shape[2]
+    GtG, A = np.empty((B, n, n)), np.empty((B, R, n))
+    structure_batch(G, normals, GtG, A)
+    solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A, couple, alpha, beta, u_max, box, sbi,
+                       v_max, penalty, tol, max_iter, u, y, w, z, warm, converged, iterations, kkt_error, tol, 0,
                        u[:0], y[:0], w[:0], z[:0], converged[:0], iterations[:0], kkt_error[:0])
 
 
 @_jit
-def solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, u_max, box, sbi,
-                       v_max, penalty, tol, max_iter, u, y, w, z, warm, converged, iterations, kkt_error,
+def structure_batch(G, normals, GtG, A) -> None:
+    """:func:`~.ipm_residuals.structure` of B problems: G (B, nx, n), normals (B, M, T, D) ->
+    ``GtG (B, n, n)``, ``A (B, R, n)`` (written). A caller that poses the same dynamics and rows
+    again (ADMM within a control step) keeps them and passes them to the solves."""
+    for b in range(G.shape[0]):
+        structure(G[b], normals[b], GtG[b], A[b])
+
+
+@_jit
+def solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A, couple, alpha, beta, u_max, box,
+                       sbi, v_max, penalty, tol, max_iter, u, y, w, z, warm, converged, iterations, kkt_error,
                        polish_tol, polish_iter, pu, py, pw, pz, p_conv, p_iter, p_err) -> None:
-    """:func:`solve_batch`, then each problem continued from its point to ``polish_tol`` (at most
-    ``polish_iter`` more iterations) in ``pu (B, n), py (B, R, D), pw, pz (B, m)`` with
-    ``p_conv (B,) bool, p_iter (B,) int64, p_err (B,)`` (a problem already there is copied with
-    0 iterations): the same iterates as a second :func:`solve_batch` from the point with
+    """:func:`solve_batch` with the problems' :func:`structure_batch` given (``GtG (B, n, n)``,
+    ``A (B, R, n)``, after the nine canonical arrays), then each problem continued from its point to
+    ``polish_tol`` (at most ``polish_iter`` more iterations) in ``pu (B, n), py (B, R, D), pw, pz
+    (B, m)`` with ``p_conv (B,) bool, p_iter (B,) int64, p_err (B,)`` (a problem already there is
+    copied with 0 iterations): the same iterates as a second :func:`solve_batch` from the point with
     ``warm``, without building the problem twice. ``polish_iter = 0`` and empty polish arrays:
     no polish (:func:`solve_batch`).
     """
@@ -412,17 +427,18 @@ def solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple,
     off = offsets(R, n, T, u_max < np.inf, box.shape[0] > 0, sbi.shape[0] > 0)
     Rc = coupled_rows(couple, T)
     u_max2 = u_max * u_max
-    H, g0, A = np.empty((n, n)), np.empty(n), np.empty((R, n))
+    H, g0 = np.empty((n, n)), np.empty(n)
     bt, rho, N, wy = np.empty(R), np.empty(R), np.empty((R, D)), np.empty((R, D))
     xs = np.empty((off[6], sbi.shape[0]))
     polish = pu.shape[0] > 0
     for b in range(B):
-        setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u[b], couple, alpha, beta,
-               H, g0, A, bt, rho, N, wy)
+        weights(GtG[b], G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u[b], couple, alpha,
+                beta, H, g0, bt, rho, N, wy)
+        Ab = A[b]
         if not warm:
             initial_point(N, bt, rho, wy, G[b], h[b], sbi, D, box, u_max2, v_max, penalty, off,
                            u[b], y[b], w[b], z[b], xs)
-        converged[b], iterations[b], kkt_error[b] = _iterate(H, g0, A, N, bt, rho, wy, G[b], h[b], sbi, D, Du, box,
+        converged[b], iterations[b], kkt_error[b] = _iterate(H, g0, Ab, N, bt, rho, wy, G[b], h[b], sbi, D, Du, box,
                                                              u_max2, v_max, penalty, off, Rc, tol, max_iter,
                                                              u[b], y[b], w[b], z[b])
         if not polish:
@@ -431,7 +447,7 @@ def solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple,
         if kkt_error[b] <= polish_tol:
             p_conv[b], p_iter[b], p_err[b] = True, 0, kkt_error[b]
         else:
-            p_conv[b], p_iter[b], p_err[b] = _iterate(H, g0, A, N, bt, rho, wy, G[b], h[b], sbi, D, Du, box, u_max2,
+            p_conv[b], p_iter[b], p_err[b] = _iterate(H, g0, Ab, N, bt, rho, wy, G[b], h[b], sbi, D, Du, box, u_max2,
                                                       v_max, penalty, off, Rc, polish_tol, polish_iter,
                                                       pu[b], py[b], pw[b], pz[b])
 
@@ -523,9 +539,13 @@ def warm_up() -> None:
     u, y, w, z = np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m))
     flags, counts, errors = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
     solve_batch(*canonical, 1e-3, 0.0, *limits, 1e4, 1e-8, 30, u, y, w, z, False, flags, counts, errors)
-    solve_polish_batch(*canonical, 1e-3, 0.0, *limits, 1e4, 1e-8, 30, u, y, w, z, False, flags, counts, errors, 1e-10,
-                       6, u.copy(), y.copy(), w.copy(), z.copy(), flags.copy(), counts.copy(), errors.copy())
-    ipm_active.solve_batch(*canonical, 1e-3, 0.0, *limits, 1e4, 1e-8, 3, u, y, w, z, False, flags, counts, errors)
+    built = (np.empty((B, n, n)), np.empty((B, R, n)))
+    structure_batch(canonical[0], canonical[6], *built)
+    solve_polish_batch(*canonical[:9], *built, canonical[9], 1e-3, 0.0, *limits, 1e4, 1e-8, 30, u, y, w, z, False, flags,
+                       counts, errors, 1e-10, 6, u.copy(), y.copy(), w.copy(), z.copy(), flags.copy(), counts.copy(),
+                       errors.copy())
+    ipm_active.solve_batch(*canonical[:9], *built, canonical[9], 1e-3, 0.0, *limits, 1e4, 1e-8, 3, u, y, w, z, False,
+                           flags, counts, errors)
     adjoint_batch(*canonical, 1e-3, 0.0, *limits, u, w, z, np.ones((B, n)), np.ones((B, R, D)), np.ones((B, R)),
                   np.empty((B, n)), np.empty((B, R, D)), np.empty((B, R)), np.empty((B, T)), flags)
     acceptance.warm_up()  # the check of every solve

@@ -38,22 +38,15 @@ def coupled_rows(couple, T: int) -> int:
 
 
 @_jit
-def setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, H, g0, A, bt, rho, N,
-          wy) -> None:
-    """Fill the problem arrays of one problem from its canonical data (see module docstring).
-
-    Shapes: G (nx, n), h (nx,), l_x (nx,), rho_y (M,), w_y (M, T, D), normals (M, T, D),
-    bounds (M, T), g_u (n,), couple (M,) with nx = T D states and n = T Du inputs; outputs
-    H (n, n), g0 (n,), A (R, n), bt (R,), rho (R,), N (R, D) (the copy's coefficient,
-    ``couple_j n_k``), wy (R, D). ``beta`` weighs the input changes ``sum_t ||U_t - U_{t-1}||^2``
-    (its ``U_{-1}`` part is in ``g_u``): ``H += 2 beta D^T D`` with D the first difference.
-    """
+def structure(G, normals, GtG, A) -> None:
+    """The parts of a problem that only the dynamics and the row normals fix (within a control step
+    ADMM poses the same ones at every iteration): ``GtG = G^T G`` (n, n) and the rows' gradients
+    ``A_k = G_t^T n_k`` (R, n), from G (nx, n) and normals (M, T, D) (row ``k = j T + t``)."""
     nx, n = G.shape
     M, T, D = normals.shape
-    c2 = 2.0 * c_x
     # G is causal (an input moves only later states), so its columns start with zeros: lead[i] is
-    # column i's first nonzero row. Sums start there; the skipped terms are exact zeros, so H, g0
-    # and A are bit for bit the full sums, in a third of the work.
+    # column i's first nonzero row. Sums start there; the skipped terms are exact zeros, so GtG and
+    # A are bit for bit the full sums, in a third of the work.
     lead = np.empty(n, dtype=np.int64)
     for i in range(n):
         r = 0
@@ -65,8 +58,30 @@ def setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta,
             v = 0.0
             for r in range(max(lead[i], lead[j]), nx):
                 v += G[r, i] * G[r, j]
-            H[i, j] = c2 * v
-            H[j, i] = c2 * v
+            GtG[i, j] = v
+            GtG[j, i] = v
+    for j in range(M):
+        for t in range(T):
+            k = j * T + t
+            for i in range(n):
+                v = 0.0
+                if (t + 1) * D > lead[i]:
+                    for d in range(D):
+                        v += normals[j, t, d] * G[t * D + d, i]
+                A[k, i] = v
+
+
+@_jit
+def weights(GtG, G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, H, g0, bt, rho, N,
+            wy) -> None:
+    """The rest of :func:`setup`, given ``GtG`` (n, n) from :func:`structure`: H, g0, bt, rho, N, wy."""
+    nx, n = G.shape
+    M, T, D = normals.shape
+    c2 = 2.0 * c_x
+    for i in range(n):
+        for j in range(i + 1):
+            H[i, j] = c2 * GtG[i, j]
+            H[j, i] = c2 * GtG[i, j]
         H[i, i] += 2.0 * alpha
     if beta != 0.0:
         Du = n // normals.shape[1]
@@ -77,7 +92,7 @@ def setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta,
                 H[i + Du, i] -= 2.0 * beta
     for i in range(n):
         v = g_u[i]
-        for r in range(lead[i], nx):
+        for r in range(nx):
             v += G[r, i] * (c2 * h[r] - l_x[r])
         g0[i] = v
     for j in range(M):
@@ -90,12 +105,24 @@ def setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta,
                 wy[k, d] = w_y[j, t, d]
                 b -= normals[j, t, d] * h[t * D + d]
             bt[k] = b
-            for i in range(n):
-                v = 0.0
-                if (t + 1) * D > lead[i]:
-                    for d in range(D):
-                        v += normals[j, t, d] * G[t * D + d, i]
-                A[k, i] = v
+
+
+@_jit
+def setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, H, g0, A, bt, rho, N,
+          wy) -> None:
+    """Fill the problem arrays of one problem from its canonical data (see module docstring).
+
+    Shapes: G (nx, n), h (nx,), l_x (nx,), rho_y (M,), w_y (M, T, D), normals (M, T, D),
+    bounds (M, T), g_u (n,), couple (M,) with nx = T D states and n = T Du inputs; outputs
+    H (n, n), g0 (n,), A (R, n), bt (R,), rho (R,), N (R, D) (the copy's coefficient,
+    ``couple_j n_k``), wy (R, D). ``beta`` weighs the input changes ``sum_t ||U_t - U_{t-1}||^2``
+    (its ``U_{-1}`` part is in ``g_u``): ``H += 2 beta D^T D`` with D the first difference.
+    :func:`structure` then :func:`weights`.
+    """
+    n = G.shape[1]
+    GtG = np.empty((n, n))
+    structure(G, normals, GtG, A)
+    weights(GtG, G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, H, g0, bt, rho, N, wy)
 
 
 @_jit

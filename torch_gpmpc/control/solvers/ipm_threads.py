@@ -21,23 +21,32 @@ import torch
 from torch_gpmpc.control.solvers import ipm_active, ipm_cache
 from torch_gpmpc.control.solvers import ipm_kernel as ipm
 
-#: Argument positions of :func:`~.ipm_kernel.solve_batch` that are per-problem arrays (first
-#: axis B): the nine canonical arrays, the iterate ``u, y, w, z`` and the outputs
-#: ``converged, iterations, kkt_error``; the rest (``couple``, weights, limits, tolerances,
-#: ``warm``) are shared by every problem.
-SOLVE_ROWS = frozenset(range(9)) | {19, 20, 21, 22, 24, 25, 26}
-#: The same for :func:`~.ipm_kernel.solve_polish_batch`: those of ``solve_batch`` and the polished
-#: point and its outputs.
-POLISH_ROWS = SOLVE_ROWS | frozenset(range(29, 36))
+#: Argument positions of :func:`~.ipm_kernel.solve_polish_batch` (and of
+#: :func:`~.ipm_active.solve_batch`, up to its ``kkt_error``) that are per-problem arrays (first
+#: axis B): the nine canonical arrays and their structure ``GtG, A``, the iterate ``u, y, w, z``
+#: and the outputs ``converged, iterations, kkt_error``; the rest (``couple``, weights, limits,
+#: tolerances, ``warm``) are shared by every problem.
+SOLVE_ROWS = frozenset(range(11)) | {21, 22, 23, 24, 26, 27, 28}
+#: The same for :func:`~.ipm_kernel.solve_polish_batch` with its polished point and its outputs.
+POLISH_ROWS = SOLVE_ROWS | frozenset(range(31, 38))
 #: The same for :func:`~.ipm_kernel.adjoint_batch`: the canonical arrays, the point
 #: ``u, w, z``, the right-hand side ``g_u, g_y, g_s`` and the outputs.
 ADJOINT_ROWS = frozenset(range(9)) | frozenset(range(16, 27))
+#: The same for :func:`~.ipm_kernel.structure_batch`: all four.
+STRUCTURE_ROWS = frozenset(range(4))
 #: Fewest problems worth a thread of their own (a problem takes ~0.3-1 ms; a hand-off ~20 us).
 MIN_ROWS_PER_THREAD = 4
 
 #: Worker pools by (process id, workers): a process forked from one that had a pool gets new
 #: threads instead of a copy whose threads did not survive the fork.
 _pools: dict[tuple[int, int], ThreadPoolExecutor] = {}
+
+
+def structure_batch(*args) -> None:
+    """:func:`~.ipm_kernel.structure_batch` (same arguments, outputs written in place) on the
+    available threads."""
+    ipm_cache.ensure_fresh()
+    run_in_blocks(ipm.structure_batch, args, STRUCTURE_ROWS)
 
 
 def solve_polish_batch(*args) -> None:
