@@ -240,10 +240,10 @@ class _LocalQpFunction(torch.autograd.Function):
     Inputs are the :class:`CanonicalData` tensors (G, h, c_x, l_x, rho_y, w_y, normals,
     bounds, g_u; M' = M + L slots) and a settings tuple ``((alpha, beta), limits, penalty, tol,
     max_iter, stats, guess, arrays)`` (``arrays``: those tensors as :func:`_kernel_arrays`, made once
-    by the caller, then their :class:`StructureCache` pair ``GtG, A``; ``guess``: a previous solve's points, which start the warm active-set
-    solves, or ``None``: every problem cold; never pass one when gradients are wanted: a warm point
-    has exact complementarity, which the adjoint cannot take; ``stats["point"]`` receives this
-    solve's points); outputs ``(u (B, n), y (B, M', T, D),
+    by the caller, then their :class:`StructureCache` pair ``GtG, A``; ``guess``: a previous solve's
+    points, which start the warm active-set solves, or ``None``: every problem cold; never pass one
+    when gradients are wanted: a warm point has exact complementarity, which the adjoint cannot
+    take; ``stats["point"]`` receives this solve's points); outputs ``(u (B, n), y (B, M', T, D),
     s (B, M', T), converged (B,))``.
     """
 

@@ -331,9 +331,10 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A_all, co
     The arguments are those of :func:`~torch_gpmpc.control.solvers.ipm_kernel.solve_polish_batch`
     up to ``kkt_error`` (same positions, so :mod:`~.ipm_threads` splits both alike; ``GtG, A_all``:
     the problems' :func:`~torch_gpmpc.control.solvers.ipm_kernel.structure_batch`), with
-    ``max_rounds`` in place of ``max_iter`` and ``unused`` in place of ``warm``. Rows with ``converged = False`` hold no
-    solution (solve them cold); the others hold the optimum with ``kkt_error <= tol`` and exact
-    complementarity (``w z = 0``). ``iterations`` counts the rounds (one linear solve each).
+    ``max_rounds`` in place of ``max_iter`` and ``unused`` in place of ``warm``. Rows with
+    ``converged = False`` hold no solution (solve them cold); the others hold the optimum with
+    ``kkt_error <= tol`` and exact complementarity (``w z = 0``). ``iterations`` counts the rounds
+    (one linear solve each).
     """
     B, n = h.shape[0], G.shape[2]
     M, T, D = normals.shape[1], normals.shape[2], normals.shape[3]

@@ -541,9 +541,9 @@ def warm_up() -> None:
     solve_batch(*canonical, 1e-3, 0.0, *limits, 1e4, 1e-8, 30, u, y, w, z, False, flags, counts, errors)
     built = (np.empty((B, n, n)), np.empty((B, R, n)))
     structure_batch(canonical[0], canonical[6], *built)
-    solve_polish_batch(*canonical[:9], *built, canonical[9], 1e-3, 0.0, *limits, 1e4, 1e-8, 30, u, y, w, z, False, flags,
-                       counts, errors, 1e-10, 6, u.copy(), y.copy(), w.copy(), z.copy(), flags.copy(), counts.copy(),
-                       errors.copy())
+    solve_polish_batch(*canonical[:9], *built, canonical[9], 1e-3, 0.0, *limits, 1e4, 1e-8, 30, u, y, w, z, False,
+                       flags, counts, errors, 1e-10, 6, u.copy(), y.copy(), w.copy(), z.copy(), flags.copy(),
+                       counts.copy(), errors.copy())
     ipm_active.solve_batch(*canonical[:9], *built, canonical[9], 1e-3, 0.0, *limits, 1e4, 1e-8, 3, u, y, w, z, False,
                            flags, counts, errors)
     adjoint_batch(*canonical, 1e-3, 0.0, *limits, u, w, z, np.ones((B, n)), np.ones((B, R, D)), np.ones((B, R)),
