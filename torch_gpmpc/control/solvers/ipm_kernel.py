@@ -369,38 +369,6 @@ def _iterate(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, pen
 
 # ------------------------------------------------------------------------ batched entry points
 @_jit
-def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, u_max, box, sbi, v_max,
-                penalty, tol, max_iter, u, y, w, z, warm, converged, iterations, kkt_error) -> None:
-    """Solve B problems one after another.
-
-    Args:
-        G (B, nx, n), h (B, nx), c_x (B,), l_x (B, nx), rho_y (B, M), w_y (B, M, T, D),
-        normals (B, M, T, D), bounds (B, M, T), g_u (B, n): the canonical data (float64,
-            C-contiguous);
-        couple (M,): 1 for a neighbour slot (the row has a copy), 0 for a state row; the
-            neighbour slots come first.
-        alpha, beta: floats (effort and input-rate weights). u_max: input norm bound (``inf``: none). box (Du,) or (0,): input box.
-        sbi (p,) int64 or (0,): state indices of the soft norm bound ``v_max``.
-        penalty, tol: floats; max_iter: int.
-        u (B, n), y (B, R, D), w (B, m), z (B, m): the primal-dual iterate, written in
-            place; read as the starting point when ``warm`` (needs ``w, z > 0``).
-        warm: start from the given iterate instead of the default initial point.
-        converged (B,) bool, iterations (B,) int64, kkt_error (B,) float: written.
-
-    Outputs are written into arrays the caller owns and nothing is returned: returning
-    new arrays would make the compiled code call back into Python, where a pending
-    KeyboardInterrupt surfaces as a SystemError.
-    """
-    B, n = h.shape[0], G.shape[2]
-    R = normals.shape[1] * normals.shape[2]
-    GtG, A = np.empty((B, n, n)), np.empty((B, R, n))
-    structure_batch(G, normals, GtG, A)
-    solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A, couple, alpha, beta, u_max, box, sbi,
-                       v_max, penalty, tol, max_iter, u, y, w, z, warm, converged, iterations, kkt_error, tol, 0,
-                       u[:0], y[:0], w[:0], z[:0], converged[:0], iterations[:0], kkt_error[:0])
-
-
-@_jit
 def structure_batch(G, normals, GtG, A) -> None:
     """:func:`~.ipm_residuals.structure` of B problems: G (B, nx, n), normals (B, M, T, D) ->
     ``GtG (B, n, n)``, ``A (B, R, n)`` (written). A caller that poses the same dynamics and rows
@@ -413,13 +381,31 @@ def structure_batch(G, normals, GtG, A) -> None:
 def solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A, couple, alpha, beta, u_max, box,
                        sbi, v_max, penalty, tol, max_iter, u, y, w, z, warm, converged, iterations, kkt_error,
                        polish_tol, polish_iter, pu, py, pw, pz, p_conv, p_iter, p_err) -> None:
-    """:func:`solve_batch` with the problems' :func:`structure_batch` given (``GtG (B, n, n)``,
-    ``A (B, R, n)``, after the nine canonical arrays), then each problem continued from its point to
-    ``polish_tol`` (at most ``polish_iter`` more iterations) in ``pu (B, n), py (B, R, D), pw, pz
-    (B, m)`` with ``p_conv (B,) bool, p_iter (B,) int64, p_err (B,)`` (a problem already there is
-    copied with 0 iterations): the same iterates as a second :func:`solve_batch` from the point with
-    ``warm``, without building the problem twice. ``polish_iter = 0`` and empty polish arrays:
-    no polish (:func:`solve_batch`).
+    """Solve B problems one after another, then continue each from its point to ``polish_tol`` (the
+    polish: at most ``polish_iter`` more iterations, on a copy; a problem already there is copied
+    with 0 iterations), building each problem once.
+
+    Args:
+        G (B, nx, n), h (B, nx), c_x (B,), l_x (B, nx), rho_y (B, M), w_y (B, M, T, D),
+        normals (B, M, T, D), bounds (B, M, T), g_u (B, n): the canonical data (float64,
+            C-contiguous);
+        GtG (B, n, n), A (B, R, n): their :func:`structure_batch`;
+        couple (M,): 1 for a neighbour slot (the row has a copy), 0 for a state row; the
+            neighbour slots come first.
+        alpha, beta: floats (effort and input-rate weights). u_max: input norm bound (``inf``:
+            none). box (Du,) or (0,): input box.
+        sbi (p,) int64 or (0,): state indices of the soft norm bound ``v_max``.
+        penalty, tol: floats; max_iter: int.
+        u (B, n), y (B, R, D), w (B, m), z (B, m): the primal-dual iterate, written in
+            place; read as the starting point when ``warm`` (needs ``w, z > 0``).
+        warm: start from the given iterate instead of the default initial point.
+        converged (B,) bool, iterations (B,) int64, kkt_error (B,) float: written.
+        polish_tol: float; polish_iter: int; pu, py, pw, pz: the polished iterate (shapes of
+            u, y, w, z); p_conv, p_iter, p_err: its outputs (as converged, iterations, kkt_error).
+
+    Outputs are written into arrays the caller owns and nothing is returned: returning
+    new arrays would make the compiled code call back into Python, where a pending
+    KeyboardInterrupt surfaces as a SystemError.
     """
     B, n = h.shape[0], G.shape[2]
     M, T, D = normals.shape[1], normals.shape[2], normals.shape[3]
@@ -430,7 +416,6 @@ def solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A,
     H, g0 = np.empty((n, n)), np.empty(n)
     bt, rho, N, wy = np.empty(R), np.empty(R), np.empty((R, D)), np.empty((R, D))
     xs = np.empty((off[6], sbi.shape[0]))
-    polish = pu.shape[0] > 0
     for b in range(B):
         weights(GtG[b], G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u[b], couple, alpha,
                 beta, H, g0, bt, rho, N, wy)
@@ -441,8 +426,6 @@ def solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A,
         converged[b], iterations[b], kkt_error[b] = _iterate(H, g0, Ab, N, bt, rho, wy, G[b], h[b], sbi, D, Du, box,
                                                              u_max2, v_max, penalty, off, Rc, tol, max_iter,
                                                              u[b], y[b], w[b], z[b])
-        if not polish:
-            continue
         pu[b, :], py[b, :, :], pw[b, :], pz[b, :] = u[b], y[b], w[b], z[b]
         if kkt_error[b] <= polish_tol:
             p_conv[b], p_iter[b], p_err[b] = True, 0, kkt_error[b]
@@ -458,7 +441,7 @@ def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u_data, couple,
     """Solve the reduced KKT system at each primal-dual point for the right-hand side
     ``(g_u, g_y, g_s)`` (the implicit-function adjoint; the system is symmetric).
 
-    Shapes: canonical data and constraints as in :func:`solve_batch`; ``u, g_u, a_u`` (B, n);
+    Shapes: canonical data and constraints as in :func:`solve_polish_batch`; ``u, g_u, a_u`` (B, n);
     ``g_y, a_y`` (B, R, D); ``w, z`` (B, m); ``g_s, xi`` (B, R); ``xi_v`` (B, Ts). Writes
     ``a_u, a_y``, ``xi``, the scaled multiplier ``(z_c / w_c) (grad g_c . a)`` of the linear
     rows, ``xi_v``, the adjoint multiplier of the state-norm rows, and ``failed (B,)`` bool:
@@ -522,7 +505,7 @@ def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u_data, couple,
 
 
 def warm_up() -> None:
-    """Compile (or load from the on-disk cache) the entry points (the solve, the solve with its
+    """Compile (or load from the on-disk cache) the entry points (the structure, the solve with its
     polish, the warm active-set solve of :mod:`~.ipm_active` and the adjoint) on a tiny problem,
     and the acceptance check (:mod:`~torch_gpmpc.control.acceptance`).
 
@@ -538,7 +521,6 @@ def warm_up() -> None:
     limits = (1.0, np.ones(D), np.zeros(1, dtype=np.int64), 1.0)
     u, y, w, z = np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m))
     flags, counts, errors = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
-    solve_batch(*canonical, 1e-3, 0.0, *limits, 1e4, 1e-8, 30, u, y, w, z, False, flags, counts, errors)
     built = (np.empty((B, n, n)), np.empty((B, R, n)))
     structure_batch(canonical[0], canonical[6], *built)
     solve_polish_batch(*canonical[:9], *built, canonical[9], 1e-3, 0.0, *limits, 1e4, 1e-8, 30, u, y, w, z, False,

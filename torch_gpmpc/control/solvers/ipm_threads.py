@@ -58,7 +58,7 @@ def solve_polish_batch(*args) -> None:
 
 def active_set_batch(*args) -> None:
     """:func:`~.ipm_active.solve_batch` (the warm-started active-set solves; the arguments of
-    :func:`~.ipm_kernel.solve_batch` at the same positions) on the available threads."""
+    :func:`~.ipm_kernel.solve_polish_batch` at the same positions) on the available threads."""
     ipm_cache.ensure_fresh()
     run_in_blocks(ipm_active.solve_batch, args, SOLVE_ROWS)
 
