@@ -86,7 +86,9 @@ def test_schur_cholesky_solve_matches_dense_augmented_solve(seed, heavy_row):
     deff, aug = np.empty(K), np.empty(K, dtype=np.int64)
     S, E, V, Sch = np.empty((n, n)), np.empty((T + K, n)), np.empty((T + K, n)), np.empty((T + K, T + K))
     first, xs = np.zeros(T + K, dtype=np.int64), np.empty((0, 0))
-    Ta = ipm._factor(H, A, N, rho, canonical[0], np.zeros(0, dtype=np.int64), D, D, 1.0, off, Rc, u, w, z, xs,
+    width = np.empty(K, dtype=np.int64)
+    ipm_residuals.row_widths(A, width)
+    Ta = ipm._factor(H, A, width, N, rho, canonical[0], np.zeros(0, dtype=np.int64), D, D, 1.0, off, Rc, u, w, z, xs,
                      deff, aug, S, E, first, V, Sch)
     assert Ta == T + int(heavy_row) and (aug[:Rc] == -1).all()
     wc, s, wq = w[:K], w[K:2 * K], w[2 * K:]
@@ -109,6 +111,22 @@ def test_schur_cholesky_solve_matches_dense_augmented_solve(seed, heavy_row):
     ipm._solve(S, V, Sch, Ta, rhs1, rhs2, x1, x2)
     np.testing.assert_allclose(np.concatenate([x1, x2]), np.linalg.solve(kkt, np.concatenate([rhs1, rhs2])),
                                rtol=1e-8, atol=1e-10)
+
+
+def test_row_widths_end_at_the_last_nonzero_and_match_the_causal_dynamics():
+    A = np.array([[1.0, 0.0, 2.0, 0.0], [0.0, 0.0, 0.0, 0.0], [0.0, -3.0, 0.0, 0.0], [1.0, 1.0, 1.0, 1.0]])
+    width = np.empty(4, dtype=np.int64)
+    ipm_residuals.row_widths(A, width)
+    assert width.tolist() == [3, 0, 2, 4]
+    # the condensed dynamics are causal: a row at horizon step t reads the inputs of steps 0..t
+    T, D = 6, 2
+    G = np.kron(np.tril(np.ones((T, T))), np.ones((D, D)))  # block lower triangular, Du = D
+    normals = np.random.default_rng(0).standard_normal((3, T, D))
+    GtG, rows = np.empty((T * D, T * D)), np.empty((3 * T, T * D))
+    ipm_residuals.structure(G, normals, GtG, rows)
+    width = np.empty(3 * T, dtype=np.int64)
+    ipm_residuals.row_widths(rows, width)
+    assert width.tolist() == [(k % T + 1) * D for k in range(3 * T)]
 
 
 def test_cholesky_rejects_indefinite_and_nan():

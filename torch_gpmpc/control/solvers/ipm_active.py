@@ -34,7 +34,7 @@ import numpy as np
 
 from torch_gpmpc.control.solvers.ipm_linalg import absmax, absmax2, backward_solve, cholesky, fill, forward_solve
 from torch_gpmpc.control.solvers.ipm_residuals import (
-    add_state_norm_curvature, kkt_error, offsets, residuals, state_values, weights,
+    add_state_norm_curvature, kkt_error, offsets, residuals, row_widths, state_values, weights,
 )
 
 _jit = numba.njit(cache=True, error_model="numpy", nogil=True)
@@ -65,14 +65,14 @@ def _zmax(i: int, R: int, Tq: int, nb: int, penalty: float, v_max: float) -> flo
 
 
 @_jit
-def _value(i, u, A, N, bt, rho, wy, zc, R, Tq, nb, Du, box, u_max2, v_max, xs):
+def _value(i, u, A, width, N, bt, rho, wy, zc, R, Tq, nb, Du, box, u_max2, v_max, xs):
     """``(g0, d)``: inequality ``i``'s value at ``u`` without its multiplier's part, and the weight
     ``d`` of its own multiplier (``g = g0 + d z``: a collision row's copy ``y = (wy - z n) / rho``
-    is eliminated; ``d = 0`` elsewhere). ``xs`` holds the bounded state entries at ``u``."""
-    n = u.shape[0]
+    is eliminated; ``d = 0`` elsewhere). ``xs`` holds the bounded state entries at ``u``;
+    ``width (R,)`` the rows' :func:`~.ipm_residuals.row_widths`."""
     if i < R:
         v = -bt[i]
-        for j in range(n):
+        for j in range(width[i]):
             v += A[i, j] * u[j]
         nn = 0.0
         for d in range(N.shape[1]):
@@ -157,7 +157,7 @@ def _initial_classes(w, z, R, Tq, nb, Ts, off, cls, zc) -> None:
 
 
 @_jit
-def _write_point(u, A, N, bt, rho, wy, zc, cls, R, Tq, nb, Ts, Du, box, u_max2, v_max, penalty, off, xs, y, w,
+def _write_point(u, A, width, N, bt, rho, wy, zc, cls, R, Tq, nb, Ts, Du, box, u_max2, v_max, penalty, off, xs, y, w,
                  z) -> None:
     """The kernel-layout point ``(y, w, z)`` of ``(u, zc)`` with exact complementarity: an
     inactive row's slack is its value and its multiplier 0; an active row's slack is 0 (its value,
@@ -166,7 +166,7 @@ def _write_point(u, A, N, bt, rho, wy, zc, cls, R, Tq, nb, Ts, Du, box, u_max2, 
     multiplier the whole price."""
     oq, ov, osg = off[0], off[2], off[3]
     for k in range(R):
-        g0, d = _value(k, u, A, N, bt, rho, wy, zc, R, Tq, nb, Du, box, u_max2, v_max, xs)
+        g0, d = _value(k, u, A, width, N, bt, rho, wy, zc, R, Tq, nb, Du, box, u_max2, v_max, xs)
         g = g0 + d * zc[k]
         for dd in range(N.shape[1]):
             y[k, dd] = (wy[k, dd] - zc[k] * N[k, dd]) / rho[k]
@@ -177,12 +177,12 @@ def _write_point(u, A, N, bt, rho, wy, zc, cls, R, Tq, nb, Ts, Du, box, u_max2, 
         else:
             w[k], w[R + k] = (max(g, 0.0) if cls[k] == INACTIVE else 0.0), 0.0
     for j in range(Tq + 2 * nb):
-        g, _ = _value(R + j, u, A, N, bt, rho, wy, zc, R, Tq, nb, Du, box, u_max2, v_max, xs)
+        g, _ = _value(R + j, u, A, width, N, bt, rho, wy, zc, R, Tq, nb, Du, box, u_max2, v_max, xs)
         w[oq + j] = max(g, 0.0) if cls[R + j] == INACTIVE else 0.0
         z[oq + j] = max(zc[R + j], 0.0)
     for t in range(Ts):
         i = R + Tq + 2 * nb + t
-        g, _ = _value(i, u, A, N, bt, rho, wy, zc, R, Tq, nb, Du, box, u_max2, v_max, xs)
+        g, _ = _value(i, u, A, width, N, bt, rho, wy, zc, R, Tq, nb, Du, box, u_max2, v_max, xs)
         z[ov + t] = zc[i]
         z[osg + t] = penalty - v_max * zc[i]
         if cls[i] == SATURATED:  # sigma opens: g + 2 v sigma / 2 = 0
@@ -192,7 +192,7 @@ def _write_point(u, A, N, bt, rho, wy, zc, cls, R, Tq, nb, Ts, Du, box, u_max2, 
 
 
 @_jit
-def _solve_one(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, penalty, off, tol, max_rounds,
+def _solve_one(H, g0, A, width, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, penalty, off, tol, max_rounds,
                u, y, w, z, cls, zc, S, E, V, Sch, first, act, r, x, rhs2, zn, xs, r_u, r_y, r_s, r_p):
     """One problem from the guess ``(u, w, z)`` (kernel layout; overwritten with the solution).
 
@@ -252,7 +252,7 @@ def _solve_one(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, p
             x[j] = r[j]
         forward_solve(S, x, n, 0)  # x = L^-1 r
         for q1 in range(na):
-            g0q, dq = _value(act[q1], u, A, N, bt, rho, wy, zc, R, Tq, nb, Du, box, u_max2, v_max, xs)
+            g0q, dq = _value(act[q1], u, A, width, N, bt, rho, wy, zc, R, Tq, nb, Du, box, u_max2, v_max, xs)
             v = -g0q
             for j in range(n):
                 v += V[q1, j] * x[j]
@@ -288,7 +288,7 @@ def _solve_one(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, p
             state_values(G, h, sbi, D, u, xs)
         changed = False
         for i in range(mc):
-            g0i, di = _value(i, u, A, N, bt, rho, wy, zn, R, Tq, nb, Du, box, u_max2, v_max, xs)
+            g0i, di = _value(i, u, A, width, N, bt, rho, wy, zn, R, Tq, nb, Du, box, u_max2, v_max, xs)
             g = g0i + di * zn[i]
             zm = _zmax(i, R, Tq, nb, penalty, v_max)
             c = cls[i]
@@ -309,9 +309,9 @@ def _solve_one(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, p
             continue
         # the classes hold: accept by the interior point's own test (an active norm row that the
         # Newton rounds have not yet met shows in the primal residual; then one more round)
-        _write_point(u, A, N, bt, rho, wy, zc, cls, R, Tq, nb, Ts, Du, box, u_max2, v_max, penalty, off, xs,
+        _write_point(u, A, width, N, bt, rho, wy, zc, cls, R, Tq, nb, Ts, Du, box, u_max2, v_max, penalty, off, xs,
                      y, w, z)
-        residuals(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, penalty, off,
+        residuals(H, g0, A, width, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, penalty, off,
                   u, y, w, z, xs, r_u, r_y, r_s, r_p)
         err = kkt_error(r_u, r_y, r_s, r_p, w, z, scale_u, scale_y, scale_p, penalty)
         signs = True
@@ -345,6 +345,7 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A_all, co
     u_max2 = u_max * u_max
     H, g0 = np.empty((n, n)), np.empty(n)
     bt, rho, N, wy = np.empty(R), np.empty(R), np.empty((R, D)), np.empty((R, D))
+    width = np.empty(R, dtype=np.int64)
     S, E, V, Sch = np.empty((n, n)), np.empty((mc, n)), np.empty((mc, n)), np.empty((mc, mc))
     first, act, cls = np.zeros(mc, dtype=np.int64), np.zeros(mc, dtype=np.int64), np.zeros(mc, dtype=np.int64)
     zc, zn, rhs2 = np.empty(mc), np.empty(mc), np.empty(mc)
@@ -355,6 +356,7 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A_all, co
         weights(GtG[b], G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u[b], couple, alpha,
                 beta, H, g0, bt, rho, N, wy)
         A = A_all[b]
+        row_widths(A, width)
         converged[b], iterations[b], kkt_error[b] = _solve_one(
-            H, g0, A, N, bt, rho, wy, G[b], h[b], sbi, D, Du, box, u_max2, v_max, penalty, off, tol, max_rounds,
+            H, g0, A, width, N, bt, rho, wy, G[b], h[b], sbi, D, Du, box, u_max2, v_max, penalty, off, tol, max_rounds,
             u[b], y[b], w[b], z[b], cls, zc, S, E, V, Sch, first, act, r, x, rhs2, zn, xs, r_u, r_y, r_s, r_p)

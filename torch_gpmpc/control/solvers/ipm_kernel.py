@@ -58,7 +58,8 @@ from torch_gpmpc.control.solvers.ipm_linalg import (
     absmax, absmax2, backward_solve, cholesky, copy_into, fill, forward_solve,
 )
 from torch_gpmpc.control.solvers.ipm_residuals import (
-    add_state_norm_curvature, coupled_rows, initial_point, kkt_error, offsets, residuals, setup, state_values,
+    add_state_norm_curvature, coupled_rows, initial_point, kkt_error, offsets, residuals, row_widths, setup,
+    state_values,
     structure, weights,
 )
 
@@ -83,9 +84,11 @@ _jit = numba.njit(cache=True, error_model="numpy", nogil=True)
 
 # ------------------------------------------------------------------------ one problem
 @_jit
-def _factor(H, A, N, rho, G, sbi, D, Du, v_max, off, Rc, u, w, z, xs, deff, aug, S, E, first, V, Sch) -> int:
+def _factor(H, A, width, N, rho, G, sbi, D, Du, v_max, off, Rc, u, w, z, xs, deff, aug, S, E, first, V,
+            Sch) -> int:
     """Factor the reduced Newton matrix at ``(u, w, z)`` (see the module docstring).
 
+    ``width (R,)``: the rows' :func:`~.ipm_residuals.row_widths` (their trailing zeros are skipped).
     Writes ``deff (R,)``, ``aug (R,)`` (the augmented position of a state row whose weight
     ``deff |A_k|^2`` exceeds ``AUGMENT_WEIGHT`` times the scale of H, else -1), the Cholesky
     factor of S0 into ``S (n, n)``, the rows of the augmented constraints' gradients into
@@ -121,13 +124,13 @@ def _factor(H, A, N, rho, G, sbi, D, Du, v_max, off, Rc, u, w, z, xs, deff, aug,
         aug[k] = -1
         if k >= Rc:  # a state row: its deff is not bounded by rho; augment it when it is heavy
             a2 = 0.0
-            for i in range(n):
+            for i in range(width[k]):
                 a2 += A[k, i] * A[k, i]
             if dk * a2 > AUGMENT_WEIGHT * hscale:
                 aug[k] = Ta
                 Ta += 1
                 continue
-        for i in range(n):
+        for i in range(width[k]):
             a = dk * A[k, i]
             if a != 0.0:
                 for j in range(i + 1):
@@ -194,7 +197,7 @@ def _solve(S, V, Sch, Ta, rhs1, rhs2, x1, x2) -> None:
 
 
 @_jit
-def _direction(A, N, rho, Du, v_max, off, w, z, deff, aug, Ta, S, E, V, Sch, r_u, r_y, r_s, r_p, rc,
+def _direction(A, width, N, rho, Du, v_max, off, w, z, deff, aug, Ta, S, E, V, Sch, r_u, r_y, r_s, r_p, rc,
                du, dy, dw, dz, rhs1, rhs2, gam, dq) -> None:
     """Newton direction for the complementarity residual ``rc`` (``z dw + w dz = -rc``), shape (m,).
 
@@ -217,7 +220,7 @@ def _direction(A, N, rho, Du, v_max, off, w, z, deff, aug, Ta, S, E, V, Sch, r_u
             rhs2[aug[k]] = -gam[k]
             continue
         c = deff[k] * gam[k]
-        for i in range(n):
+        for i in range(width[k]):
             rhs1[i] -= A[k, i] * c
     for i in range(nb):  # box rows: dz_+ - dz_- = p - q + (z_+/w_+ + z_-/w_-) du_i
         p = (-rc[ob + i] - z[ob + i] * r_p[ob + i]) / w[ob + i]
@@ -234,7 +237,7 @@ def _direction(A, N, rho, Du, v_max, off, w, z, deff, aug, Ta, S, E, V, Sch, r_u
             xi = dq[aug[k]]
         else:
             v = gam[k]
-            for i in range(n):
+            for i in range(width[k]):
                 v += A[k, i] * du[i]
             xi = deff[k] * v
         for d in range(D):
@@ -296,8 +299,8 @@ def _project_inputs(u, Du, u_max2, box) -> None:
 
 
 @_jit
-def _iterate(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, penalty, off, Rc, tol, max_iter,
-             u, y, w, z):
+def _iterate(H, g0, A, width, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, penalty, off, Rc, tol,
+             max_iter, u, y, w, z):
     """Run the method on one problem from ``(u, y, w, z)`` (updated in place).
 
     Returns:
@@ -323,14 +326,15 @@ def _iterate(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, pen
     xs = np.empty((Ts, p))
     err = np.inf
     for it in range(max_iter + 1):
-        residuals(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, penalty, off,
+        residuals(H, g0, A, width, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, penalty, off,
                    u, y, w, z, xs, r_u, r_y, r_s, r_p)
         err = kkt_error(r_u, r_y, r_s, r_p, w, z, scale_u, scale_y, scale_p, penalty)
         if err <= tol:
             return True, it, err
         if it == max_iter:
             return False, it, err
-        Ta_now = _factor(H, A, N, rho, G, sbi, D, Du, v_max, off, Rc, u, w, z, xs, deff, aug, S, E, first, V, Sch)
+        Ta_now = _factor(H, A, width, N, rho, G, sbi, D, Du, v_max, off, Rc, u, w, z, xs, deff, aug, S, E, first, V,
+                         Sch)
         if Ta_now < 0:
             return False, it, err
         mu = 0.0
@@ -339,7 +343,7 @@ def _iterate(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, pen
             mu += wz[i]
         mu /= m
         # predictor (affine scaling)
-        _direction(A, N, rho, Du, v_max, off, w, z, deff, aug, Ta_now, S, E, V, Sch, r_u, r_y, r_s, r_p, wz,
+        _direction(A, width, N, rho, Du, v_max, off, w, z, deff, aug, Ta_now, S, E, V, Sch, r_u, r_y, r_s, r_p, wz,
                    du, dy, dw, dz, rhs1, rhs2, gam, dq)
         a_aff = _max_step(w, z, dw, dz)
         mu_aff = 0.0
@@ -349,7 +353,7 @@ def _iterate(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, pen
         # corrector
         for i in range(m):
             rc[i] = wz[i] + dw[i] * dz[i] - sigma * mu
-        _direction(A, N, rho, Du, v_max, off, w, z, deff, aug, Ta_now, S, E, V, Sch, r_u, r_y, r_s, r_p, rc,
+        _direction(A, width, N, rho, Du, v_max, off, w, z, deff, aug, Ta_now, S, E, V, Sch, r_u, r_y, r_s, r_p, rc,
                    du, dy, dw, dz, rhs1, rhs2, gam, dq)
         step = max(STEP_FRACTION, 1.0 - END_GAME * mu) * _max_step(w, z, dw, dz)
         total = step + absmax(du) + absmax2(dy) + absmax(dw) + absmax(dz)
@@ -415,23 +419,25 @@ def solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A,
     u_max2 = u_max * u_max
     H, g0 = np.empty((n, n)), np.empty(n)
     bt, rho, N, wy = np.empty(R), np.empty(R), np.empty((R, D)), np.empty((R, D))
+    width = np.empty(R, dtype=np.int64)
     xs = np.empty((off[6], sbi.shape[0]))
     for b in range(B):
         weights(GtG[b], G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u[b], couple, alpha,
                 beta, H, g0, bt, rho, N, wy)
         Ab = A[b]
+        row_widths(Ab, width)
         if not warm:
             initial_point(N, bt, rho, wy, G[b], h[b], sbi, D, box, u_max2, v_max, penalty, off,
                            u[b], y[b], w[b], z[b], xs)
-        converged[b], iterations[b], kkt_error[b] = _iterate(H, g0, Ab, N, bt, rho, wy, G[b], h[b], sbi, D, Du, box,
-                                                             u_max2, v_max, penalty, off, Rc, tol, max_iter,
+        converged[b], iterations[b], kkt_error[b] = _iterate(H, g0, Ab, width, N, bt, rho, wy, G[b], h[b], sbi, D, Du,
+                                                             box, u_max2, v_max, penalty, off, Rc, tol, max_iter,
                                                              u[b], y[b], w[b], z[b])
         pu[b, :], py[b, :, :], pw[b, :], pz[b, :] = u[b], y[b], w[b], z[b]
         if kkt_error[b] <= polish_tol:
             p_conv[b], p_iter[b], p_err[b] = True, 0, kkt_error[b]
         else:
-            p_conv[b], p_iter[b], p_err[b] = _iterate(H, g0, Ab, N, bt, rho, wy, G[b], h[b], sbi, D, Du, box, u_max2,
-                                                      v_max, penalty, off, Rc, polish_tol, polish_iter,
+            p_conv[b], p_iter[b], p_err[b] = _iterate(H, g0, Ab, width, N, bt, rho, wy, G[b], h[b], sbi, D, Du, box,
+                                                      u_max2, v_max, penalty, off, Rc, polish_tol, polish_iter,
                                                       pu[b], py[b], pw[b], pz[b])
 
 
@@ -460,11 +466,12 @@ def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u_data, couple,
     first = np.zeros(Ta, dtype=np.int64)
     xs = np.empty((Ts, sbi.shape[0]))
     deff, rhs1, rhs2, dq = np.empty(R), np.empty(n), np.empty(Ta), np.empty(Ta)
-    aug = np.empty(R, dtype=np.int64)
+    aug, width = np.empty(R, dtype=np.int64), np.empty(R, dtype=np.int64)
     for b in range(B):
         failed[b] = False
         setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u_data[b], couple, alpha, beta,
                H, g0, A, bt, rho, N, wy)
+        row_widths(A, width)
         fill(a_u[b], 0.0)
         fill(rhs2, 0.0)
         fill(xi[b], 0.0)
@@ -472,7 +479,7 @@ def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u_data, couple,
         for k in range(R):
             fill(a_y[b, k], 0.0)
         state_values(G[b], h[b], sbi, D, u[b], xs)
-        Ta_now = _factor(H, A, N, rho, G[b], sbi, D, Du, v_max, off, Rc, u[b], w[b], z[b], xs, deff, aug, S, E,
+        Ta_now = _factor(H, A, width, N, rho, G[b], sbi, D, Du, v_max, off, Rc, u[b], w[b], z[b], xs, deff, aug, S, E,
                          first, V, Sch)
         if Ta_now < 0:
             failed[b] = True
@@ -487,7 +494,7 @@ def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u_data, couple,
             if aug[k] >= 0:
                 rhs2[aug[k]] = -v
                 continue
-            for i in range(n):
+            for i in range(width[k]):
                 rhs1[i] -= A[k, i] * deff[k] * v
         _solve(S, V, Sch, Ta_now, rhs1, rhs2, a_u[b], dq)
         for t in range(Ts):
@@ -497,7 +504,7 @@ def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u_data, couple,
                 xi[b, k] = dq[aug[k]]
             else:
                 v = xi[b, k]
-                for i in range(n):
+                for i in range(width[k]):
                     v += A[k, i] * a_u[b, i]
                 xi[b, k] = deff[k] * v
             for d in range(D):

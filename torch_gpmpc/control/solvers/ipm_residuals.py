@@ -72,6 +72,20 @@ def structure(G, normals, GtG, A) -> None:
 
 
 @_jit
+def row_widths(A, width) -> None:
+    """``width[k]``: one past the last nonzero entry of row ``k`` of ``A (R, n)`` (0 for a zero row).
+    The condensed dynamics are causal (an input moves only later states), so a row at horizon step
+    t has its zeros at the end, after (t + 1) Du entries: sums over a row stop at its width, and
+    the skipped terms are exact zeros, so they are the full sums bit for bit."""
+    R, n = A.shape
+    for k in range(R):
+        j = n
+        while j > 0 and A[k, j - 1] == 0.0:
+            j -= 1
+        width[k] = j
+
+
+@_jit
 def weights(GtG, G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, H, g0, bt, rho, N,
             wy) -> None:
     """The rest of :func:`setup`, given ``GtG`` (n, n) from :func:`structure`: H, g0, bt, rho, N, wy."""
@@ -197,12 +211,12 @@ def initial_point(N, bt, rho, wy, G, h, sbi, D, box, u_max2, v_max, penalty, off
 
 
 @_jit
-def residuals(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, penalty, off,
+def residuals(H, g0, A, width, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, penalty, off,
                u, y, w, z, xs, r_u, r_y, r_s, r_p) -> None:
     """Residuals at ``(u, y, w, z)``, written in place: dual ``r_u (n,)``, ``r_y (R, D)``,
     ``r_s (R + Ts,)`` (collision slacks, then state-norm slacks) and primal ``r_p (m,)``
     (0 at the slack entries, which are their own variables); ``xs (Ts, p)`` the bounded
-    state entries."""
+    state entries; ``width (R,)``: the rows' :func:`row_widths`."""
     n = u.shape[0]
     R, D_ = N.shape
     oq, ob, ov, osg, Tq, nb, Ts, m = off
@@ -226,10 +240,10 @@ def residuals(H, g0, A, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, pe
                     r_u[i] += c * G[r, i]
     for k in range(R):
         zc = z[k]
-        for i in range(n):
+        for i in range(width[k]):
             r_u[i] -= A[k, i] * zc
         v = w[R + k] - bt[k] - w[k]
-        for i in range(n):
+        for i in range(width[k]):
             v += A[k, i] * u[i]
         for d in range(D_):
             r_y[k, d] = rho[k] * y[k, d] - wy[k, d] + zc * N[k, d]
