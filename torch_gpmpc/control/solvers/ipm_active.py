@@ -157,17 +157,16 @@ def _initial_classes(w, z, R, Tq, nb, Ts, off, cls, zc) -> None:
 
 
 @_jit
-def _write_point(u, A, width, N, bt, rho, wy, zc, cls, R, Tq, nb, Ts, Du, box, u_max2, v_max, penalty, off, xs, y, w,
-                 z) -> None:
+def _write_point(gv, dv, N, rho, wy, zc, cls, R, Tq, nb, Ts, v_max, penalty, off, y, w, z) -> None:
     """The kernel-layout point ``(y, w, z)`` of ``(u, zc)`` with exact complementarity: an
     inactive row's slack is its value and its multiplier 0; an active row's slack is 0 (its value,
     0 up to round-off, shows in the primal residual rather than, times a large multiplier, in the
     complementarity); a saturated row's slack variable takes what the row lacks and its
-    multiplier the whole price."""
+    multiplier the whole price. ``gv, dv (mc,)``: every inequality's :func:`_value` at u (the
+    re-classification's, at the same point)."""
     oq, ov, osg = off[0], off[2], off[3]
     for k in range(R):
-        g0, d = _value(k, u, A, width, N, bt, rho, wy, zc, R, Tq, nb, Du, box, u_max2, v_max, xs)
-        g = g0 + d * zc[k]
+        g = gv[k] + dv[k] * zc[k]
         for dd in range(N.shape[1]):
             y[k, dd] = (wy[k, dd] - zc[k] * N[k, dd]) / rho[k]
         z[k] = zc[k]
@@ -177,12 +176,12 @@ def _write_point(u, A, width, N, bt, rho, wy, zc, cls, R, Tq, nb, Ts, Du, box, u
         else:
             w[k], w[R + k] = (max(g, 0.0) if cls[k] == INACTIVE else 0.0), 0.0
     for j in range(Tq + 2 * nb):
-        g, _ = _value(R + j, u, A, width, N, bt, rho, wy, zc, R, Tq, nb, Du, box, u_max2, v_max, xs)
+        g = gv[R + j]
         w[oq + j] = max(g, 0.0) if cls[R + j] == INACTIVE else 0.0
         z[oq + j] = max(zc[R + j], 0.0)
     for t in range(Ts):
         i = R + Tq + 2 * nb + t
-        g, _ = _value(i, u, A, width, N, bt, rho, wy, zc, R, Tq, nb, Du, box, u_max2, v_max, xs)
+        g = gv[i]
         z[ov + t] = zc[i]
         z[osg + t] = penalty - v_max * zc[i]
         if cls[i] == SATURATED:  # sigma opens: g + 2 v sigma / 2 = 0
@@ -193,7 +192,7 @@ def _write_point(u, A, width, N, bt, rho, wy, zc, cls, R, Tq, nb, Ts, Du, box, u
 
 @_jit
 def _solve_one(H, g0, A, width, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, penalty, off, tol, max_rounds,
-               u, y, w, z, cls, zc, S, E, V, Sch, first, act, r, x, rhs2, zn, xs, r_u, r_y, r_s, r_p):
+               u, y, w, z, cls, zc, S, E, V, Sch, first, act, r, x, rhs2, zn, gv, dv, xs, r_u, r_y, r_s, r_p):
     """One problem from the guess ``(u, w, z)`` (kernel layout; overwritten with the solution).
 
     Returns:
@@ -210,23 +209,33 @@ def _solve_one(H, g0, A, width, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v
     eps_z = HYSTERESIS * (1.0 + penalty)
     _initial_classes(w, z, R, Tq, nb, Ts, off, cls, zc)
     err = np.inf
+    factored_h = False  # S holds the Cholesky factor of H itself (no norm row curved it)
     for rnd in range(max_rounds):
         if Ts:
             state_values(G, h, sbi, D, u, xs)
-        # W = H + the norm rows' curvature at their current multipliers
-        for i in range(n):
-            for j in range(i + 1):
-                S[i, j] = H[i, j]
+        # W = H + the norm rows' curvature at their current multipliers; a round where no norm row
+        # adds curvature reuses the factor of H from an earlier round (the same matrix, same bits)
+        curved = False
         for t in range(Tq):
-            zt = max(zc[R + t], 0.0) if cls[R + t] != INACTIVE else 0.0
-            for d in range(Du):
-                S[t * Du + d, t * Du + d] += zt
+            curved = curved or (cls[R + t] != INACTIVE and not zc[R + t] <= 0.0)  # NaN: curved
         for t in range(Ts):
             i = R + Tq + 2 * nb + t
-            if cls[i] != INACTIVE:
-                add_state_norm_curvature(S, G, sbi, D, t, max(zc[i], 0.0))
-        if not cholesky(S, n):
-            return False, rnd, err
+            curved = curved or (cls[i] != INACTIVE and not zc[i] <= 0.0)
+        if curved or not factored_h:
+            for i in range(n):
+                for j in range(i + 1):
+                    S[i, j] = H[i, j]
+            for t in range(Tq):
+                zt = max(zc[R + t], 0.0) if cls[R + t] != INACTIVE else 0.0
+                for d in range(Du):
+                    S[t * Du + d, t * Du + d] += zt
+            for t in range(Ts):
+                i = R + Tq + 2 * nb + t
+                if cls[i] != INACTIVE:
+                    add_state_norm_curvature(S, G, sbi, D, t, max(zc[i], 0.0))
+            if not cholesky(S, n):
+                return False, rnd, err
+            factored_h = not curved
         # r = H u + g0 - sum_saturated zmax grad g (the stationarity without the active multipliers)
         for i in range(n):
             v = g0[i]
@@ -289,6 +298,7 @@ def _solve_one(H, g0, A, width, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v
         changed = False
         for i in range(mc):
             g0i, di = _value(i, u, A, width, N, bt, rho, wy, zn, R, Tq, nb, Du, box, u_max2, v_max, xs)
+            gv[i], dv[i] = g0i, di
             g = g0i + di * zn[i]
             zm = _zmax(i, R, Tq, nb, penalty, v_max)
             c = cls[i]
@@ -309,8 +319,7 @@ def _solve_one(H, g0, A, width, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v
             continue
         # the classes hold: accept by the interior point's own test (an active norm row that the
         # Newton rounds have not yet met shows in the primal residual; then one more round)
-        _write_point(u, A, width, N, bt, rho, wy, zc, cls, R, Tq, nb, Ts, Du, box, u_max2, v_max, penalty, off, xs,
-                     y, w, z)
+        _write_point(gv, dv, N, rho, wy, zc, cls, R, Tq, nb, Ts, v_max, penalty, off, y, w, z)
         residuals(H, g0, A, width, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_max, penalty, off,
                   u, y, w, z, xs, r_u, r_y, r_s, r_p)
         err = kkt_error(r_u, r_y, r_s, r_p, w, z, scale_u, scale_y, scale_p, penalty)
@@ -348,7 +357,7 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A_all, co
     width = np.empty(R, dtype=np.int64)
     S, E, V, Sch = np.empty((n, n)), np.empty((mc, n)), np.empty((mc, n)), np.empty((mc, mc))
     first, act, cls = np.zeros(mc, dtype=np.int64), np.zeros(mc, dtype=np.int64), np.zeros(mc, dtype=np.int64)
-    zc, zn, rhs2 = np.empty(mc), np.empty(mc), np.empty(mc)
+    zc, zn, rhs2, gv, dv = np.empty(mc), np.empty(mc), np.empty(mc), np.empty(mc), np.empty(mc)
     r, x = np.empty(n), np.empty(n)
     xs = np.empty((Ts, sbi.shape[0]))
     r_u, r_y, r_s, r_p = np.empty(n), np.empty((R, D)), np.empty(R + Ts), np.empty(m)
@@ -359,4 +368,5 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A_all, co
         row_widths(A, width)
         converged[b], iterations[b], kkt_error[b] = _solve_one(
             H, g0, A, width, N, bt, rho, wy, G[b], h[b], sbi, D, Du, box, u_max2, v_max, penalty, off, tol, max_rounds,
-            u[b], y[b], w[b], z[b], cls, zc, S, E, V, Sch, first, act, r, x, rhs2, zn, xs, r_u, r_y, r_s, r_p)
+            u[b], y[b], w[b], z[b], cls, zc, S, E, V, Sch, first, act, r, x, rhs2, zn, gv, dv, xs, r_u, r_y, r_s,
+            r_p)

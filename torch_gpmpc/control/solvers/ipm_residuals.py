@@ -240,8 +240,9 @@ def residuals(H, g0, A, width, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v_
                     r_u[i] += c * G[r, i]
     for k in range(R):
         zc = z[k]
-        for i in range(width[k]):
-            r_u[i] -= A[k, i] * zc
+        if zc != 0.0:  # an inactive row of a warm point adds exact zeros
+            for i in range(width[k]):
+                r_u[i] -= A[k, i] * zc
         v = w[R + k] - bt[k] - w[k]
         for i in range(width[k]):
             v += A[k, i] * u[i]
