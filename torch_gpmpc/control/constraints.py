@@ -20,6 +20,7 @@ Soft state constraints keep every local problem feasible: a measured state outsi
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -30,6 +31,13 @@ from torch import Tensor
 from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.errors import GpmpcError
+
+
+@functools.lru_cache(maxsize=64)
+def _row_tensors(normals: tuple, bounds: tuple, dim: int, dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
+    """:meth:`LocalConstraints.rows` for its plain-number rows (cached by value)."""
+    return (torch.tensor(normals, dtype=dtype, device=device).reshape(len(bounds), dim),
+            torch.tensor(bounds, dtype=dtype, device=device))
 
 
 @dataclass(frozen=True)
@@ -96,9 +104,9 @@ class LocalConstraints:
         return len(self.row_bounds)
 
     def rows(self, dim: int, dtype: torch.dtype = torch.float64, device=None) -> tuple[Tensor, Tensor]:
-        """The constant state rows as tensors: normals (L, D) and bounds (L,)."""
-        normals = torch.tensor(self.row_normals, dtype=dtype, device=device).reshape(self.num_rows, dim)
-        return normals, torch.tensor(self.row_bounds, dtype=dtype, device=device)
+        """The constant state rows as tensors: normals (L, D) and bounds (L,) (made once per dtype and
+        device: every solve reads them; shared, so do not modify them in place)."""
+        return _row_tensors(self.row_normals, self.row_bounds, dim, dtype, device)
 
     def input_violation(self, U: np.ndarray) -> np.ndarray:
         """How far inputs (B, T, Du) exceed the input bounds, per problem (B,) (NumPy: the

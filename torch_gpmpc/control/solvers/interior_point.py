@@ -234,6 +234,57 @@ def fits(guess: _Iterate, point: _Iterate) -> bool:
                                                   (point.u, point.y, point.w, point.z)))
 
 
+def _solve_points(settings: tuple, keep_at: bool) -> tuple[_Iterate, _Iterate | None, np.ndarray]:
+    """Solve the problems of ``settings`` (the tuple :class:`_LocalQpFunction` takes; its ``arrays``
+    hold the canonical data): warm active-set solves from ``guess`` where it fits, the interior point
+    for the rest.
+
+    Returns:
+        ``(point, at, converged (B,))``: the returned points, the points to differentiate at (the
+        polished ones; ``None`` unless ``keep_at``) and which problems converged. ``stats`` gets
+        ``iterations``, ``warm_rows`` and ``point``.
+    """
+    weights, limits, penalty, tol, max_iter, stats, guess, arrays = settings
+    B, M, T, D = arrays[6].shape
+    R, n = M * T, arrays[0].shape[2]
+    m, _, _ = limits.sizes(R, n, T)
+    point = _Iterate(np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m)))
+    converged, iterations, kkt_error = np.zeros(B, dtype=np.bool_), np.zeros(B, dtype=np.int64), np.empty(B)
+    if isinstance(guess, _Iterate) and fits(guess, point):
+        # exact solves from the previous points' active sets; what they miss is solved cold
+        point = guess.copy()
+        ipm_threads.active_set_batch(*arrays, limits.couple, *weights, *limits.args(), penalty,
+                                     POLISH_FACTOR * tol, ACTIVE_SET_ROUNDS, point.u, point.y, point.w, point.z,
+                                     False, converged, iterations, kkt_error)
+    stats["warm_rows"] = int(converged.sum())
+    at = point.copy() if keep_at else None
+    cold = np.flatnonzero(~converged)
+    if cold.size:
+        sub = [a[cold] for a in arrays] if cold.size < B else arrays
+        c_point, c_at, c_conv, c_iter, c_err = _cold_solve(sub, weights, limits, penalty, tol, max_iter)
+        point.u[cold], point.y[cold], point.w[cold], point.z[cold] = c_point.u, c_point.y, c_point.w, c_point.z
+        if keep_at:
+            at.u[cold], at.y[cold], at.w[cold], at.z[cold] = c_at.u, c_at.y, c_at.w, c_at.z
+        converged[cold], iterations[cold], kkt_error[cold] = c_conv, c_iter, c_err
+    stats["iterations"] = int(iterations.max(initial=0))
+    stats["point"] = point
+    return point, at, converged
+
+
+def _point_outputs(point: _Iterate, converged: np.ndarray, shape: torch.Size,
+                   like: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``(u (B, n), y (B, M, T, D), s (B, M, T), converged (B,))`` as tensors of ``like``'s dtype and
+    device, for ``shape = (B, M, T, D)``."""
+    B, M, T, D = shape
+    R = M * T
+
+    def out(a: np.ndarray, *dims: int) -> Tensor:
+        return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=like.dtype, device=like.device).reshape(*dims)
+
+    return (out(point.u, B, point.u.shape[1]), out(point.y, B, M, T, D), out(point.w[:, R:2 * R], B, M, T),
+            torch.from_numpy(converged).to(like.device))
+
+
 class _LocalQpFunction(torch.autograd.Function):
     """Batched interior-point solve with implicit differentiation of its KKT conditions.
 
@@ -249,39 +300,14 @@ class _LocalQpFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, settings):  # noqa: D102
-        weights, limits, penalty, tol, max_iter, stats, guess, arrays = settings
-        B, M, T, D = normals.shape
-        R, n = M * T, G.shape[2]
-        m, _, _ = limits.sizes(R, n, T)
-        point = _Iterate(np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m)))
-        converged, iterations, kkt_error = np.zeros(B, dtype=np.bool_), np.zeros(B, dtype=np.int64), np.empty(B)
-        if isinstance(guess, _Iterate) and fits(guess, point):
-            # exact solves from the previous points' active sets; what they miss is solved cold
-            point = guess.copy()
-            ipm_threads.active_set_batch(*arrays, limits.couple, *weights, *limits.args(), penalty,
-                                         POLISH_FACTOR * tol, ACTIVE_SET_ROUNDS, point.u, point.y, point.w, point.z,
-                                         False, converged, iterations, kkt_error)
-        stats["warm_rows"] = int(converged.sum())
-        at = point.copy()
-        cold = np.flatnonzero(~converged)
-        if cold.size:
-            sub = [a[cold] for a in arrays] if cold.size < B else arrays
-            c_point, c_at, c_conv, c_iter, c_err = _cold_solve(sub, weights, limits, penalty, tol, max_iter)
-            point.u[cold], point.y[cold], point.w[cold], point.z[cold] = c_point.u, c_point.y, c_point.w, c_point.z
-            at.u[cold], at.y[cold], at.w[cold], at.z[cold] = c_at.u, c_at.y, c_at.w, c_at.z
-            converged[cold], iterations[cold], kkt_error[cold] = c_conv, c_iter, c_err
-        stats["iterations"] = int(iterations.max(initial=0))
-        stats["point"] = point
+        weights, limits = settings[0], settings[1]
+        point, at, converged = _solve_points(settings, keep_at=True)
         ctx.at = at
         ctx.weights, ctx.limits = weights, limits
         ctx.save_for_backward(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u)
-
-        def out(a: np.ndarray, *shape: int) -> Tensor:
-            return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=h.dtype, device=h.device).reshape(*shape)
-
-        converged_t = torch.from_numpy(converged).to(h.device)
-        ctx.mark_non_differentiable(converged_t)
-        return (out(point.u, B, n), out(point.y, B, M, T, D), out(point.w[:, R:2 * R], B, M, T), converged_t)
+        outputs = _point_outputs(point, converged, normals.shape, h)
+        ctx.mark_non_differentiable(outputs[3])
+        return outputs
 
     @staticmethod
     def backward(ctx, g_u, g_y, g_s, _g_conv):  # noqa: D102
@@ -480,7 +506,11 @@ class InteriorPointMPC(nn.Module):
         guess = guess if self.warm_start and not wants_grad else None
         settings = ((self.alpha, beta), self._limits, self.slack_penalty, self.tol, self.max_iter, stats, guess,
                     arrays)
-        u, y1, slack, converged = _LocalQpFunction.apply(*inputs, settings)
+        if wants_grad:
+            u, y1, slack, converged = _LocalQpFunction.apply(*inputs, settings)
+        else:  # nothing to differentiate: no autograd node, no point kept for a backward
+            point, _, done = _solve_points(settings, keep_at=False)
+            u, y1, slack, converged = _point_outputs(point, done, canon.normals.shape, canon.h)
         y1, slack = y1[:, :M], slack[:, :M]  # the state rows' copies are 0; their slacks show in state_slack
         self.last_iterations, self.last_warm_rows = stats["iterations"], stats["warm_rows"]
         x0, xref = data.x0, data.xref
