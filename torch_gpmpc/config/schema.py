@@ -60,6 +60,9 @@ class Config:
             dual one, halves in the opposite case; ``rho`` is the start, carried over by warm
             starts) or ``fixed``.
         admm_max_iter: ADMM iteration cap per time step.
+        admm_acceleration: ``off`` or ``anderson`` (type-II Anderson acceleration of each step's
+            consensus and duals, :mod:`torch_gpmpc.coordination.acceleration`; in process only).
+        admm_anderson_memory: how many past iterates the Anderson mix uses.
         comm_radius: agents closer than this communicate; ``None`` = all pairs.
         goal_tol: an agent has arrived when within this distance of its target.
         max_steps: closed-loop step cap.
@@ -183,6 +186,8 @@ class Config:
     admm_dual_tol: float | None = None
     admm_rel_tol: float = 1e-4
     admm_max_iter: int = 100
+    admm_acceleration: str = "off"
+    admm_anderson_memory: int = 5
     admm_stop: str = "primal-dual"
     rho_update: str = "adaptive"
     comm_radius: float | None = None

@@ -33,6 +33,7 @@ ADMM_STOPS = ("primal", "primal-dual")
 RISK_MODES = ("pair_step", "mission")
 SOLVERS = ("fast", "clarabel", "reference")
 SAFETY_FALLBACKS = ("cells", "obstacles")
+ADMM_ACCELERATIONS = ("off", "anderson")
 
 CONTROLLER_CHOICES: dict[str, tuple] = {
     "uncertainty": ("auto", *UNCERTAINTY_MODES),
@@ -44,6 +45,7 @@ CONTROLLER_CHOICES: dict[str, tuple] = {
     "method": METHOD_NAMES,
     "risk_mode": RISK_MODES,
     "safety_fallback": SAFETY_FALLBACKS,
+    "admm_acceleration": ADMM_ACCELERATIONS,
 }
 
 CONTROLLER_RANGES: dict[str, tuple[typing.Callable[[typing.Any], bool], str]] = {
@@ -58,6 +60,7 @@ CONTROLLER_RANGES: dict[str, tuple[typing.Callable[[typing.Any], bool], str]] = 
     "admm_dual_tol": (lambda v: v is None or v > 0, "a number > 0 or null"),
     "admm_rel_tol": (lambda v: 0 <= v < 1, "a number in [0, 1)"),
     "admm_max_iter": (lambda v: 1 <= v <= 100_000, "an integer in [1, 100000]"),
+    "admm_anderson_memory": (lambda v: 1 <= v <= 50, "an integer in [1, 50]"),
     "comm_radius": (lambda v: v is None or v > 0, "a number > 0 or null (all pairs)"),
     "slack_penalty": (lambda v: v > 0, "a number > 0"),
     "risk_budget": (lambda v: 0 < v < 1, "a number in (0, 1)"),
@@ -90,6 +93,8 @@ class ControllerSettings:
         r_safe, eps, risk_split: safety radius, pair risk, lower-indexed agent's share.
         radii: each agent's body radius (a pair keeps ``r_k + r_j`` between centres, an agent
             ``r_k`` from every obstacle), or ``None``: ``r_safe / 2`` each.
+        admm_acceleration: ``off`` or ``anderson`` (each step's consensus and duals mixed by
+            :mod:`~torch_gpmpc.coordination.acceleration`); admm_anderson_memory: its history.
         safety_fallback: the re-plan after an unconverged ADMM stop: ``cells`` (agents that can
             stop at once, among neighbours that can too, re-plan inside buffered Voronoi cells;
             others against their neighbours' plans) or ``obstacles`` (every agent of a pair unsafe
@@ -141,6 +146,8 @@ class ControllerSettings:
     admm_rel_tol: float = 1e-4
     admm_stop: str = "primal-dual"
     admm_max_iter: int = 100
+    admm_acceleration: str = "off"
+    admm_anderson_memory: int = 5
     relinearize: bool = False
     comm_radius: float | None = None
     workspace: Workspace | None = None

@@ -46,6 +46,7 @@ from torch import Tensor, nn
 from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
+from torch_gpmpc.coordination.acceleration import AndersonAcceleration
 from torch_gpmpc.coordination.bodies import edge_distances
 from torch_gpmpc.coordination.agent_step import (
     LocalStep, edge_copies, edge_variances, fall_back_to_previous, slot_risks,
@@ -337,12 +338,16 @@ class ADMM:
         ctx, state = self.prepare(x0, xref, graph, warm, rho, risk_split, tol)
         max_iter = s.admm_max_iter if max_iter is None else max_iter
         result = StepResult(plans=state.plans, inputs=state.inputs, state=state, iterations=0, converged=False)
-        for _ in range(max_iter):
+        accelerator = AndersonAcceleration(s.admm_anderson_memory) if s.admm_acceleration == "anderson" else None
+        for it in range(max_iter):
+            previous = state
             state, stats = self.iterate(ctx, state)
             result.record(stats)
             if should_stop(stats.primal_ratio, stats.dual_ratio, s):
                 result.converged = True
                 break
+            if accelerator is not None and it < max_iter - 1:  # a capped step keeps its plain iterate
+                state = accelerator.next_input(previous, state)
         if graph.num_edges and result.iterations:
             state = self._check_safety(state, result.problem, graph, ctx.layer, result, safety_fallback)
         if result.iterations:

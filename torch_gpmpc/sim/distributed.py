@@ -353,6 +353,10 @@ def simulate_distributed(
         raise GpmpcError("config key 'gp_online': online GP updates run in process only so far (each agent "
                          "process would learn from the transitions the world sends it); drop --backend "
                          "distributed or set gp_online=false")
+    if cfg.admm_acceleration != "off":
+        raise GpmpcError("config key 'admm_acceleration': Anderson acceleration runs in process only so far (the "
+                         "agents would also reduce its least-squares sums with their residuals each iteration); "
+                         "drop --backend distributed or set admm_acceleration=off")
     if agents_per_process < 1:
         raise GpmpcError(f"agents_per_process must be >= 1, got {agents_per_process}")
     if not timeout_s > 0:
