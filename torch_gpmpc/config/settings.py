@@ -93,8 +93,6 @@ class ControllerSettings:
         r_safe, eps, risk_split: safety radius, pair risk, lower-indexed agent's share.
         radii: each agent's body radius (a pair keeps ``r_k + r_j`` between centres, an agent
             ``r_k`` from every obstacle), or ``None``: ``r_safe / 2`` each.
-        admm_acceleration: ``off`` or ``anderson`` (each step's consensus and duals mixed by
-            :mod:`~torch_gpmpc.coordination.acceleration`); admm_anderson_memory: its history.
         safety_fallback: the re-plan after an unconverged ADMM stop: ``cells`` (agents that can
             stop at once, among neighbours that can too, re-plan inside buffered Voronoi cells;
             others against their neighbours' plans) or ``obstacles`` (every agent of a pair unsafe
@@ -108,6 +106,8 @@ class ControllerSettings:
         pair_margin, margin_variance, uncertainty: how chance margins are built.
         rho, rho_update: ADMM penalty (start) and its update rule.
         admm_tol, admm_dual_tol, admm_rel_tol, admm_stop, admm_max_iter: ADMM stopping.
+        admm_acceleration: ``off`` or ``anderson`` (each step's consensus and duals mixed by
+            :mod:`~torch_gpmpc.coordination.acceleration`); admm_anderson_memory: its history.
         relinearize: re-linearize at every ADMM iterate (Algorithm 1, step 9).
         comm_radius: agents closer than this communicate (``None``: all pairs).
         workspace: a soft box on the positions (:class:`~torch_gpmpc.config.workspace.Workspace`,

@@ -19,7 +19,9 @@ Stopping (:mod:`~torch_gpmpc.coordination.penalty`): with ``admm_stop = primal-d
 ``rho_e ||z_e - z_e_prev||`` are below their absolute-plus-relative tolerances (Boyd et al.
 2011 §3.3.1); with ``primal`` (the paper's rule) the primal one below ``admm_tol`` (and the
 dual one below ``admm_dual_tol`` if set); or ``admm_max_iter``. The primal-only rule at a
-fixed rho stops on a feasible consensus that is not yet optimal.
+fixed rho stops on a feasible consensus that is not yet optimal. With ``admm_acceleration =
+anderson`` each iteration of a step starts from the Anderson mix of the last iterates' consensus
+and duals (:mod:`~torch_gpmpc.coordination.acceleration`).
 
 Messages: per iteration agent k sends its copy ``y_{e,k}`` (``2 (T+1) n`` numbers, n the
 model's state size) and, with the ``sum``/``joint`` margins, its T projected variances to each

@@ -59,8 +59,7 @@ from torch_gpmpc.control.solvers.ipm_linalg import (
 )
 from torch_gpmpc.control.solvers.ipm_residuals import (
     add_state_norm_curvature, coupled_rows, initial_point, kkt_error, offsets, residuals, row_widths, setup,
-    state_values,
-    structure, weights,
+    state_values, structure, weights,
 )
 
 #: Fraction of the step to the boundary of the positive orthant, and how it tends to 1 as the
