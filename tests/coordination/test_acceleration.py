@@ -10,7 +10,7 @@ import torch
 
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.coordination.acceleration import AndersonAcceleration, anderson_mix
-from torch_gpmpc.coordination.admm import ADMM, initial_state
+from torch_gpmpc.coordination.admm import ADMM, ADMMState, initial_state
 from torch_gpmpc.coordination.agent_step import LocalStep
 from torch_gpmpc.coordination.centralized import plan_cost, solve_centralized
 from torch_gpmpc.coordination.graph import communication_graph
@@ -54,7 +54,7 @@ def test_mix_falls_back_to_the_plain_image_without_history_or_on_degenerate_diff
     assert anderson_mix([f, nan], [v, v]) is nan  # non-finite: the plain image
 
 
-def _two_agent_state(rho: float | None = None) -> tuple:
+def _two_agent_state(rho: float | None = None) -> ADMMState:
     x0 = torch.tensor([[-1.0, 0.0], [1.0, 0.0]], dtype=F64)
     graph = communication_graph(x0, None)
     state = initial_state(x0, 4, graph)
@@ -75,12 +75,12 @@ def test_history_restarts_on_a_penalty_change_and_on_residual_growth():
     s2 = _moved(s1, 0.5)
     acc.next_input(s0, s1)
     acc.next_input(s1, s2)
-    assert acc.restarts == 0 and len(acc._points) == 2
+    assert acc.restarts == 0 and acc.history == 2
     acc.next_input(s2, _moved(s2, 0.25, rho=40.0))  # residual balancing changed the map
-    assert acc.restarts == 1 and len(acc._points) == 1
+    assert acc.restarts == 1 and acc.history == 1
     s3 = _moved(s2, 0.25, rho=40.0)
     acc.next_input(s3, _moved(s3, 10.0))  # the residual grew 40x
-    assert acc.restarts == 2 and len(acc._points) == 1
+    assert acc.restarts == 2 and acc.history == 1
 
 
 def test_accelerated_input_keeps_everything_but_the_consensus_and_duals():
@@ -111,9 +111,10 @@ def test_steps_reach_the_same_optimum_in_fewer_iterations():
     assert a.converged and b.converged
     assert b.iterations < a.iterations
     assert torch.allclose(a.plans, b.plans, atol=1e-5, rtol=0)
-    central = solve_centralized(b.problem, graph, plain.nominal, 2.0, plain.settings.alpha, plain.settings.slack_penalty)
+    s = plain.settings
+    central = solve_centralized(b.problem, graph, plain.nominal, 2.0, s.alpha, s.slack_penalty)
     for res in (a, b):
-        cost = plan_cost(res.plans, res.inputs, xref, plain.settings.alpha)
+        cost = plan_cost(res.plans, res.inputs, xref, s.alpha)
         assert abs(cost / central.cost - 1.0) < 0.01
 
 

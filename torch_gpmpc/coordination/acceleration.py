@@ -86,6 +86,11 @@ class AndersonAcceleration:
         #: how many times the history restarted (penalty change or residual growth)
         self.restarts = 0
 
+    @property
+    def history(self) -> int:
+        """How many past iterates the next mix can use (1 right after a restart)."""
+        return len(self._points)
+
     def next_input(self, before: ADMMState, after: ADMMState) -> ADMMState:
         """The state the next iteration starts from: ``after`` (the iteration's result from
         ``before``) with its consensus ``z`` and duals ``lam`` replaced by the Anderson mix."""
