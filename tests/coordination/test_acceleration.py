@@ -118,12 +118,8 @@ def test_steps_reach_the_same_optimum_in_fewer_iterations():
         assert abs(cost / central.cost - 1.0) < 0.01
 
 
-def test_the_setting_is_checked_and_the_distributed_backend_refuses_it():
+def test_the_setting_is_checked():
     with pytest.raises(GpmpcError, match="admm_acceleration"):
         Config(admm_acceleration="nesterov")
     with pytest.raises(GpmpcError, match="admm_anderson_memory"):
         Config(admm_anderson_memory=0)
-    from torch_gpmpc.sim.distributed import simulate_distributed
-
-    with pytest.raises(GpmpcError, match="admm_acceleration.*in process only"):
-        simulate_distributed(Config(admm_acceleration="anderson", max_steps=1))

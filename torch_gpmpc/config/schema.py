@@ -61,7 +61,7 @@ class Config:
             starts) or ``fixed``.
         admm_max_iter: ADMM iteration cap per time step.
         admm_acceleration: ``off`` or ``anderson`` (type-II Anderson acceleration of each step's
-            consensus and duals, :mod:`torch_gpmpc.coordination.acceleration`; in process only).
+            consensus and duals, :mod:`torch_gpmpc.coordination.acceleration`).
         admm_anderson_memory: how many past iterates the Anderson mix uses.
         comm_radius: agents closer than this communicate; ``None`` = all pairs.
         goal_tol: an agent has arrived when within this distance of its target.

@@ -44,9 +44,10 @@ from torch import Tensor
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.control.problem import FAILURE_KINDS
 from torch_gpmpc.coordination.distributed.launch import reap, spawn_agents
+from torch_gpmpc.coordination.acceleration import AndersonWorld
 from torch_gpmpc.coordination.distributed.protocol import (
     CMD_STEP, CMD_STOP, DEFAULT_SETUP_TIMEOUT_S, DEFAULT_TIMEOUT_S, DTYPE, FLOAT_BYTES, MAX_AGENTS, Kind,
-    Telemetry, rank_of, sensing_size, tag, telemetry_size,
+    Telemetry, rank_of, residual_size, sensing_size, tag, telemetry_size,
 )
 from torch_gpmpc.coordination.distributed.transport import Network, destroy_group, env_rank, free_port, init_group
 from torch_gpmpc.coordination.penalty import should_stop
@@ -209,10 +210,11 @@ class RemotePlanner:
         cfg, K, T = self.cfg, self.num_agents, self.cfg.horizon
         res = StepResult(plans=self.last_plan, inputs=torch.zeros(K, T, cfg.input_dim, dtype=DTYPE), state=None,
                          iterations=0, converged=False)
+        mixer = AndersonWorld(cfg.admm_anderson_memory) if cfg.admm_acceleration == "anderson" else None
         for it in range(1, cfg.admm_max_iter + 1):
             self._mark_lost(t)
-            got = self.net.exchange([], [((4,), rank_of(k, self.per), tag(Kind.RESID, k)) for k in self._live()],
-                                    2 * self.timeout_s + 5.0)
+            got = self.net.exchange([], [((residual_size(cfg),), rank_of(k, self.per), tag(Kind.RESID, k))
+                                         for k in self._live()], 2 * self.timeout_s + 5.0)
             vals = [g for g in got if g is not None]
             self._mark_lost(t)
             primal = max((float(v[0]) for v in vals), default=0.0)
@@ -223,7 +225,8 @@ class RemotePlanner:
             res.iterations = it
             res.converged = should_stop(*ratios, cfg)
             stop = 2.0 if res.converged else (1.0 if it == cfg.admm_max_iter else 0.0)
-            self.net.exchange([(torch.tensor([primal, dual, stop], dtype=DTYPE), rank_of(k, self.per),
+            decision = [primal, dual, stop] + ([] if mixer is None else mixer.decide(vals, stop > 0))
+            self.net.exchange([(torch.tensor(decision, dtype=DTYPE), rank_of(k, self.per),
                                 tag(Kind.DECIDE, 0, k)) for k in self._live()], [], self.timeout_s)
             if stop > 0:
                 return res
@@ -353,10 +356,6 @@ def simulate_distributed(
         raise GpmpcError("config key 'gp_online': online GP updates run in process only so far (each agent "
                          "process would learn from the transitions the world sends it); drop --backend "
                          "distributed or set gp_online=false")
-    if cfg.admm_acceleration != "off":
-        raise GpmpcError("config key 'admm_acceleration': Anderson acceleration runs in process only so far (the "
-                         "agents would also reduce its least-squares sums with their residuals each iteration); "
-                         "drop --backend distributed or set admm_acceleration=off")
     if agents_per_process < 1:
         raise GpmpcError(f"agents_per_process must be >= 1, got {agents_per_process}")
     if not timeout_s > 0:

@@ -30,6 +30,7 @@ from torch import Tensor
 
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.control.problem import FAILURE_KINDS, LocalSolution
+from torch_gpmpc.coordination.acceleration import PartialAnderson
 from torch_gpmpc.coordination.admm import consensus_update
 from torch_gpmpc.coordination.penalty import balance_penalty, edge_residuals, starting_penalties
 from torch_gpmpc.coordination.agent_step import edge_copies, fall_back_to_previous, slot_risks
@@ -199,6 +200,21 @@ class AgentController:
         m = torch.arange(self.graph.num_slots)
         self.slot_e = self.graph.slot_edge[k, m]
         self.slot_a = self.graph.slot_side[k, m]
+        self.anderson = None  # this step's share of the Anderson mix (admm_acceleration = anderson)
+        self._rho_seen: Tensor | None = None
+        if cfg.admm_acceleration == "anderson":
+            self.anderson = PartialAnderson(cfg.admm_anderson_memory, self._counted_coordinates())
+
+    def _counted_coordinates(self) -> Tensor:
+        """Which of this agent's consensus and dual coordinates (``cat(z.flatten(), lam.flatten())``)
+        it adds to the mix's sums: the consensus of the edges whose lower-indexed end it is, and its
+        own duals (each global coordinate counted once)."""
+        edges, k = self.graph.edges, self.k
+        z_mask = (edges[:, 0] == k)[:, None, None, None].expand_as(self.state.z)
+        own = torch.zeros(edges.shape[0], 2, dtype=torch.bool)
+        own[torch.arange(edges.shape[0]), (edges[:, 1] == k).long()] = True  # holder a = its side
+        lam_mask = own[:, :, None, None, None].expand_as(self.state.lam)
+        return torch.cat([z_mask.reshape(-1), lam_mask.reshape(-1)])
 
     # --- one ADMM iteration
     @property
@@ -251,6 +267,7 @@ class AgentController:
             tolerance (:mod:`~torch_gpmpc.coordination.penalty`).
         """
         k, state, sol = self.k, self.state, self.solution
+        self._before = state
         plans = sol.X.clone()  # row k: own plan; neighbour rows are overwritten below (same layout)
         inputs = state.inputs.clone()
         inputs[k] = sol.U[k]
@@ -292,6 +309,30 @@ class AgentController:
         self.result.iterations += 1
         self.counters["iterations_total"] += 1
         return float(primal), float(dual), *ratios
+
+    def residual_message(self, residuals: tuple[float, float, float, float]) -> Tensor:
+        """The residual message (:func:`~.protocol.residual_size` numbers) of the iteration
+        :meth:`update` just ran: its ``residuals``, then this agent's terms of the Anderson mix."""
+        head = torch.tensor(residuals, dtype=DTYPE)
+        if self.anderson is None:
+            return head
+        r2, gram, rhs = self.anderson.push(self._before, self.state)
+        rho = self.state.rho
+        changed = rho is not None and self._rho_seen is not None and not torch.equal(rho, self._rho_seen)
+        self._rho_seen = None if rho is None else rho.clone()
+        m, c = self.anderson.memory, rhs.shape[0]
+        gram_pad, rhs_pad = torch.zeros(m, m, dtype=DTYPE), torch.zeros(m, dtype=DTYPE)
+        gram_pad[:c, :c], rhs_pad[:c] = gram, rhs
+        return torch.cat([head, torch.tensor([r2, float(changed), float(c)], dtype=DTYPE), gram_pad.flatten(), rhs_pad])
+
+    def accelerate(self, decision: Tensor) -> None:
+        """Apply the world's decision (:func:`~.protocol.decision_size` numbers) to the next input:
+        the Anderson mix with its weights, a restart of the history, or nothing."""
+        if self.anderson is None or float(decision[2]) > 0.5:
+            return
+        restart, c = bool(decision[3] > 0.5), int(decision[4])
+        gamma = decision[5:5 + c] if c > 0 else None
+        self.state = self.anderson.next_input(self.state, restart, gamma)
 
     def _own_variances(self) -> Tensor | None:
         """``state.pvar`` with this agent's own ends set from its latest assembly."""

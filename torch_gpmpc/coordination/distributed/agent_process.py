@@ -21,7 +21,8 @@ from torch import Tensor
 from torch_gpmpc.config.schema import from_mapping
 from torch_gpmpc.coordination.distributed.agent import AgentController
 from torch_gpmpc.coordination.distributed.protocol import (
-    CMD_STOP, DEFAULT_SETUP_TIMEOUT_S, DTYPE, FLOAT_BYTES, Kind, rank_of, sensing_size, tag, telemetry_size,
+    CMD_STOP, DEFAULT_SETUP_TIMEOUT_S, DTYPE, FLOAT_BYTES, Kind, decision_size, rank_of, residual_size,
+    sensing_size, tag, telemetry_size,
 )
 from torch_gpmpc.coordination.distributed.transport import Network, destroy_group, init_group
 from torch_gpmpc.dynamics.methods import Method
@@ -145,11 +146,14 @@ class AgentHost:
             t0 = time.perf_counter()
             received = self._exchange_copies(own)
             resid = {k: self.controllers[k].update(received[k]) for k in self.agents}
-            sends = [(torch.tensor(resid[k], dtype=DTYPE), 0, tag(Kind.RESID, k)) for k in self.agents]
+            sends = [(self.controllers[k].residual_message(resid[k]), 0, tag(Kind.RESID, k)) for k in self.agents]
             for k in self.agents:
-                self.controllers[k].counters["reduce_bytes"] += 2 * FLOAT_BYTES
-            decisions = self._receive(3, Kind.DECIDE, max(4 * self.timeout_s, 60.0), sends)
+                # the residuals (2 numbers, as before) and the Anderson terms when accelerating
+                self.controllers[k].counters["reduce_bytes"] += FLOAT_BYTES * (residual_size(self.cfg) - 2)
+            decisions = self._receive(decision_size(self.cfg), Kind.DECIDE, max(4 * self.timeout_s, 60.0), sends)
             comm_time += time.perf_counter() - t0
+            for k, decision in zip(self.agents, decisions):
+                self.controllers[k].accelerate(decision)
             stop = float(decisions[0][2])
             if stop > 0.5:
                 for k in self.agents:
