@@ -129,6 +129,7 @@ class AgentController:
         self.dead: set[int] = set()
         self.graph = graph_from_edges(num_agents, [])
         self.counters = dict.fromkeys(TELEMETRY_KEYS, 0.0)
+        self._before: ADMMState | None = None  # the iterate the last update started from
 
     # --- step set-up
     def begin_step(self, t: int, x0: Tensor, nbr_ids: list[int], xref: Tensor | None = None) -> list[int]:
@@ -323,7 +324,8 @@ class AgentController:
         m, c = self.anderson.memory, rhs.shape[0]
         gram_pad, rhs_pad = torch.zeros(m, m, dtype=DTYPE), torch.zeros(m, dtype=DTYPE)
         gram_pad[:c, :c], rhs_pad[:c] = gram, rhs
-        return torch.cat([head, torch.tensor([r2, float(changed), float(c)], dtype=DTYPE), gram_pad.flatten(), rhs_pad])
+        terms = torch.tensor([r2, float(changed), float(c)], dtype=DTYPE)
+        return torch.cat([head, terms, gram_pad.flatten(), rhs_pad])
 
     def accelerate(self, decision: Tensor) -> None:
         """Apply the world's decision (:func:`~.protocol.decision_size` numbers) to the next input:
