@@ -104,12 +104,15 @@ def load_faults(directory: Path):
     return module
 
 
+@pytest.mark.parametrize("acceleration", ["off", "anderson"])
 @pytest.mark.parametrize("fault", list(KINDS))
 @pytest.mark.parametrize("model", list(MODELS))
-def test_solver_fault_falls_back_and_the_run_finishes_in_process(model, fault, tmp_path, monkeypatch, caplog):
+def test_solver_fault_falls_back_and_the_run_finishes_in_process(model, fault, acceleration, tmp_path, monkeypatch,
+                                                                  caplog):
+    """(Also with Anderson acceleration: the failed agent's previous plan enters the mix's history.)"""
     import torch_gpmpc.coordination.agent_step as agent_step
 
-    cfg = Config(**{**SHORT, **MODELS[model]})
+    cfg = Config(**{**SHORT, **MODELS[model]}, admm_acceleration=acceleration)
     monkeypatch.setattr(agent_step, "make_local_solver", agent_step.make_local_solver)  # restored afterwards
     monkeypatch.setattr(agent_step.LocalStep, "rescue_inaccurate", agent_step.LocalStep.rescue_inaccurate)
     load_faults(tmp_path).install(fault, FAILING_CALL)
@@ -146,10 +149,12 @@ def test_solver_fault_in_a_mixed_team_fails_only_that_models_agents(fault, tmp_p
     assert rollout.states.shape[-1] == 4 and float(abs(rollout.states[:, 1, 2:]).max()) == 0.0
 
 
-@pytest.mark.parametrize("model, fault", [("double-integrator", "exception"), ("crazyflie", "exception"),
-                                          ("single-integrator", "nan"), ("crazyflie", "inaccurate")])
-def test_solver_fault_falls_back_and_the_run_finishes_distributed(model, fault, tmp_path, monkeypatch):
-    """Each agent process's own solver fails at its third call: each agent falls back once."""
+@pytest.mark.parametrize("model, fault, acceleration", [
+    ("double-integrator", "exception", "off"), ("crazyflie", "exception", "off"), ("single-integrator", "nan", "off"),
+    ("crazyflie", "inaccurate", "off"), ("crazyflie", "nan", "anderson")])
+def test_solver_fault_falls_back_and_the_run_finishes_distributed(model, fault, acceleration, tmp_path, monkeypatch):
+    """Each agent process's own solver fails at its third call: each agent falls back once (also
+    with Anderson acceleration, whose sums then carry the fallen-back agent's share)."""
     hook = tmp_path / "hook"
     hook.mkdir()
     load_faults(hook)
@@ -159,11 +164,12 @@ def test_solver_fault_falls_back_and_the_run_finishes_distributed(model, fault, 
     monkeypatch.setenv("GPMPC_TEST_FAILING_CALL", str(FAILING_CALL))
     out = tmp_path / "dist"
     args = ["run", "--backend", "distributed", "--timeout", "120", "--no-figures", "--out", str(out)]
-    for key, value in {**SHORT, **MODELS[model]}.items():
+    keys = {**SHORT, **MODELS[model], "admm_acceleration": acceleration}
+    for key, value in keys.items():
         args += ["--set", f"{key}={value}"]
     assert main(args) == 0
     m = json.loads((out / "metrics.json").read_text())
-    cfg = Config(**{**SHORT, **MODELS[model]})
+    cfg = Config(**keys)
     assert m["steps"] == cfg.max_steps
     # an agent process solves its own row (batch 1): each agent fails once, whatever the fault
     assert m["failed_local_solves_by_kind"][KINDS[fault]] == cfg.num_agents
