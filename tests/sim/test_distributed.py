@@ -32,10 +32,20 @@ from torch_gpmpc.dynamics.systems import make_system
 QUICK = {"method": "gp-chance", "max_steps": 3, "admm_max_iter": 5, "gp_iters": 5}
 
 
-def drive_agents(agents: list, t: int, x: torch.Tensor, iterations: int) -> list:
-    """One step of the agent protocol by hand (no processes): every agent of a complete graph
-    begins step t at its state in x, learns its neighbours' plans and runs ``iterations`` ADMM
-    iterations; returns each iteration's per-agent ``update`` results."""
+def hand_driven(cfg: Config) -> tuple:
+    """``(scenario, system, admm, agents, noise)``: the in-process ADMM of ``cfg``'s scenario and one
+    AgentController per agent, to be driven by hand (no processes)."""
+    sc = make_scenario(cfg)
+    K = sc.num_agents
+    system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
+    admm = ADMM(cfg, cfg.method, system.nominal)
+    agents = [AgentController(k, K, cfg, sc.reference_path()[k]) for k in range(K)]
+    return sc, system, admm, agents, noise_sequence(cfg, K)
+
+
+def begin_agents(agents: list, t: int, x: torch.Tensor) -> None:
+    """Every agent of a complete graph begins step t at its state in x and learns its neighbours'
+    plans (the step's set-up of the agent protocol, by hand)."""
     K = len(agents)
     new = {k: agents[k].begin_step(t, x[k].clone(), [j for j in range(K) if j != k]) for k in range(K)}
     for k in range(K):
@@ -43,6 +53,13 @@ def drive_agents(agents: list, t: int, x: torch.Tensor, iterations: int) -> list
             agents[j].set_neighbour_plan(k, agents[k].own_plan().clone())
     for a in agents:
         a.finish_setup()
+
+
+def drive_agents(agents: list, t: int, x: torch.Tensor, iterations: int) -> list:
+    """One step of the agent protocol by hand (no processes): :func:`begin_agents`, then
+    ``iterations`` ADMM iterations; returns each iteration's per-agent ``update`` results."""
+    K = len(agents)
+    begin_agents(agents, t, x)
     residuals = []
     for _ in range(iterations):
         own = {k: agents[k].solve() for k in range(K)}
@@ -60,12 +77,8 @@ def test_agent_controllers_reproduce_batched_admm_bit_for_bit(input_rate_weight)
     # alone, so the batched torch preparation (condensing, matrix products) rounds by batch size
     cfg = load_config(None, {"method": "nominal", "max_steps": 2, "admm_max_iter": 4, "solver": "clarabel",
                              "input_rate_weight": input_rate_weight})
-    sc = make_scenario(cfg)
-    K = sc.num_agents
-    system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
-    admm = ADMM(cfg, cfg.method, system.nominal)
-    agents = [AgentController(k, K, cfg, sc.reference_path()[k]) for k in range(K)]
-    x, warm, noise = sc.starts.clone(), None, noise_sequence(cfg, K)
+    sc, system, admm, agents, noise = hand_driven(cfg)
+    x, warm = sc.starts.clone(), None
     with torch.no_grad():
         for t in range(2):
             res = admm.solve_step(x, sc.reference_window(t, cfg.horizon), communication_graph(x, None), warm=warm)
@@ -112,22 +125,14 @@ def test_agent_controllers_reproduce_accelerated_admm():
     (measured: 2.7e-5 relative, inputs 2e-7)."""
     cfg = load_config(None, {"method": "nominal", "max_steps": 2, "admm_max_iter": 60, "solver": "clarabel",
                              "admm_acceleration": "anderson"})
-    sc = make_scenario(cfg)
-    K = sc.num_agents
-    system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
-    admm = ADMM(cfg, cfg.method, system.nominal)
-    agents = [AgentController(k, K, cfg, sc.reference_path()[k]) for k in range(K)]
-    x, warm, noise = sc.starts.clone(), None, noise_sequence(cfg, K)
+    sc, system, admm, agents, noise = hand_driven(cfg)
+    x, warm = sc.starts.clone(), None
     with torch.no_grad():
         for t in range(2):
             res = admm.solve_step(x, sc.reference_window(t, cfg.horizon), communication_graph(x, None), warm=warm)
             warm = res.state.shifted()
-            new = {k: agents[k].begin_step(t, x[k].clone(), [j for j in range(K) if j != k]) for k in range(K)}
-            for k in range(K):
-                for j in new[k]:
-                    agents[j].set_neighbour_plan(k, agents[k].own_plan().clone())
-            for a in agents:
-                a.finish_setup()
+            begin_agents(agents, t, x)
+            K = len(agents)
             world, primal = AndersonWorld(cfg.admm_anderson_memory), []
             for it in range(1, cfg.admm_max_iter + 1):
                 own = {k: agents[k].solve() for k in range(K)}
@@ -157,18 +162,24 @@ def test_bad_arguments_raise_before_launching():
         simulate_distributed(cfg, timeout_s=0)
 
 
+def run_both_backends(keys: dict, out) -> tuple:
+    """``gpmpc run --backend distributed`` with config ``keys`` into ``out`` (three agent processes
+    and this one as the world), then the same run in process: ``(cfg, in-process rollout)``."""
+    args = ["run", "--backend", "distributed", "--timeout", "60", "--no-figures", "--out", str(out)]
+    for key, value in keys.items():
+        args += ["--set", f"{key}={value}"] if key != "method" else ["--method", value]
+    assert main(args) == 0
+    cfg = load_config(None, keys)
+    return cfg, simulate(cfg)
+
+
 def test_cli_distributed_equals_inprocess_and_counts_bytes(tmp_path):
     """Three agent processes + the world (this process): same states as the in-process
     backend for the same seed (GP-chance: every agent trains its own GP); bytes match
     the formula 8 (2 (T+1) D + T) |N_k| per iteration (copy plus the T projected variances
     of the sum margin) plus the 16-byte residual report."""
     out = tmp_path / "dist"
-    args = ["run", "--backend", "distributed", "--timeout", "60", "--no-figures", "--out", str(out)]
-    for key, value in QUICK.items():
-        args += ["--set", f"{key}={value}"] if key != "method" else ["--method", value]
-    assert main(args) == 0
-    cfg = load_config(None, QUICK)
-    ref = simulate(cfg)
+    cfg, ref = run_both_backends(QUICK, out)
     with np.load(out / "rollout.npz", allow_pickle=False) as r:
         states, messages = r["states"], r["messages_per_iteration"]
         iterations = r["admm_iterations"]
@@ -198,12 +209,7 @@ def test_accelerated_distributed_run_equals_inprocess(tmp_path):
     iterations, and the residual report grown by the terms (3 + m^2 + m numbers)."""
     quick = {**QUICK, "admm_acceleration": "anderson", "admm_max_iter": 20}
     out = tmp_path / "dist"
-    args = ["run", "--backend", "distributed", "--timeout", "60", "--no-figures", "--out", str(out)]
-    for key, value in quick.items():
-        args += ["--set", f"{key}={value}"] if key != "method" else ["--method", value]
-    assert main(args) == 0
-    cfg = load_config(None, quick)
-    ref = simulate(cfg)
+    cfg, ref = run_both_backends(quick, out)
     with np.load(out / "rollout.npz", allow_pickle=False) as r:
         states, iterations = r["states"], r["admm_iterations"]
     assert np.abs(states - ref.states).max() <= 1e-6
