@@ -83,3 +83,28 @@ def test_mixed_team_sizes_raise(tmp_path):
     runs = {"a": [make_rollout(HAND_STATES, HAND_TARGETS)], "b": [make_rollout([[[0.0, 0.0]]], [[0.0, 0.0]])]}
     with pytest.raises(GpmpcError, match="different numbers of agents"):
         plots.plot_distance_bands(runs, tmp_path / "x.png", r_safe=0.5)
+
+
+def test_a_large_team_gets_summary_figures(tmp_path):
+    """Past MAX_LABELLED_AGENTS the distance figure draws the closest pair and the median nearest
+    neighbour per step (not a line per pair) and the snapshots draw collections: a 40-agent run
+    writes every figure, and the nearest-neighbour distances match the pair distances."""
+    from torch_gpmpc.sim.metrics import pair_distances
+
+    rng = np.random.default_rng(0)
+    k = 4 * plots.MAX_LABELLED_AGENTS
+    states = np.cumsum(rng.normal(scale=0.1, size=(6, k, 2)), axis=0) + rng.uniform(-5, 5, size=(1, k, 2))
+    nearest = plots._nearest_neighbour_distances(states)
+    np.testing.assert_allclose(nearest.min(axis=1), pair_distances(states).min(axis=1), rtol=0, atol=1e-12)
+    assert nearest.shape == (6, k) and np.isfinite(nearest).all()
+    for p in plots.save_run_figures(make_rollout(states, states[-1]), tmp_path):
+        assert_png(p)
+    assert_no_temp_files(tmp_path)
+
+
+def test_a_large_3d_team_gets_its_paths_drawn(tmp_path):
+    rng = np.random.default_rng(1)
+    k = 2 * plots.MAX_LABELLED_AGENTS
+    states = np.cumsum(rng.normal(scale=0.1, size=(5, k, 3)), axis=0)
+    assert_png(plots.plot_trajectories_3d(make_rollout(states, states[-1]), tmp_path / "t3d.png"))
+    assert_no_temp_files(tmp_path)

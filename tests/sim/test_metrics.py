@@ -235,3 +235,25 @@ def test_deadlock_steps_by_hand():
     hover = positions.copy()
     hover[:, 1, 0] += 1.7  # the stopper stops 0.3 from its target
     assert deadlock_steps(hover, targets, goal_tol=0.1, r_safe=0.5) == 0
+
+
+def test_pair_summary_in_chunks_equals_one_reduction(monkeypatch):
+    """The chunked pair summary (bounded memory at K = 1000) gives the numbers of reducing every
+    (step, pair) distance at once, with required distances per pair, and NaN states propagate."""
+    from torch_gpmpc.sim import metrics
+
+    rng = np.random.default_rng(3)
+    states = rng.uniform(-2, 2, size=(7, 9, 2))  # S+1 = 7 steps, K = 9 agents, P = 36 pairs
+    required = rng.uniform(0.3, 0.9, size=36)
+    d = pair_distances(states)
+    whole = metrics.pair_summary(states, required)
+    monkeypatch.setattr(metrics, "PAIR_CHUNK", 50)  # 1 step of 36 pairs per block
+    chunked = metrics.pair_summary(states, required)
+    for got in (whole, chunked):
+        np.testing.assert_array_equal(got["closest"], d.min(axis=1))
+        assert got["violations"] == int(np.count_nonzero(d < required)) > 0
+        assert got["min_clearance"] == float((d - required).min())
+    states[4, 2] = np.nan
+    assert metrics.pair_summary(states, required)["min_clearance"] is None
+    single = metrics.pair_summary(states[:, :1], 0.5)
+    assert single["violations"] == 0 and single["min_clearance"] is None and np.isinf(single["closest"]).all()

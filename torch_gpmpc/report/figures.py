@@ -16,19 +16,25 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.collections import LineCollection
+from matplotlib.collections import EllipseCollection, LineCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Rectangle
 
 from torch_gpmpc.config.obstacles import ObstacleField
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.fileio import atomic_path
-from torch_gpmpc.sim.metrics import body_radii_of, compute_metrics, pair_distances, pair_index, path_lengths
+from torch_gpmpc.sim.metrics import (body_radii_of, compute_metrics, pair_distances, pair_index, path_lengths,
+                                     r_safe_of)
 from torch_gpmpc.sim.rollout import Rollout
 
 logger = logging.getLogger(__name__)
 
 _DPI = 110
+
+#: Teams larger than this get no per-agent legend, and their distance figure the closest pair and
+#: the median nearest neighbour per step instead of a line per pair (499 500 lines at K = 1000;
+#: the tab10 colours repeat after 10 agents anyway).
+MAX_LABELLED_AGENTS = 10
 
 
 def _color(k: int) -> str:
@@ -101,7 +107,8 @@ def plot_trajectories(
             ttt = metrics["time_to_target"]
             title += f"\ntargets reached at t = {ttt}" if ttt is not None else "\ntargets not reached"
         ax.set_title(title, fontsize=10)
-    axes[0][0].legend(loc="best", fontsize=7)
+    if states.shape[1] <= MAX_LABELLED_AGENTS:
+        axes[0][0].legend(loc="best", fontsize=7)
     _share_limits(axes[0], states, rollout.targets)
     return _save(fig, path)
 
@@ -112,6 +119,9 @@ def _draw_snapshot(ax: Any, rollout: Rollout, states: np.ndarray, t: int, radii:
     targets = np.asarray(rollout.targets, dtype=np.float64)
     plans = np.asarray(rollout.plan_positions, dtype=np.float64)
     _draw_obstacles(ax, (rollout.config or {}).get("obstacles"))
+    if states.shape[1] > MAX_LABELLED_AGENTS:
+        _draw_team(ax, states, targets, plans[t] if t < plans.shape[0] else None, t, radii, ref)
+        return
     for k in range(states.shape[1]):
         c = _color(k)
         start, goal = states[0, k], targets[k]
@@ -128,6 +138,35 @@ def _draw_snapshot(ax: Any, rollout: Rollout, states: np.ndarray, t: int, radii:
         ax.plot(pos[0], pos[1], "o", color=c, ms=8)
         if radii[k] > 0:
             ax.add_patch(Circle((pos[0], pos[1]), radii[k], fill=False, color=c, lw=0.8))
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel("x1")
+    ax.set_ylabel("x2")
+    ax.grid(True, lw=0.3)
+
+
+def _draw_team(ax: Any, states: np.ndarray, targets: np.ndarray, plans: np.ndarray | None, t: int,
+               radii: np.ndarray, ref: np.ndarray | None) -> None:
+    """A large team's panel of :func:`plot_trajectories` at step t, the same marks as the per-agent
+    loop of :func:`_draw_snapshot` drawn as one collection each (a line artist per agent and mark
+    took about 40 s at K = 1000). Shapes: states (S+1, K, D), targets (K, D), plans (K, T+1, D),
+    radii (K,), ref (K, R, D)."""
+    colors = [_color(k) for k in range(states.shape[1])]
+    pos = states[t, :, :2]
+
+    def lines(segments: Any, **style: Any) -> None:
+        ax.add_collection(LineCollection(list(segments), colors=colors, **style))
+
+    lines(np.stack([states[0, :, :2], targets[:, :2]], axis=1), linestyles="--", linewidths=0.8, alpha=0.5)
+    ax.scatter(targets[:, 0], targets[:, 1], marker="x", c=colors, s=20, linewidths=0.8)
+    if ref is not None:
+        lines(ref[:, :, :2], linestyles=":", linewidths=0.8, alpha=0.6)
+    lines(states[: t + 1, :, :2].transpose(1, 0, 2), linewidths=1.0)
+    if plans is not None:
+        lines(plans[:, :, :2], linestyles="--", linewidths=0.8)
+    ax.scatter(pos[:, 0], pos[:, 1], c=colors, s=9)
+    ax.add_collection(EllipseCollection(2 * radii, 2 * radii, 0.0, units="xy", offsets=pos,
+                                        offset_transform=ax.transData, facecolors="none", edgecolors=colors,
+                                        linewidths=0.5))
     ax.set_aspect("equal", adjustable="box")
     ax.set_xlabel("x1")
     ax.set_ylabel("x2")
@@ -160,7 +199,9 @@ def _share_limits(axes: Sequence[Any], states: np.ndarray, targets: Any) -> None
 
 
 def plot_distances(rollout: Rollout, path: str | Path) -> Path:
-    """Inter-agent distance over time, one line per pair, with r_safe dashed.
+    """Inter-agent distance over time, with r_safe dashed: one line per pair, or for a team of
+    more than :data:`MAX_LABELLED_AGENTS` the closest pair and the agents' median distance to
+    their nearest neighbour per step.
 
     Args:
         rollout: the run; uses ``states`` (S+1, K, D) and ``config['r_safe']``.
@@ -170,21 +211,38 @@ def plot_distances(rollout: Rollout, path: str | Path) -> Path:
         ``path``.
     """
     states = np.asarray(rollout.positions, dtype=np.float64)
-    r_safe = compute_metrics(rollout)["r_safe"]
-    dists = pair_distances(states)  # (S+1, P)
+    r_safe = r_safe_of(rollout.config or {})
     fig, axes = _new_figure(1, panel=(6.0, 3.6))
     ax = axes[0, 0]
-    for p, (i, j) in enumerate(pair_index(states.shape[1])):
-        ax.plot(np.arange(dists.shape[0]), dists[:, p], color=_color(p), label=f"agents {i}-{j}")
-    if dists.shape[1] == 0:
-        ax.text(0.5, 0.5, "single agent: no pairs", ha="center", transform=ax.transAxes)
+    steps = np.arange(states.shape[0])
+    if states.shape[1] > MAX_LABELLED_AGENTS:
+        nearest = _nearest_neighbour_distances(states)  # (S+1, K)
+        ax.plot(steps, nearest.min(axis=1), color="C3", lw=1.5, label="closest pair")
+        ax.plot(steps, np.median(nearest, axis=1), color="C0", lw=1.2, label="median nearest neighbour")
+    else:
+        dists = pair_distances(states)  # (S+1, P)
+        for p, (i, j) in enumerate(pair_index(states.shape[1])):
+            ax.plot(steps, dists[:, p], color=_color(p), label=f"agents {i}-{j}")
+        if dists.shape[1] == 0:
+            ax.text(0.5, 0.5, "single agent: no pairs", ha="center", transform=ax.transAxes)
     ax.axhline(r_safe, color="k", ls="--", lw=1.0, label=f"r_safe = {r_safe:g}")
     ax.set_xlabel("step t")
     ax.set_ylabel("distance")
-    ax.set_title(f"inter-agent distances ({rollout.method})", fontsize=10)
+    ax.set_title(f"inter-agent distances ({rollout.method}, {states.shape[1]} agents)", fontsize=10)
     ax.grid(True, lw=0.3)
     ax.legend(fontsize=7)
     return _save(fig, path)
+
+
+def _nearest_neighbour_distances(states: np.ndarray) -> np.ndarray:
+    """Each agent's distance to its nearest other agent per step: (S+1, K, D) -> (S+1, K).
+    One step's (K, K) distances at a time (16 MB at K = 1000)."""
+    out = np.empty(states.shape[:2])
+    for s, x in enumerate(states):
+        d = np.linalg.norm(x[:, None, :] - x[None, :, :], axis=-1)
+        np.fill_diagonal(d, np.inf)
+        out[s] = d.min(axis=1)
+    return out
 
 
 def plot_admm_residuals(rollout: Rollout, path: str | Path) -> Path:
@@ -252,16 +310,31 @@ def plot_trajectories_3d(rollout: Rollout, path: str | Path) -> Path:
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(projection="3d")
     targets = np.asarray(rollout.targets, dtype=np.float64)
-    for k in range(pos.shape[1]):
-        c = _color(k)
-        ax.plot(pos[:, k, 0], pos[:, k, 1], pos[:, k, 2], "-", color=c, lw=1.5, label=f"agent {k}")
-        ax.scatter(*pos[0, k], color=c, marker="o")
-        ax.scatter(*targets[k], color=c, marker="x")
+    if pos.shape[1] > MAX_LABELLED_AGENTS:
+        _draw_team_3d(ax, pos, targets)
+    else:
+        for k in range(pos.shape[1]):
+            c = _color(k)
+            ax.plot(pos[:, k, 0], pos[:, k, 1], pos[:, k, 2], "-", color=c, lw=1.5, label=f"agent {k}")
+            ax.scatter(*pos[0, k], color=c, marker="o")
+            ax.scatter(*targets[k], color=c, marker="x")
+        ax.legend(loc="upper left", fontsize=7)
     ax.set_xlabel("x")
     ax.set_ylabel("y")
     ax.set_zlabel("z")
-    ax.legend(loc="upper left", fontsize=7)
     return _save(fig, path)
+
+
+def _draw_team_3d(ax: Any, pos: np.ndarray, targets: np.ndarray) -> None:
+    """A large team's 3D paths (pos (S+1, K, 3), targets (K, 3)), one collection per mark as in
+    :func:`_draw_team`."""
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+    colors = [_color(k) for k in range(pos.shape[1])]
+    ax.add_collection3d(Line3DCollection(list(pos.transpose(1, 0, 2)), colors=colors, linewidths=1.0))
+    ax.scatter(*pos[0].T, c=colors, marker="o", s=9)
+    ax.scatter(*targets.T, c=colors, marker="x", s=20)
+    ax.auto_scale_xyz(*[np.concatenate([pos[..., d].ravel(), targets[:, d]]) for d in range(3)])
 
 
 def save_run_figures(rollout: Rollout, outdir: str | Path, reference_paths: Any = None) -> list[Path]:

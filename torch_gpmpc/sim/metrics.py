@@ -33,6 +33,10 @@ DEADLOCK_WINDOW = 10
 #: An agent counts as hitting an obstacle when closer than ``r_safe / 2`` by more than this.
 OBSTACLE_TOL = 1e-6
 
+#: (step, pair) distances held at once by :func:`pair_summary`: all (S+1, P) of them at K = 1000
+#: (P = 499 500) with their (S+1, P, D) differences took gigabytes per call.
+PAIR_CHUNK = 1 << 21
+
 
 def pair_index(num_agents: int) -> list[tuple[int, int]]:
     """All unordered agent pairs (i, j) with i < j, in row-major order.
@@ -64,6 +68,39 @@ def pair_distances(states: Any) -> np.ndarray:
         return np.zeros((x.shape[0], 0))
     i, j = np.array(pairs).T
     return np.linalg.norm(x[:, i, :] - x[:, j, :], axis=-1)
+
+
+def pair_summary(states: Any, required: Any) -> dict[str, Any]:
+    """The safety figures of every agent pair, computed a block of steps at a time.
+
+    The same numbers as reducing ``d = pair_distances(states)`` at once (elementwise the same
+    arithmetic), in memory of :data:`PAIR_CHUNK` (step, pair) entries instead of (S+1) P.
+
+    Args:
+        states: positions, shape (S+1, K, D).
+        required: each pair's required distance, shape (P,) (pairs as :func:`pair_index`) or scalar.
+
+    Returns:
+        ``closest`` (S+1,): the smallest pair distance per step (``inf`` for a single agent);
+        ``violations``: (step, pair) entries with ``d < required``; ``min_clearance``: the
+        smallest ``d - required`` (``None`` for a single agent).
+    """
+    x = np.asarray(states, dtype=np.float64)
+    if x.ndim != 3:
+        raise ValueError(f"pair_summary: states must have shape (S+1, K, D), got {x.shape}")
+    i, j = np.triu_indices(x.shape[1], k=1)
+    closest = np.full(x.shape[0], np.inf)
+    if not i.size:
+        return {"closest": closest, "violations": 0, "min_clearance": None}
+    required = np.broadcast_to(np.asarray(required, dtype=np.float64), i.shape)
+    rows = max(1, PAIR_CHUNK // i.size)
+    violations, clearance = 0, np.inf
+    for s0 in range(0, x.shape[0], rows):
+        d = np.linalg.norm(x[s0:s0 + rows, i, :] - x[s0:s0 + rows, j, :], axis=-1)  # (rows, P)
+        closest[s0:s0 + rows] = d.min(axis=1)
+        violations += int(np.count_nonzero(d < required))
+        clearance = np.minimum(clearance, (d - required).min())  # NaN propagates, as in one reduction
+    return {"closest": closest, "violations": violations, "min_clearance": _scalar(clearance)}
 
 
 def target_distances(states: Any, targets: Any) -> np.ndarray:
@@ -162,14 +199,13 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
     states, targets = _checked_states(rollout)
     defaults = Config()
     cfg = rollout.config or {}
-    r_safe = float(cfg.get("r_safe", defaults.r_safe))
+    r_safe = r_safe_of(cfg)
     goal_tol = float(cfg.get("goal_tol", defaults.goal_tol))
     noise_std = float(cfg.get("noise_std", defaults.noise_std))
 
-    dists = pair_distances(states)  # (S+1, P)
     radii = body_radii_of(cfg, states.shape[1], r_safe)  # (K,)
     i, j = np.triu_indices(states.shape[1], k=1)
-    required = radii[i] + radii[j]  # (P,): r_safe without radii
+    pairs = pair_summary(states, radii[i] + radii[j])  # required (P,): r_safe without radii
     ttt = time_to_target(states, targets, goal_tol)
     arrivals = arrival_steps(states, targets, goal_tol)
     final = np.linalg.norm(states[-1] - targets, axis=-1)  # (K,)
@@ -181,9 +217,9 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
         "steps": int(states.shape[0] - 1),
         "reached": ttt is not None,
         "time_to_target": ttt,
-        "min_pair_distance": _scalar(dists.min()) if dists.size else None,
-        "violations": int(np.count_nonzero(dists < required)),
-        "min_pair_clearance": _scalar((dists - required).min()) if dists.size else None,
+        "min_pair_distance": _scalar(pairs["closest"].min()) if i.size else None,
+        "violations": pairs["violations"],
+        "min_pair_clearance": pairs["min_clearance"],
         "path_length": [float(v) for v in path_lengths(states)],
         "straight_line_length": [float(v) for v in np.linalg.norm(targets - states[0], axis=-1)],
         "admm_iterations_mean": _mean(iters),
@@ -212,6 +248,11 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
         "plan_tracking_rmse": plan_tracking_rmse(rollout),
         **prediction_metrics(rollout, cfg.get("wind_change_step")),
     }
+
+
+def r_safe_of(cfg: dict) -> float:
+    """A run's ``r_safe`` from its flat config dict (the :class:`Config` default when absent)."""
+    return float(cfg.get("r_safe", Config().r_safe))
 
 
 def body_radii_of(cfg: dict, num_agents: int, r_safe: float) -> np.ndarray:

@@ -19,7 +19,6 @@ on its left and right (boxes and the workspace's faces) leave less than ``2 r_sa
 from __future__ import annotations
 
 import numpy as np
-from scipy.sparse.csgraph import dijkstra
 
 from torch_gpmpc.config.obstacles import ObstacleField
 from torch_gpmpc.config.workspace import Workspace
@@ -103,6 +102,8 @@ def route(start: np.ndarray, target: np.ndarray, lower: np.ndarray, upper: np.nd
     length = np.linalg.norm(nodes[i] - nodes[j], axis=-1)
     graph = np.zeros((nodes.shape[0], nodes.shape[0]))
     graph[i[~blocked], j[~blocked]] = np.maximum(length[~blocked], 1e-12)
+    from scipy.sparse.csgraph import dijkstra  # here: importing scipy.sparse costs every run 0.1 s
+
     dist, pred = dijkstra(graph, directed=False, indices=0, return_predecessors=True)
     if not np.isfinite(dist[1]):
         return np.stack([start, target])
