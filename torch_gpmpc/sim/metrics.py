@@ -63,18 +63,15 @@ def pair_distances(states: Any) -> np.ndarray:
     x = np.asarray(states, dtype=np.float64)
     if x.ndim != 3:
         raise ValueError(f"pair_distances: states must have shape (S+1, K, D), got {x.shape}")
-    pairs = pair_index(x.shape[1])
-    if not pairs:
-        return np.zeros((x.shape[0], 0))
-    i, j = np.array(pairs).T
+    i, j = np.triu_indices(x.shape[1], k=1)  # the order of pair_index
     return np.linalg.norm(x[:, i, :] - x[:, j, :], axis=-1)
 
 
 def pair_summary(states: Any, required: Any) -> dict[str, Any]:
     """The safety figures of every agent pair, computed a block of steps at a time.
 
-    The same numbers as reducing ``d = pair_distances(states)`` at once (elementwise the same
-    arithmetic), in memory of :data:`PAIR_CHUNK` (step, pair) entries instead of (S+1) P.
+    The same numbers as reducing ``d = pair_distances(states)`` at once: :func:`pair_distances`
+    of blocks of steps, :data:`PAIR_CHUNK` (step, pair) entries at a time instead of (S+1) P.
 
     Args:
         states: positions, shape (S+1, K, D).
@@ -88,15 +85,15 @@ def pair_summary(states: Any, required: Any) -> dict[str, Any]:
     x = np.asarray(states, dtype=np.float64)
     if x.ndim != 3:
         raise ValueError(f"pair_summary: states must have shape (S+1, K, D), got {x.shape}")
-    i, j = np.triu_indices(x.shape[1], k=1)
+    num_pairs = x.shape[1] * (x.shape[1] - 1) // 2
     closest = np.full(x.shape[0], np.inf)
-    if not i.size:
+    if not num_pairs:
         return {"closest": closest, "violations": 0, "min_clearance": None}
-    required = np.broadcast_to(np.asarray(required, dtype=np.float64), i.shape)
-    rows = max(1, PAIR_CHUNK // i.size)
+    required = np.broadcast_to(np.asarray(required, dtype=np.float64), (num_pairs,))
+    rows = max(1, PAIR_CHUNK // num_pairs)
     violations, clearance = 0, np.inf
     for s0 in range(0, x.shape[0], rows):
-        d = np.linalg.norm(x[s0:s0 + rows, i, :] - x[s0:s0 + rows, j, :], axis=-1)  # (rows, P)
+        d = pair_distances(x[s0:s0 + rows])  # (rows, P)
         closest[s0:s0 + rows] = d.min(axis=1)
         violations += int(np.count_nonzero(d < required))
         clearance = np.minimum(clearance, (d - required).min())  # NaN propagates, as in one reduction
