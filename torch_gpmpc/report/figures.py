@@ -23,8 +23,8 @@ from matplotlib.patches import Circle, Rectangle
 from torch_gpmpc.config.obstacles import ObstacleField
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.fileio import atomic_path
-from torch_gpmpc.sim.metrics import (body_radii_of, compute_metrics, pair_distances, pair_index, path_lengths,
-                                     r_safe_of)
+from torch_gpmpc.sim.metrics import (body_radii_of, pair_distances, pair_index, path_lengths, run_setting,
+                                     time_to_target)
 from torch_gpmpc.sim.rollout import Rollout
 
 logger = logging.getLogger(__name__)
@@ -97,14 +97,15 @@ def plot_trajectories(
     bad = [s for s in steps if not 0 <= s <= num_steps]
     if bad or not steps:
         raise GpmpcError(f"plot_trajectories: steps must be in 0..{num_steps}, got {list(steps)}")
-    metrics = compute_metrics(rollout)
+    cfg = rollout.config or {}
+    radii = body_radii_of(cfg, states.shape[1], run_setting(cfg, "r_safe"))
     ref = None if reference_paths is None else np.asarray(reference_paths, dtype=np.float64)
     fig, axes = _new_figure(len(steps))
     for n, (ax, t) in enumerate(zip(axes[0], steps)):
-        _draw_snapshot(ax, rollout, states, t, body_radii_of(rollout.config or {}, states.shape[1], metrics["r_safe"]), ref)
+        _draw_snapshot(ax, rollout, states, t, radii, ref)
         title = f"t = {t}"
         if n == len(steps) - 1:
-            ttt = metrics["time_to_target"]
+            ttt = time_to_target(states, rollout.targets, run_setting(cfg, "goal_tol"))
             title += f"\ntargets reached at t = {ttt}" if ttt is not None else "\ntargets not reached"
         ax.set_title(title, fontsize=10)
     if states.shape[1] <= MAX_LABELLED_AGENTS:
@@ -211,7 +212,7 @@ def plot_distances(rollout: Rollout, path: str | Path) -> Path:
         ``path``.
     """
     states = np.asarray(rollout.positions, dtype=np.float64)
-    r_safe = r_safe_of(rollout.config or {})
+    r_safe = run_setting(rollout.config or {}, "r_safe")
     fig, axes = _new_figure(1, panel=(6.0, 3.6))
     ax = axes[0, 0]
     steps = np.arange(states.shape[0])

@@ -194,11 +194,8 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
         GpmpcError: inconsistent array shapes in the rollout.
     """
     states, targets = _checked_states(rollout)
-    defaults = Config()
     cfg = rollout.config or {}
-    r_safe = r_safe_of(cfg)
-    goal_tol = float(cfg.get("goal_tol", defaults.goal_tol))
-    noise_std = float(cfg.get("noise_std", defaults.noise_std))
+    r_safe, goal_tol, noise_std = (run_setting(cfg, key) for key in ("r_safe", "goal_tol", "noise_std"))
 
     radii = body_radii_of(cfg, states.shape[1], r_safe)  # (K,)
     i, j = np.triu_indices(states.shape[1], k=1)
@@ -247,9 +244,10 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
     }
 
 
-def r_safe_of(cfg: dict) -> float:
-    """A run's ``r_safe`` from its flat config dict (the :class:`Config` default when absent)."""
-    return float(cfg.get("r_safe", Config().r_safe))
+def run_setting(cfg: dict, key: str) -> float:
+    """A run's numeric setting ``key`` (``r_safe``, ``goal_tol``, ...) from its flat config dict (the
+    :class:`Config` default when absent)."""
+    return float(cfg.get(key, getattr(Config(), key)))
 
 
 def body_radii_of(cfg: dict, num_agents: int, r_safe: float) -> np.ndarray:
