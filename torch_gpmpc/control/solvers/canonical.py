@@ -102,7 +102,9 @@ class CondensedCache:
     """The last :func:`condense_dynamics` result, reused while its inputs are the same tensor
     objects, unmodified, under the same autograd mode: within one control step ADMM solves the
     same dynamics at every iteration (only the consensus terms change), and condensing them was
-    a quarter of a 3D double-integrator iteration."""
+    a quarter of a 3D double-integrator iteration. Inference tensors (made under
+    ``torch.inference_mode``, as the closed loop plans) keep no version counter: for them only the
+    identity is compared (the planner never writes into its linearization in place)."""
 
     def __init__(self) -> None:
         self._key: tuple | None = None
@@ -111,7 +113,7 @@ class CondensedCache:
     def __call__(self, x0: Tensor, dyn_A: Tensor, dyn_c: Tensor, dyn_B: Tensor) -> tuple[Tensor, Tensor]:
         """``condense_dynamics(x0, dyn_A, dyn_c, dyn_B)``, from the cache when it is the same input."""
         inputs = (x0, dyn_A, dyn_c, dyn_B)
-        key = (torch.is_grad_enabled(), tuple(t._version for t in inputs))
+        key = (torch.is_grad_enabled(), tuple(None if t.is_inference() else t._version for t in inputs))
         if self._key is not None and self._key[0] == key and all(a is b for a, b in zip(self._key[1], inputs)):
             return self._value
         self._value = condense_dynamics(*inputs)
