@@ -238,6 +238,25 @@ def test_forest_lanes_cross_a_seeded_field_of_trees_with_passable_gaps():
     assert {o.kind for o in in_3d.obstacles.obstacles} == {"cylinder"} and in_3d.starts.shape == (10, 3)
 
 
+
+def test_forest_gap_widens_every_gap_and_lengthens_the_band():
+    from torch_gpmpc.config.obstacles import FOREST_FILL, FOREST_TREE_RADIUS
+
+    base = Config(scenario="forest", num_agents=10, num_obstacles=30, seed=3)
+    wide = base.replace(forest_gap=1.0)
+    sc = make_scenario(wide)
+    centres = torch.tensor([o.center for o in sc.obstacles.obstacles], dtype=torch.float64)
+    assert len(sc.obstacles) == 30
+    assert float((torch.pdist(centres) - 2 * FOREST_TREE_RADIUS).min()) >= wide.r_safe + 1.0 - 1e-12
+    # the same fill of a longer band: spacing 2 x 0.25 + 0.5 + 1.0 = 2.0, H = 5.5
+    R = 30 * math.pi * (2.0 / 2) ** 2 / FOREST_FILL / (4 * 5.5) + 1.0
+    assert wide.scenario_extent == pytest.approx(R) and R > base.scenario_extent
+    assert bool((sc.starts[:, 0] == -R).all()) and float(centres[:, 0].abs().max()) <= R - 1.0
+    assert make_scenario(base.replace(forest_gap=0.5)).obstacles == make_scenario(base).obstacles  # the default
+    with pytest.raises(GpmpcError, match="forest_gap"):
+        Config(forest_gap=-0.1)
+
+
 def test_file_obstacles_reach_the_run_config(tmp_path):
     from torch_gpmpc.sim.scenarios import with_scenario_world
 

@@ -134,27 +134,35 @@ class ObstacleField:
                                  f"{position_dim}; {fix}")
 
 
-#: ``forest`` trees: their radius, the free gap kept between two trees beyond ``r_safe`` (room for
-#: an agent's chance margins on both sides), and the fraction of the band their spacing discs fill.
+#: ``forest`` trees: their radius, the default free gap kept between two trees beyond ``r_safe`` (room
+#: for an agent's chance margins on both sides; config key ``forest_gap``), and the fraction of the
+#: band their spacing discs fill.
 FOREST_TREE_RADIUS = 0.25
 FOREST_GAP_EXTRA = 0.5
 FOREST_FILL = 0.45
 
 
 def forest_extent(num_agents: int, num_obstacles: int, circle_radius: float, min_separation: float,
-                  r_safe: float) -> tuple[float, float]:
+                  r_safe: float, gap: float = FOREST_GAP_EXTRA) -> tuple[float, float]:
     """Half-length R (starts at x1 = -R, targets at +R) and half-height H of the ``forest`` band.
 
     The lanes are ``max(min_separation, r_safe)`` apart; the band ``|x1| <= R - 1``,
-    ``|x2| <= H`` is long enough that the trees' spacing discs (diameter ``2 FOREST_TREE_RADIUS +
-    r_safe + FOREST_GAP_EXTRA``) fill at most :data:`FOREST_FILL` of it, and never shorter than
-    ``circle_radius``.
+    ``|x2| <= H`` is long enough that the trees' spacing discs (diameter :func:`forest_spacing`)
+    fill at most :data:`FOREST_FILL` of it, and never shorter than ``circle_radius``; ``gap`` is
+    the free gap between two trees beyond ``r_safe`` (config ``forest_gap``).
     """
     lane_span = (num_agents - 1) * max(min_separation, r_safe)
     half_height = max(lane_span / 2 + 1.0, circle_radius)
-    spacing = 2 * FOREST_TREE_RADIUS + r_safe + FOREST_GAP_EXTRA
+    spacing = forest_spacing(r_safe, gap)
     area = num_obstacles * math.pi * (spacing / 2) ** 2 / FOREST_FILL
     return max(circle_radius, area / (4 * half_height) + 1.0), half_height
+
+
+
+def forest_spacing(r_safe: float, gap: float = FOREST_GAP_EXTRA) -> float:
+    """The least distance between two ``forest`` tree centres: two trunks and a free gap of
+    ``r_safe + gap`` between them."""
+    return 2 * FOREST_TREE_RADIUS + r_safe + gap
 
 
 #: ``doorway``: the wall's thickness and its gap, in units of ``r_safe`` (the gap is narrower than

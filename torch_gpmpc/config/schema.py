@@ -16,7 +16,7 @@ from typing import Any, Mapping
 
 from torch_gpmpc.config.fields import Rules, build, coerce_lists, validate
 from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, parse_model, resolve_model
-from torch_gpmpc.config.obstacles import ObstacleField, doorway_extent, forest_extent
+from torch_gpmpc.config.obstacles import FOREST_GAP_EXTRA, ObstacleField, doorway_extent, forest_extent
 from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.config.plant import PLANTS, VEHICLES, WINDS
 from torch_gpmpc.config.team import TeamSpec, team_spec
@@ -146,6 +146,9 @@ class Config:
             agents with momentum against their neighbours' plans as fixed obstacles) or
             ``obstacles`` (every agent of a pair unsafe at tau = 1 against its neighbours' plans).
         num_obstacles: the cylinders (discs in 2D) of ``scenario = forest``.
+        forest_gap: the free gap ``scenario = forest`` keeps between two trees beyond ``r_safe``
+            (room for an agent's chance margins on both sides; a wider gap also lengthens the band,
+            whose trees keep the same share of it).
         deadlock_detour: an agent stuck behind a neighbour (no progress for 10 steps) detours
             round it on a fixed side (:class:`~torch_gpmpc.sim.detours.DeadlockBreaker`).
         plant: what the closed loop steps: ``model`` (the model's true system, the paper's world)
@@ -229,6 +232,7 @@ class Config:
     pair_buffer: float = 0.0
     safety_fallback: str = "cells"
     num_obstacles: int = 20
+    forest_gap: float = FOREST_GAP_EXTRA
     deadlock_detour: bool = True
     plant: str = "model"
     plant_vehicle: str = "crazyflie"
@@ -306,7 +310,7 @@ class Config:
         if self.scenario != "forest":
             return self.circle_radius
         return forest_extent(self.num_agents, self.num_obstacles, self.circle_radius, self.min_separation,
-                             self.r_safe)[0]
+                             self.r_safe, self.forest_gap)[0]
 
     @property
     def uncertainty_mode(self) -> str:
@@ -396,6 +400,7 @@ _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "max_steps": (lambda v: 1 <= v <= 1_000_000, "an integer in [1, 1000000]"),
     "num_agents": (lambda v: 1 <= v <= 1000, "an integer in [1, 1000]"),
     "num_obstacles": (lambda v: 0 <= v <= 10_000, "an integer in [0, 10000]"),
+    "forest_gap": (lambda v: 0 <= v <= 100, "a number in [0, 100] (metres)"),
     "seed": (lambda v: v >= 0, "an integer >= 0"),
     "dim": (lambda v: v in (2, 3), "2 or 3"),
     "ref_points": (lambda v: v >= 2, "an integer >= 2"),

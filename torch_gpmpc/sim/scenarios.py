@@ -16,8 +16,8 @@ Generated scenarios (``Config.scenario``):
   apart along x2 (centred), and cross to x1 = +R at the same x2, through ``num_obstacles``
   discs of radius ``FOREST_TREE_RADIUS`` (vertical cylinders in 3D) placed uniformly, seeded
   with ``Config.seed``, in the band ``|x1| <= R - 1``; trees keep a free gap of at least
-  ``r_safe + FOREST_GAP_EXTRA`` between each other, so an agent with its chance margins fits
-  through every gap. R and the band's height grow with the trees and lanes
+  ``r_safe + forest_gap`` (default 0.5) between each other, so an agent whose chance margins are
+  at most ``forest_gap / 2`` fits through every gap. R and the band's height grow with the trees and lanes
   (:func:`~torch_gpmpc.config.obstacles.forest_extent`; at least ``circle_radius``).
 * ``doorway``: two rooms ``|x1| <= X`` (X = ``circle_radius``) split by a wall at x1 = 0 of
   thickness ``DOORWAY_WALL r_safe`` with one gap of width ``DOORWAY_GAP r_safe`` at x2 = 0,
@@ -55,7 +55,7 @@ from torch import Tensor
 
 from torch_gpmpc.config.fields import nearest_key
 from torch_gpmpc.config.obstacles import (
-    DOORWAY_GAP, DOORWAY_WALL, FOREST_GAP_EXTRA, FOREST_TREE_RADIUS, ObstacleField, doorway_extent, forest_extent,
+    DOORWAY_GAP, DOORWAY_WALL, FOREST_TREE_RADIUS, ObstacleField, doorway_extent, forest_extent, forest_spacing,
 )
 from torch_gpmpc.config.reader import read_table
 from torch_gpmpc.config.schema import REFERENCES, Config
@@ -244,7 +244,8 @@ def forest_scenario(cfg: Config) -> Scenario:
         GpmpcError: the trees cannot be placed with their gaps in the band.
     """
     P, K = cfg.position_dim, cfg.num_agents
-    R, half_height = forest_extent(K, cfg.num_obstacles, cfg.circle_radius, cfg.min_separation, cfg.r_safe)
+    R, half_height = forest_extent(K, cfg.num_obstacles, cfg.circle_radius, cfg.min_separation, cfg.r_safe,
+                                   cfg.forest_gap)
     lanes = (torch.arange(K, dtype=torch.float64) - (K - 1) / 2) * max(cfg.min_separation, cfg.r_safe)
     starts = torch.zeros(K, P, dtype=torch.float64)
     starts[:, 0], starts[:, 1] = -R, lanes
@@ -282,9 +283,9 @@ def doorway_scenario(cfg: Config) -> Scenario:
 
 def _place_trees(cfg: Config, half_width: float, half_height: float) -> Tensor:
     """``num_obstacles`` seeded tree centres (x1, x2) in the band, pairwise at least
-    ``2 FOREST_TREE_RADIUS + r_safe + FOREST_GAP_EXTRA`` apart -> (O, 2)."""
+    ``forest_spacing(r_safe, forest_gap)`` apart -> (O, 2)."""
     gen = torch.Generator().manual_seed(cfg.seed)
-    spacing = 2 * FOREST_TREE_RADIUS + cfg.r_safe + FOREST_GAP_EXTRA
+    spacing = forest_spacing(cfg.r_safe, cfg.forest_gap)
     scale = torch.tensor([half_width, half_height], dtype=torch.float64)
     trees = _separated_points(
         cfg.num_obstacles, 2, spacing, lambda: (torch.rand(_RANDOM_BATCH, 2, generator=gen, dtype=torch.float64) * 2 - 1) * scale)
