@@ -238,7 +238,6 @@ def test_forest_lanes_cross_a_seeded_field_of_trees_with_passable_gaps():
     assert {o.kind for o in in_3d.obstacles.obstacles} == {"cylinder"} and in_3d.starts.shape == (10, 3)
 
 
-
 def test_forest_gap_widens_every_gap_and_lengthens_the_band():
     from torch_gpmpc.config.obstacles import FOREST_FILL, FOREST_TREE_RADIUS
 

@@ -158,7 +158,6 @@ def forest_extent(num_agents: int, num_obstacles: int, circle_radius: float, min
     return max(circle_radius, area / (4 * half_height) + 1.0), half_height
 
 
-
 def forest_spacing(r_safe: float, gap: float = FOREST_GAP_EXTRA) -> float:
     """The least distance between two ``forest`` tree centres: two trunks and a free gap of
     ``r_safe + gap`` between them."""

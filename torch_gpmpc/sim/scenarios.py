@@ -17,8 +17,9 @@ Generated scenarios (``Config.scenario``):
   discs of radius ``FOREST_TREE_RADIUS`` (vertical cylinders in 3D) placed uniformly, seeded
   with ``Config.seed``, in the band ``|x1| <= R - 1``; trees keep a free gap of at least
   ``r_safe + forest_gap`` (default 0.5) between each other, so an agent whose chance margins are
-  at most ``forest_gap / 2`` fits through every gap. R and the band's height grow with the trees and lanes
-  (:func:`~torch_gpmpc.config.obstacles.forest_extent`; at least ``circle_radius``).
+  at most ``forest_gap / 2`` fits through every gap. R and the band's height grow with the trees,
+  the gap and the lanes (:func:`~torch_gpmpc.config.obstacles.forest_extent`; at least
+  ``circle_radius``).
 * ``doorway``: two rooms ``|x1| <= X`` (X = ``circle_radius``) split by a wall at x1 = 0 of
   thickness ``DOORWAY_WALL r_safe`` with one gap of width ``DOORWAY_GAP r_safe`` at x2 = 0,
   narrower than two agents side by side; the workspace is the two rooms. ``ceil(K/2)`` agents
