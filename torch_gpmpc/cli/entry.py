@@ -10,6 +10,7 @@ import importlib
 import logging
 import sys
 
+from torch_gpmpc.cli import collector
 from torch_gpmpc.cli.parser import build_parser
 from torch_gpmpc.errors import GpmpcError
 
@@ -67,5 +68,14 @@ def main(argv: list[str] | None = None) -> int:
     return int(code or 0)
 
 
+def console_main() -> None:
+    """The console script ``gpmpc``: :func:`main` in a process it owns, so the command may tune the
+    process's garbage collector (:mod:`~torch_gpmpc.cli.collector`); exits with its code."""
+    collector.own_process()
+    code = main()
+    collector.skip_final_collection()
+    sys.exit(code)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    console_main()

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from torch_gpmpc.cli import collector
 from torch_gpmpc.config import load_config, parse_overrides
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.fileio import write_json
@@ -41,34 +42,36 @@ def output_dir(text: str) -> Path:
 
 def main(args) -> int:
     from torch_gpmpc.coordination.distributed.transport import is_agent_rank
-    from torch_gpmpc.gp import check_gp_inputs, load_model_gp
-    from torch_gpmpc.report.tensorboard import TBLogger
-    from torch_gpmpc.sim.closed_loop import needs_gp, simulate
-    from torch_gpmpc.sim.metrics import compute_metrics
-    from torch_gpmpc.sim.scenarios import make_scenario, with_scenario_world
 
     distributed = args.backend == "distributed"
     if distributed and is_agent_rank():  # torchrun / env launch: ranks > 0 serve agents, rank 0 writes
         from torch_gpmpc.coordination.distributed.agent_process import agent_main
 
         return agent_main(threads=getattr(args, "threads", 1))
-    # validate everything (config, scenario, model, output path) before any work or output
-    cfg = config_from_args(args)
-    scenario = make_scenario(cfg, args.scenario)
-    cfg = with_scenario_world(cfg, scenario)  # its workspace, obstacles, radii and models
-    gps = [load_model_gp(args.gp_model, cfg.model_spec())] if args.gp_model else None
-    if gps is None and needs_gp(cfg.method):
-        check_gp_inputs(cfg)
-    out = output_dir(args.out)
-    if not distributed:  # agent processes compile and fit their own
-        if cfg.solver == "fast":
-            prepare_solver_kernel()
-        if gps is None and needs_gp(cfg.method):  # before the progress bar: its rate is the loop's
-            from torch_gpmpc.dynamics.team import team_system_from_config
-            from torch_gpmpc.gp import fit_agent_gps
+    with collector.setup_phase():  # the modules, kernel and GPs it builds live until the process ends
+        from torch_gpmpc.gp import check_gp_inputs, load_model_gp
+        from torch_gpmpc.report.tensorboard import TBLogger
+        from torch_gpmpc.sim.closed_loop import needs_gp, simulate
+        from torch_gpmpc.sim.metrics import compute_metrics
+        from torch_gpmpc.sim.scenarios import make_scenario, with_scenario_world
 
-            gps = fit_agent_gps(cfg, team_system_from_config(cfg), scenario.num_agents)
-    tb = TBLogger(out / "tb")
+        # validate everything (config, scenario, model, output path) before any work or output
+        cfg = config_from_args(args)
+        scenario = make_scenario(cfg, args.scenario)
+        cfg = with_scenario_world(cfg, scenario)  # its workspace, obstacles, radii and models
+        gps = [load_model_gp(args.gp_model, cfg.model_spec())] if args.gp_model else None
+        if gps is None and needs_gp(cfg.method):
+            check_gp_inputs(cfg)
+        out = output_dir(args.out)
+        if not distributed:  # agent processes compile and fit their own
+            if cfg.solver == "fast":
+                prepare_solver_kernel()
+            if gps is None and needs_gp(cfg.method):  # before the progress bar: its rate is the loop's
+                from torch_gpmpc.dynamics.team import team_system_from_config
+                from torch_gpmpc.gp import fit_agent_gps
+
+                gps = fit_agent_gps(cfg, team_system_from_config(cfg), scenario.num_agents)
+        tb = TBLogger(out / "tb")
     bar = tqdm(total=cfg.max_steps, desc=f"{cfg.method} seed {cfg.seed}", unit="step", leave=False)
 
     def on_step(t: int, info) -> None:
