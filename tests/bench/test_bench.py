@@ -24,7 +24,13 @@ def test_bench_local_short(monkeypatch):
         ("fast, crossing", "forward"), ("fast, crossing", "forward+backward")]
     assert all(r["same_plans"] and r["threads"] == 2 and r["speedup_vs_one_thread"] > 0 for r in threads)
     families = result["families"]
-    assert {r["family"] for r in families["table"]} == set(bench_local.FAMILIES)
+    assert {r["family"] for r in families["table"]} == set(bench_local.FAMILIES + bench_local.STRESS_FAMILIES)
+    assert {r["family"] for r in families["table"] if not r["in_target"]} == set(bench_local.STRESS_FAMILIES)
+    in_target = [r["speedup_vs_default"] for r in families["table"] if r["in_target"]]
+    assert families["target"]["speedup_vs_default_min"] == min(in_target)
+    slack = {(c["family"], c["batch"]): c["state_slack_max"] for c in families["checks"]}
+    assert all(slack[f, b] < 1e-9 for f in bench_local.FAMILIES for b in (2, 4))  # feasible instances
+    assert all(slack[f, b] > 1e-3 for f in bench_local.STRESS_FAMILIES for b in (2, 4))  # must open its slack
     assert all(r["speedup_vs_default"] > 0 and r["speedup_all_cores_vs_default"] > 0 for r in families["table"])
     assert isinstance(families["target"]["met_all_cores"], bool)
     paths = {(r["path"], r["batch"], r["pass"]) for r in result["table"]}

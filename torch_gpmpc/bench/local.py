@@ -227,16 +227,26 @@ def _targets(rows: list[dict]) -> dict:
 #: double integrator (the random-transition benchmark's body): fast vs cvxpylayers' default.
 FAMILIES = ("input-norm", "input-box", "input-norm-and-box", "state-box", "state-norm", "state-rows",
             "workspace", "halfspaces", "all")
+#: Timed beside the families but outside their target: every family at once under a ceiling no
+#: climb can stop below, so every problem must open its state slack (an infeasible start's
+#: exact-penalty path, which takes several times the Newton steps).
+STRESS_FAMILIES = ("all-ceiling-out-of-reach",)
 FAMILY_TARGET = 20.0
 _HALFSPACES = 2
+#: Height of the half-space ceiling: where a climb of 0.4-0.6 m/s can stop under the vertical
+#: acceleration bound of 1.25 (a feasible problem), and where none can.
+_CEILING, _CEILING_OUT_OF_REACH = 0.25, 0.05
 
 
 def family_problem(family: str, batch: int, seed: int = 0):
     """``(nominal, constraints, data)``: B 3D double integrators crossing the origin past two
     neighbours, climbing from height 0 (references at speed 1.2 across, 0.4-0.6 up), with the
-    family's bounds set where they bind but every start inside them (acceleration box, speed
-    1.1, per-axis speed 0.9, a workspace with a ceiling at 0.2, a face across the path and a
-    ceiling at 0.15)."""
+    family's bounds set where they bind, every start inside them and every problem feasible
+    (acceleration box, speed 1.1, per-axis speed 0.9, a workspace with a ceiling at 0.3, a face
+    across the path and a ceiling at 0.25, which every climb can stop below: no state slack opens,
+    ``checks`` records ``state_slack_max``). ``all`` is every family at once;
+    ``all-ceiling-out-of-reach`` is ``all`` with the ceiling at 0.05, infeasible for every problem
+    (:data:`STRESS_FAMILIES`)."""
     from torch_gpmpc.config.model_spec import double_integrator, parse_model
     from torch_gpmpc.config.workspace import Workspace
     from torch_gpmpc.control.constraints import LocalConstraints
@@ -244,9 +254,9 @@ def family_problem(family: str, batch: int, seed: int = 0):
     T, n = HORIZON, 6
     g = torch.Generator().manual_seed(seed)
     table = double_integrator(3, 0.1, 2.0).to_table()
-    fams = FAMILIES[1:-1] if family == "all" else (family,)
+    fams = FAMILIES[1:-1] if family in ("all",) + STRESS_FAMILIES else (family,)
     if "input-box" in fams or "input-norm-and-box" in fams:
-        table["input_bound"] = {"box": [1.5, 1.5, 1.0]}
+        table["input_bound"] = {"box": [1.5, 1.5, 1.25]}
         if "input-norm-and-box" in fams:
             table["input_bound"]["norm"] = 2.0
     if "state-box" in fams:
@@ -256,7 +266,7 @@ def family_problem(family: str, batch: int, seed: int = 0):
     if "state-rows" in fams:
         table["state_rows"] = {"G": [[0.0, 0.0, 0.0, 1.0, 1.0, 0.0]], "h": [1.2]}
     spec = parse_model(table, f"bench-{family}")
-    workspace = Workspace((-1.25, -1.25, -0.3), (1.25, 1.25, 0.2)) if "workspace" in fams else None
+    workspace = Workspace((-1.25, -1.25, -0.3), (1.25, 1.25, 0.3)) if "workspace" in fams else None
     nominal = NominalModel(spec)
     angle = 2 * torch.pi * torch.rand(batch, generator=g, dtype=torch.float64)
     climb = 0.4 + 0.2 * torch.rand(batch, generator=g, dtype=torch.float64)
@@ -282,7 +292,7 @@ def family_problem(family: str, batch: int, seed: int = 0):
         half_n[:, 0, :, :2] = -heading[:, None, :2]
         half_b[:, 0] = -0.2
         half_n[:, 1, :, 2] = -1.0
-        half_b[:, 1] = -0.15
+        half_b[:, 1] = -(_CEILING_OUT_OF_REACH if family in STRESS_FAMILIES else _CEILING)
     data = LocalProblemData(
         x0=x0, xref=xref, dyn_A=dyn_A, dyn_c=dyn_c, normals=normals,
         bounds=torch.full((batch, NEIGHBORS, T), 0.4, dtype=torch.float64),
@@ -296,12 +306,13 @@ def run_families(quick: bool = False) -> dict:
     """Each constraint family: ms per problem of ``fast`` (on one thread, and on every core) and of
     cvxpylayers' default solver (diffcp + SCS, default settings: its batch already runs on a
     thread per core) on the same problems, batch 3 and 64, forward and forward+backward; ``met``
-    (``met_all_cores``) when every ratio of one thread (every core) is >= :data:`FAMILY_TARGET`."""
+    (``met_all_cores``) when every ratio of one thread (every core) is >= :data:`FAMILY_TARGET`.
+    The rows of :data:`STRESS_FAMILIES` (``in_target`` false) are timed alike and left out of it."""
     threads, cores = torch.get_num_threads(), available_cores()
     torch.set_num_threads(1)
     try:
         rows, checks = [], []
-        for family in FAMILIES:
+        for family in FAMILIES + STRESS_FAMILIES:
             nominal, constraints, _ = family_problem(family, 1)
             args = (HORIZON, 6, NEIGHBORS, nominal, None, ALPHA)
             fast = InteriorPointMPC(*args, constraints=constraints, num_halfspaces=_HALFSPACES, warm_start=False)
@@ -316,7 +327,7 @@ def run_families(quick: bool = False) -> dict:
                                "state_slack_max": float(sol.state_slack.max())})
                 for backward in (False, True):
                     t_fast, t_cores, t_default = _interleaved_times(fast, default, data, backward, cores, quick)
-                    rows.append({"family": family, "batch": batch,
+                    rows.append({"family": family, "batch": batch, "in_target": family in FAMILIES,
                                  "pass": "forward+backward" if backward else "forward",
                                  "fast_ms_per_problem": 1e3 * t_fast / batch,
                                  "default_ms_per_problem": 1e3 * t_default / batch,
@@ -324,8 +335,8 @@ def run_families(quick: bool = False) -> dict:
                                  "fast_all_cores_ms_per_problem": 1e3 * t_cores / batch,
                                  "speedup_all_cores_vs_default": t_default / t_cores})
                     logger.info("local families %s", rows[-1])
-        worst = min(r["speedup_vs_default"] for r in rows)
-        worst_cores = min(r["speedup_all_cores_vs_default"] for r in rows)
+        worst = min(r["speedup_vs_default"] for r in rows if r["in_target"])
+        worst_cores = min(r["speedup_all_cores_vs_default"] for r in rows if r["in_target"])
         return {"table": rows, "checks": checks, "cores": cores,
                 "target": {"speedup_vs_default_min": worst, "target": FAMILY_TARGET, "met": worst >= FAMILY_TARGET,
                            "speedup_all_cores_vs_default_min": worst_cores,
