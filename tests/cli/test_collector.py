@@ -25,6 +25,15 @@ def test_setup_phase_collects_nothing_inside_and_freezes_what_it_built(owned):
     assert gc.get_freeze_count() >= before + len(built)
 
 
+def test_setup_phase_that_collects_keeps_collecting_inside_and_freezes_after(owned):
+    before = gc.get_freeze_count()
+    with collector.setup_phase(collect=True):  # fitting GPs, flying excitation flights
+        assert gc.isenabled()
+        built = [object() for _ in range(100)]
+    assert gc.isenabled()
+    assert gc.get_freeze_count() >= before + len(built)
+
+
 def test_setup_phase_re_enables_the_collector_when_the_setup_fails(owned):
     with pytest.raises(ValueError), collector.setup_phase():
         raise ValueError("bad config")

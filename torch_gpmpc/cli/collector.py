@@ -8,7 +8,9 @@ collection: several times while they are imported (about 0.45 s in the README's 
 at times during the closed loop, and once more at exit (about 1 s after a command that fitted a
 GP, whose ``torch.optim`` imports ``torch._dynamo``). The objects of a command's setup (modules,
 compiled kernels, fitted GPs, the scenario) never become garbage before the process ends, so the
-collections find nothing among them; ``gc.freeze`` moves them out of the collector's reach.
+collections find nothing among them; ``gc.freeze`` moves them out of the collector's reach: the
+entry point freezes torch and the command's module once imported, ``gpmpc run`` its modules,
+kernel and scenario, then its fitted GPs, and the console script skips the final collection.
 """
 
 from __future__ import annotations
@@ -27,16 +29,24 @@ def own_process() -> None:
 
 
 @contextmanager
-def setup_phase() -> Iterator[None]:
-    """Run a command's setup (imports, the solver kernel, fitted GPs) without cyclic collections,
-    then freeze everything alive, so the collections of the work that follows walk only the
-    objects it makes. The setup leaves little cyclic garbage (about 20 objects per fitted GP),
-    which stays. Outside the console script's process this does nothing."""
+def setup_phase(collect: bool = False) -> Iterator[None]:
+    """Run a part of a command's setup whose objects live until the process ends, then freeze
+    everything alive, so later collections walk only the objects made after it.
+
+    Args:
+        collect: keep collecting inside (for work that makes garbage as it goes, such as fitting GPs
+            or flying excitation flights); without it the collector is off inside (imports and
+            compiled kernels, which make little garbage: a run's setup leaves a few hundred
+            objects).
+
+    Outside the console script's process this does nothing.
+    """
     if not _process_owned:
         yield
         return
     was_enabled = gc.isenabled()
-    gc.disable()
+    if not collect:
+        gc.disable()
     try:
         yield
     finally:

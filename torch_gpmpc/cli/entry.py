@@ -42,11 +42,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads < 1:
         print(f"gpmpc: error: --threads must be >= 1, got {args.threads}", file=sys.stderr)
         return 2
-    import torch
-
-    torch.set_num_threads(args.threads)
     try:
-        module = importlib.import_module(_COMMANDS[args.command])
+        with collector.setup_phase():  # torch and the command's modules live until the process ends
+            import torch
+
+            module = importlib.import_module(_COMMANDS[args.command])
+        torch.set_num_threads(args.threads)
         code = module.main(args)
     except GpmpcError as exc:
         if args.debug:

@@ -48,7 +48,7 @@ def main(args) -> int:
         from torch_gpmpc.coordination.distributed.agent_process import agent_main
 
         return agent_main(threads=getattr(args, "threads", 1))
-    with collector.setup_phase():  # the modules, kernel and GPs it builds live until the process ends
+    with collector.setup_phase():  # the modules and kernel it loads live until the process ends
         from torch_gpmpc.gp import check_gp_inputs, load_model_gp
         from torch_gpmpc.report.tensorboard import TBLogger
         from torch_gpmpc.sim.closed_loop import needs_gp, simulate
@@ -63,15 +63,15 @@ def main(args) -> int:
         if gps is None and needs_gp(cfg.method):
             check_gp_inputs(cfg)
         out = output_dir(args.out)
-        if not distributed:  # agent processes compile and fit their own
-            if cfg.solver == "fast":
-                prepare_solver_kernel()
-            if gps is None and needs_gp(cfg.method):  # before the progress bar: its rate is the loop's
-                from torch_gpmpc.dynamics.team import team_system_from_config
-                from torch_gpmpc.gp import fit_agent_gps
+        if not distributed and cfg.solver == "fast":  # agent processes compile and fit their own
+            prepare_solver_kernel()
+    if not distributed and gps is None and needs_gp(cfg.method):  # before the progress bar: its rate is the loop's
+        from torch_gpmpc.dynamics.team import team_system_from_config
+        from torch_gpmpc.gp import fit_agent_gps
 
-                gps = fit_agent_gps(cfg, team_system_from_config(cfg), scenario.num_agents)
-        tb = TBLogger(out / "tb")
+        with collector.setup_phase(collect=True):  # fits (and flights) make garbage as they go
+            gps = fit_agent_gps(cfg, team_system_from_config(cfg), scenario.num_agents)
+    tb = TBLogger(out / "tb")
     bar = tqdm(total=cfg.max_steps, desc=f"{cfg.method} seed {cfg.seed}", unit="step", leave=False)
 
     def on_step(t: int, info) -> None:
