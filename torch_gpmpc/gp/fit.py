@@ -36,6 +36,9 @@ GP_METHODS = ("auto", "exact", "sgpr")
 JITTERS = (None, 1e-6, 1e-4)
 
 Callback = Callable[[int, float, dict], None]
+#: Marginal-likelihood evaluations a fit remembers (the last line search's), so that L-BFGS's
+#: evaluation of each step's start point, the point its previous line search ended on, is free.
+RECENT_EVALUATIONS = 4
 
 
 def _neg_mll(model: gpytorch.models.ExactGP, mll: gpytorch.mlls.ExactMarginalLogLikelihood) -> Tensor:
@@ -162,11 +165,22 @@ def _optimize(gp: ResidualGP, optimizer: str, iters: int, callback: Callback | N
         return torch.optim.Adam(params, lr=lr or 0.1)
 
     opt = new_optimizer()
+    recent: list[tuple[list[Tensor], Tensor, list[Tensor | None]]] = []  # (point, loss, gradients)
 
     def closure() -> Tensor:
+        # each L-BFGS step (one iteration) starts by evaluating its point, which the previous
+        # step's line search has just evaluated: answer from the recent evaluations, bit for bit
+        point = [p.detach().clone() for p in params]
+        for seen, loss, grads in recent:
+            if all(torch.equal(a, b) for a, b in zip(seen, point)):
+                for p, g in zip(params, grads):
+                    p.grad = None if g is None else g.clone()
+                return loss
         opt.zero_grad()
         loss = _neg_mll(model, mll)
         loss.backward()
+        recent.append((point, loss.detach(), [None if p.grad is None else p.grad.clone() for p in params]))
+        del recent[:max(0, len(recent) - RECENT_EVALUATIONS)]
         return loss
 
     last_good = _copy_state(model)
