@@ -39,6 +39,7 @@ def test_a_worker_ends_when_the_process_that_started_it_is_killed(tmp_path):
     script = tmp_path / "parent.py"
     script.write_text(SCRIPT)
     parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    worker = None
     try:
         worker = int(parent.stdout.readline())
         assert parent.stdout.readline().strip() == "armed"  # the worker shares the parent's stdout
@@ -51,7 +52,5 @@ def test_a_worker_ends_when_the_process_that_started_it_is_killed(tmp_path):
         assert not _alive(worker)
     finally:
         parent.kill()
-        try:
+        if worker is not None and _alive(worker):
             os.kill(worker, 9)
-        except (ProcessLookupError, UnboundLocalError, NameError):
-            pass

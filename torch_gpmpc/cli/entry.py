@@ -32,7 +32,8 @@ _COMMANDS = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``gpmpc`` console script; returns the exit code."""
+    """Run one ``gpmpc`` command (``argv``, default ``sys.argv[1:]``); returns the exit code. The console
+    script calls it through :func:`console_main`."""
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(
