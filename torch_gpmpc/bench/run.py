@@ -11,9 +11,12 @@ default config):
    the problem assembly (normals, margins, consensus slots), the local
    solve (split into canonicalization, the compiled kernels (the warm active-set solves and the
    cold interior point for what they leave) and the rest of the layer:
-   acceptance check, outputs) and the consensus/dual update; "ADMM other" is the rest of
-   each ADMM iteration (fallback, bookkeeping) and "loop other" the rest of each step
-   (graph, true system, recording, logging).
+   acceptance check, outputs) and the consensus/dual update, for the iterations through the torch
+   path (each step's first two and last, :meth:`~torch_gpmpc.coordination.admm.ADMM.iterate`); the
+   compiled iterations between them (:mod:`~torch_gpmpc.coordination.steady`) split into their
+   kernel calls and the rest (consensus terms, acceptance check, consensus and penalty updates);
+   "ADMM other" is the rest of each step's ADMM (safety check, fallback, bookkeeping) and "loop
+   other" the rest of each closed-loop step (graph, true system, recording, logging).
 
 The closed loop needs no backward pass (gradients are only used by ``gpmpc tune``);
 the ``local`` section times forward+backward.
@@ -42,24 +45,33 @@ TIMED = (
     ("torch_gpmpc.control.solvers.ipm_kernel", "solve_polish_batch", "kernel"),
     ("torch_gpmpc.control.solvers.ipm_active", "solve_batch", "kernel_warm"),
     ("torch_gpmpc.coordination.admm", "consensus_update", "consensus"),
+    ("torch_gpmpc.coordination.steady.SteadyIterations", "iterate", "compiled"),
 )
+#: Labels whose time inside a compiled iteration is booked as ``<label>@compiled``.
+KERNEL_LABELS = ("kernel", "kernel_warm")
 
 
 @contextlib.contextmanager
 def _timers():
     """Wrap every :data:`TIMED` function with a timer; yields ``{label: [seconds, calls]}``."""
     totals: dict[str, list] = {label: [0.0, 0] for *_, label in TIMED}
-    saved = []
+    totals.update({f"{label}@compiled": [0.0, 0] for label in KERNEL_LABELS})
+    inside: list[str] = []  # the timed calls under way
 
     def wrap(fn, label):
         def timed(*args, **kwargs):
+            key = f"{label}@compiled" if label in KERNEL_LABELS and "compiled" in inside else label
+            inside.append(label)
             start = time.perf_counter()
             try:
                 return fn(*args, **kwargs)
             finally:
-                totals[label][0] += time.perf_counter() - start
-                totals[label][1] += 1
+                totals[key][0] += time.perf_counter() - start
+                totals[key][1] += 1
+                inside.pop()
         return timed
+
+    saved = []
 
     for owner_path, attr, label in TIMED:
         owner = pkgutil.resolve_name(owner_path)
@@ -88,14 +100,14 @@ def run(quick: bool = False, out: Path | str | None = None) -> dict:
         quick: 10 closed-loop steps and no child-process run (CI smoke).
         out: output directory of the bench (the child run writes to ``out/run``).
     """
-    from torch_gpmpc.control.solvers import ipm_kernel as ipm
     from torch_gpmpc.config.schema import Config
+    from torch_gpmpc.coordination import kernels
     from torch_gpmpc.sim.closed_loop import simulate
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        ipm.warm_up()  # compile or load the kernel before timing (a one-off per installation)
+        kernels.warm_up()  # compile or load the kernels before timing (a one-off per installation)
         result: dict = {}
         if not quick and out is not None:
             result["gpmpc_run_wall_s"] = _command_wall(Path(out) / "run")
@@ -117,7 +129,10 @@ def run(quick: bool = False, out: Path | str | None = None) -> dict:
         "solve: kernel (cold interior point)": seconds["kernel"],
         "solve: layer other": seconds["solve"] - seconds["canonicalize"] - seconds["kernel"] - seconds["kernel_warm"],
         "consensus": seconds["consensus"],
-        "ADMM other": seconds["admm_step"] - seconds["assembly"] - seconds["solve"] - seconds["consensus"],
+        "compiled iterations: kernel": seconds["kernel@compiled"] + seconds["kernel_warm@compiled"],
+        "compiled iterations: other": seconds["compiled"] - seconds["kernel@compiled"] - seconds["kernel_warm@compiled"],
+        "ADMM other": seconds["admm_step"] - seconds["assembly"] - seconds["solve"] - seconds["consensus"]
+        - seconds["compiled"],
         "loop other": loop - seconds["admm_step"],
     }
     table = [{"workload": "gp-chance seed 0", "part": "GP fit (3 agents)", "total_s": seconds["gp_fit"],

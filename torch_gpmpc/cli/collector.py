@@ -6,7 +6,7 @@ A command imports torch, gpytorch, numba, tensorboard and matplotlib: over a mil
 live until the process ends. CPython's cyclic collector walks all of them in every full
 collection: several times while they are imported (about 0.45 s in the README's quadrotor demo),
 at times during the closed loop, and once more at exit (about 1 s after a command that fitted a
-GP, whose ``torch.optim`` imports ``torch._dynamo``). The objects of a command's setup (modules,
+GP when ``torch.optim`` still imported ``torch._dynamo``). The objects of a command's setup (modules,
 compiled kernels, fitted GPs, the scenario) never become garbage before the process ends, so the
 collections find nothing among them; ``gc.freeze`` moves them out of the collector's reach: the
 entry point freezes torch and the command's module once imported, ``gpmpc run`` its modules,

@@ -108,14 +108,15 @@ def main(args) -> int:
 
 
 def prepare_solver_kernel() -> None:
-    """Compile the interior-point kernel before the progress bar starts (so its ETA is honest
-    from step 1), saying so when it is not in numba's cache yet (the first run after install)."""
-    from torch_gpmpc.control.solvers import ipm_kernel
+    """Compile the kernels (the interior point's and ADMM's) before the progress bar starts (so its
+    ETA is honest from step 1), saying so when they are not in numba's cache yet (the first run
+    after install)."""
+    from torch_gpmpc.coordination import kernels
 
-    if not ipm_kernel.is_cached():
+    if not kernels.is_cached():
         print("gpmpc: compiling the solver kernel (numba, once per installation; about 20-30 s) ...",
               file=sys.stderr, flush=True)
-    ipm_kernel.warm_up()
+    kernels.warm_up()
 
 
 def _risk_note(m: dict) -> str:

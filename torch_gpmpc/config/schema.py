@@ -88,6 +88,9 @@ class Config:
         solver_warm: with ``fast``, solve each ADMM iteration's problems first by the exact
             active-set method from the previous iteration's solutions (falling back to the cold
             interior point per problem); ``false``: every solve cold. Gradient tuning always solves cold.
+        admm_compiled: with ``fast`` and a frozen linearization (``relinearize = false``), a control
+            step's ADMM iterations after its second run as compiled calls (the same plans, a third of
+            the time per iteration); ``false``: every iteration through the torch path (the reference).
         method: one of :data:`METHODS`.
         dim: position dimension (2 or 3) of the built-in models; the single integrator's state
             and input have this dimension, the double integrator's state has twice it.
@@ -204,6 +207,7 @@ class Config:
     seed: int = 0
     solver: str = "fast"
     solver_warm: bool = True
+    admm_compiled: bool = True
     method: str = "gp-chance"
     dim: int = 2
     model: str | ModelSpec = "single-integrator"

@@ -90,6 +90,9 @@ class ControllerSettings:
         solver: ``fast`` (compiled interior point), ``clarabel`` or ``reference`` (cvxpylayers).
         solver_warm: with ``fast``, warm active-set solves from the previous ADMM iteration's
             solutions (:mod:`~torch_gpmpc.control.solvers.ipm_active`); ``False``: every solve cold.
+        admm_compiled: with ``fast`` and a frozen linearization, a control step's ADMM iterations
+            after its second run as compiled calls (:mod:`~torch_gpmpc.coordination.steady`; the same
+            plans); ``False``: every iteration through the torch path.
         r_safe, eps, risk_split: safety radius, pair risk, lower-indexed agent's share.
         radii: each agent's body radius (a pair keeps ``r_k + r_j`` between centres, an agent
             ``r_k`` from every obstacle), or ``None``: ``r_safe / 2`` each.
@@ -133,6 +136,7 @@ class ControllerSettings:
     slack_penalty: float = 1e4
     solver: str = "fast"
     solver_warm: bool = True
+    admm_compiled: bool = True
     r_safe: float = 0.5
     eps: float = 0.1
     risk_split: float = 0.5

@@ -48,6 +48,7 @@ from torch import Tensor, nn
 from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
+from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
 from torch_gpmpc.coordination.acceleration import AndersonAcceleration
 from torch_gpmpc.coordination.bodies import edge_distances
 from torch_gpmpc.coordination.agent_step import (
@@ -63,6 +64,7 @@ from torch_gpmpc.coordination.penalty import (
     balance_penalty, edge_residuals, should_stop, starting_penalties, unconverged_edges,
 )
 from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult, adapt_state, initial_state
+from torch_gpmpc.coordination.steady import SteadyIterations
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 
@@ -341,13 +343,26 @@ class ADMM:
         max_iter = s.admm_max_iter if max_iter is None else max_iter
         result = StepResult(plans=state.plans, inputs=state.inputs, state=state, iterations=0, converged=False)
         accelerator = AndersonAcceleration(s.admm_anderson_memory) if s.admm_acceleration == "anderson" else None
+        steady: SteadyIterations | None = None
         for it in range(max_iter):
             previous = state
+            if steady is not None and it < max_iter - 1:
+                t0 = time.perf_counter()
+                fast = steady.iterate(state)
+                if fast is not None and not should_stop(fast.primal_ratio, fast.dual_ratio, s):
+                    result.record_counts(fast.primal, fast.dual, fast.unconverged_edges, fast.infeasible_solves,
+                                         time.perf_counter() - t0)
+                    state = fast.state
+                    continue
+                # the step's last iteration (and anything unusual) goes through the torch path,
+                # which reports the solution, the problems and the failures
             state, stats = self.iterate(ctx, state)
             result.record(stats)
             if should_stop(stats.primal_ratio, stats.dual_ratio, s):
                 result.converged = True
                 break
+            if it == 1:  # from the second iteration on the problems change only in their consensus terms
+                steady = self._steady_iterations(ctx, state, stats, accelerator)
             if accelerator is not None and it < max_iter - 1:  # a capped step keeps its plain iterate
                 state = accelerator.next_input(previous, state)
         if graph.num_edges and result.iterations:
@@ -359,6 +374,26 @@ class ADMM:
         result.state_slack_max = state_slack_max(result.solution)
         result.messages = self.agent_step.message_size * graph.degrees()
         return result
+
+    def _steady_iterations(self, ctx: StepContext, state: ADMMState, stats: IterationStats,
+                           accelerator: AndersonAcceleration | None) -> SteadyIterations | None:
+        """The step's compiled iterations (:mod:`~.steady`) after its second iteration (``state``,
+        ``stats``), or ``None`` where they do not apply: ``admm_compiled`` off, Anderson acceleration,
+        a linearization per iterate, no edge, a solver other than ``fast`` with warm starts, a failed
+        solve, gradients wanted, or tensors not float64 on the CPU."""
+        if not self.settings.admm_compiled or accelerator is not None or ctx.lin_plans is None \
+                or not ctx.graph.num_edges or stats.failed_solves:
+            return None
+        layer = ctx.layer
+        if type(layer) is not InteriorPointMPC or not layer.warm_start:
+            return None
+        if state.z.dtype != torch.float64 or state.z.device.type != "cpu":
+            return None
+        if torch.is_grad_enabled() and any(t is not None and t.requires_grad
+                                           for t in (state.plans, state.z, state.lam, state.rho, ctx.rho)):
+            return None
+        solve = layer.repeated(stats.problem)
+        return None if solve is None else SteadyIterations(self.settings, ctx.graph, ctx.xref, ctx.rho, ctx.tol, solve)
 
     def _check_safety(self, state: ADMMState, data, graph: Graph, layer, result: StepResult,
                       fallback: bool) -> ADMMState:

@@ -183,6 +183,18 @@ class StepResult:
         self.infeasible_solves += stats.infeasible_solves
         self.solution, self.problem, self.max_margin = stats.solution, stats.problem, stats.max_margin
 
+    def record_counts(self, primal: float, dual: float, unconverged_edges: int, infeasible_solves: int,
+                      solve_time_s: float) -> None:
+        """Add the report of a compiled iteration (:mod:`~torch_gpmpc.coordination.steady`): its
+        residuals and counts (it had no failed solve); the solution and problem stay those of the
+        last iteration through :meth:`~.admm.ADMM.iterate` (a step always ends with one)."""
+        self.iterations += 1
+        self.primal_residuals.append(primal)
+        self.dual_residuals.append(dual)
+        self.unconverged_edges.append(unconverged_edges)
+        self.solve_time_s += solve_time_s
+        self.infeasible_solves += infeasible_solves
+
 
 @dataclass
 class IterationStats:

@@ -41,6 +41,18 @@ Callback = Callable[[int, float, dict], None]
 RECENT_EVALUATIONS = 4
 
 
+class _LBFGS(torch.optim.LBFGS):
+    """``torch.optim.LBFGS`` whose constructor does not import ``torch._dynamo`` (1 s at a first fit).
+
+    ``Optimizer.add_param_group`` is wrapped so that ``torch.compile`` does not trace it, and that
+    wrapper imports ``torch._dynamo`` on its first call; a fit is never compiled, so its instances
+    use the unwrapped method (``functools.wraps``' ``__wrapped__``; the wrapped one if a torch lacks it).
+    """
+
+    add_param_group = getattr(torch.optim.Optimizer.add_param_group, "__wrapped__",
+                              torch.optim.Optimizer.add_param_group)
+
+
 def _neg_mll(model: gpytorch.models.ExactGP, mll: gpytorch.mlls.ExactMarginalLogLikelihood) -> Tensor:
     """Negative exact marginal log likelihood per datum, summed over outputs.
 
@@ -161,7 +173,7 @@ def _optimize(gp: ResidualGP, optimizer: str, iters: int, callback: Callback | N
 
     def new_optimizer() -> torch.optim.Optimizer:
         if optimizer == "lbfgs":
-            return torch.optim.LBFGS(params, lr=lr or 1.0, max_iter=1, line_search_fn="strong_wolfe")
+            return _LBFGS(params, lr=lr or 1.0, max_iter=1, line_search_fn="strong_wolfe")
         return torch.optim.Adam(params, lr=lr or 0.1)
 
     opt = new_optimizer()
@@ -176,7 +188,8 @@ def _optimize(gp: ResidualGP, optimizer: str, iters: int, callback: Callback | N
                 for p, g in zip(params, grads):
                     p.grad = None if g is None else g.clone()
                 return loss
-        opt.zero_grad()
+        for p in params:  # Optimizer.zero_grad() would import torch._dynamo (see _LBFGS)
+            p.grad = None
         loss = _neg_mll(model, mll)
         loss.backward()
         recent.append((point, loss.detach(), [None if p.grad is None else p.grad.clone() for p in params]))

@@ -123,9 +123,9 @@ def run_tasks(tasks: Sequence[Task], workers: int, on_done: Callable[[Task], Non
             if on_done is not None:
                 on_done(task)
         return
-    from torch_gpmpc.control.solvers import ipm_kernel
+    from torch_gpmpc.coordination import kernels
 
-    ipm_kernel.warm_up()  # compile the fast solver's kernel once here, not in every worker
+    kernels.warm_up()  # compile the kernels once here, not in every worker
     ctx = multiprocessing.get_context("spawn")
     with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=end_with_parent,
                                 initargs=(os.getpid(),)) as pool:

@@ -1,0 +1,203 @@
+"""ADMM's compiled iterations (``admm_compiled``) against the torch path they replace: the same
+closed loops bit for bit, each pass against the torch functions it mirrors, and the hand-back to the
+torch path whenever something is unusual."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from torch_gpmpc.config.schema import Config
+from torch_gpmpc.control.problem import LocalProblemData
+from torch_gpmpc.control.solvers.canonical import canonicalize
+from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
+from torch_gpmpc.coordination import steady
+from torch_gpmpc.coordination.admm import ADMM, consensus_update
+from torch_gpmpc.coordination.agent_step import edge_copies
+from torch_gpmpc.coordination.consensus_kernel import consensus_step, slot_terms
+from torch_gpmpc.coordination.graph import communication_graph
+from torch_gpmpc.coordination.penalty import balance_penalty, edge_residuals, unconverged_edges
+from torch_gpmpc.dynamics.systems import NominalModel
+from torch_gpmpc.sim.closed_loop import simulate
+
+F64 = torch.float64
+QUADROTOR = str(Path(__file__).resolve().parents[2] / "examples" / "quadrotor" / "quadrotor.toml")
+ROLLOUT_FIELDS = ("states", "inputs", "plans", "admm_iterations", "converged", "slack_max", "chance_margin",
+                  "pair_separation", "fallback")
+
+
+def _count_compiled(monkeypatch) -> list[int]:
+    """Counts the compiled iterations that returned a next iterate."""
+    counts = [0]
+    original = steady.SteadyIterations.iterate
+
+    def counted(self, state):
+        out = original(self, state)
+        counts[0] += out is not None
+        return out
+
+    monkeypatch.setattr(steady.SteadyIterations, "iterate", counted)
+    return counts
+
+
+@pytest.mark.parametrize("cfg", [
+    Config(max_steps=30),  # the paper scenario, gp-chance with learned GPs, two neighbours each
+    # the README's quadrotor demo's model (speed limit) on a circle of 8: seven neighbours each, whose
+    # sums over slots torch orders its own way
+    Config(model=QUADROTOR, scenario="circle", num_agents=8, method="nominal", noise_std=0.0, max_steps=25),
+], ids=["paper", "quadrotor-circle-8"])
+def test_compiled_iterations_give_the_torch_paths_closed_loop_bit_for_bit(cfg, monkeypatch):
+    reference = simulate(dataclasses.replace(cfg, admm_compiled=False))
+    compiled_count = _count_compiled(monkeypatch)
+    compiled = simulate(cfg)
+    assert compiled_count[0] > reference.admm_iterations.sum() / 2  # most iterations were compiled
+    for name in ROLLOUT_FIELDS:
+        a, b = getattr(reference, name), getattr(compiled, name)
+        assert np.array_equal(np.asarray(a), np.asarray(b), equal_nan=True), name
+    for name in ("primal_residuals", "dual_residuals"):  # norms summed in another order
+        a, b = getattr(reference, name), getattr(compiled, name)
+        np.testing.assert_allclose(np.asarray(b, dtype=float), np.asarray(a, dtype=float), rtol=1e-12, atol=1e-15)
+
+
+def _random_iterate(K: int, T: int, n: int, seed: int, radius: float = 10.0):
+    gen = torch.Generator().manual_seed(seed)
+    x0 = torch.randn(K, n, generator=gen, dtype=F64) * 1.5
+    graph = communication_graph(x0[:, :2], radius)
+    E = graph.num_edges
+    z = torch.randn(E, 2, T + 1, n, generator=gen, dtype=F64)
+    lam = torch.randn(E, 2, 2, T + 1, n, generator=gen, dtype=F64)
+    rho = 2.0 ** torch.randint(-3, 6, (E,), generator=gen).to(F64) * 1.3
+    return x0, graph, z, lam, rho, gen
+
+
+@pytest.mark.parametrize("K,radius", [(3, 10.0), (9, 10.0), (9, 2.0)])
+def test_slot_terms_give_canonicalizes_consensus_terms(K, radius):
+    T, n = 5, 2
+    x0, graph, z, lam, rho, gen = _random_iterate(K, T, n, seed=K, radius=radius)
+    M = graph.num_slots
+    xref = torch.randn(K, T + 1, n, generator=gen, dtype=F64)
+    rho_slots = rho[graph.slot_edge]
+    r, c, side = torch.arange(K)[:, None], torch.arange(M)[None, :], graph.slot_side
+    z_slot, lam_mine = z[graph.slot_edge], lam[graph.slot_edge][r, c, side]
+    data = LocalProblemData(
+        x0=x0, xref=xref, dyn_A=torch.eye(n, dtype=F64).expand(K, T, n, n), dyn_c=torch.zeros(K, T, n, dtype=F64),
+        normals=torch.zeros(K, M, T, n, dtype=F64), bounds=torch.zeros(K, M, T, dtype=F64), active=graph.active,
+        rho=rho_slots, z_own=z_slot[r, c, side], z_nbr=z_slot[r, c, 1 - side], lam_own=lam_mine[r, c, side],
+        lam_nbr=lam_mine[r, c, 1 - side])
+    canon = canonicalize(data, NominalModel(n).B(F64, torch.device("cpu")))
+    rho_own, w_own = np.empty((K, M)), np.empty((K, M, T + 1, n))
+    rho_y, w_y, y0 = np.ones((K, M + 1)), np.zeros((K, M + 1, T, n)), np.empty((K, M, n))  # one state-row slot
+    slot_terms(z.numpy(), lam.numpy(), rho.numpy(), graph.slot_edge.numpy(), graph.slot_side.numpy(),
+               graph.active.numpy(), rho_own, w_own, rho_y, w_y, y0)
+    l_x = (2.0 * xref[:, 1:] + torch.from_numpy(w_own)[:, :, 1:].sum(dim=1)).flatten(1)
+    c_x = 1.0 + 0.5 * torch.from_numpy(rho_own).sum(dim=1)
+    assert torch.equal(c_x, canon.c_x) and torch.equal(l_x, canon.l_x)
+    assert np.array_equal(rho_y[:, :M], canon.rho_y.numpy()) and np.array_equal(w_y[:, :M], canon.w_y.numpy())
+    assert np.array_equal(y0, canon.y0.numpy())
+    assert (rho_y[:, M:] == 1).all() and (w_y[:, M:] == 0).all()  # the state-row slot is left alone
+    assert radius > 5 or not graph.active.all()  # the sparse graph covers inactive slots
+
+
+@pytest.mark.parametrize("adaptive", [True, False])
+def test_consensus_step_gives_the_torch_update_residuals_and_penalties(adaptive):
+    K, T, n = 9, 4, 3
+    _, graph, z, lam, rho, gen = _random_iterate(K, T, n, seed=4, radius=2.0)
+    X = torch.randn(K, T + 1, n, generator=gen, dtype=F64)
+    Y = torch.randn(K, graph.num_slots, T + 1, n, generator=gen, dtype=F64)
+    cfg = Config(admm_tol=0.3, admm_rel_tol=0.05).controller_settings()
+    stop_tol = 0.1
+    if not adaptive:
+        rho = torch.full_like(rho, 7.5)
+    # the torch path (ADMM.iterate)
+    copies = edge_copies(SimpleNamespace(X=X, Y=Y), graph)
+    z_t, lam_t, gaps, duals = consensus_update(copies, z, lam, rho if adaptive else torch.tensor(7.5, dtype=F64))
+    lam_norm = lam_t[:, 0].flatten(1).norm(dim=1)
+    res = edge_residuals(copies, z_t, lam_norm, gaps, duals, cfg)
+    stop = edge_residuals(copies, z_t, lam_norm, gaps, duals, cfg, stop_tol)
+    rho_t = balance_penalty(rho, res) if adaptive else rho
+    # the compiled pass
+    iterations = steady.SteadyIterations(cfg, graph, torch.zeros(K, T + 1, n, dtype=F64),
+                                         torch.tensor(7.5, dtype=F64), stop_tol, solve=None)  # its tolerances
+    z_c, lam_c, rho_c, report = np.empty_like(z.numpy()), np.empty_like(lam.numpy()), np.empty(len(rho)), np.empty(5)
+    consensus_step(X.numpy(), Y.numpy(), graph.slot_edge.numpy(), graph.slot_side.numpy(), graph.active.numpy(),
+                   z.numpy(), lam.numpy(), rho.numpy(), adaptive, iterations.tolerances, iterations.checks_dual,
+                   z_c, lam_c, rho_c, report)
+    assert np.array_equal(z_c, z_t.numpy()) and np.array_equal(lam_c, lam_t.numpy())
+    assert np.array_equal(rho_c, rho_t.numpy())
+    if adaptive:
+        assert not torch.equal(rho_t, rho)  # some penalties moved
+    np.testing.assert_allclose(report[:4], [float(res.primal.max()), float(res.dual.max()),
+                                            float(stop.primal_ratio.max()), float(stop.dual_ratio.max())], rtol=1e-13)
+    assert report[4] == unconverged_edges(stop, cfg) > 0
+
+
+def _quadrotor_step(num_agents: int = 4):
+    """A crossing of the demo's model: ``(admm, x0, xref, graph)``."""
+    cfg = Config(model=QUADROTOR, scenario="circle", num_agents=num_agents, method="nominal", noise_std=0.0)
+    admm = ADMM(cfg)
+    angles = torch.arange(num_agents, dtype=F64) * (2 * torch.pi / num_agents)
+    pos = torch.stack([torch.cos(angles), torch.sin(angles), torch.zeros_like(angles)], dim=1) * 1.2
+    x0 = torch.cat([pos, -0.5 * pos], dim=1)
+    xref = torch.cat([-pos, torch.zeros_like(pos)], dim=1)[:, None].expand(num_agents, cfg.horizon + 1, 6)
+    return admm, x0, xref, communication_graph(x0[:, :3], None)
+
+
+def test_a_step_hands_unusual_iterations_back_to_the_torch_path(monkeypatch):
+    admm, x0, xref, graph = _quadrotor_step()
+    reference = admm.with_settings(admm_compiled=False).solve_step(x0, xref, graph)
+    assert reference.iterations > 5
+    # a compiled iteration that finds something unusual (here: every other one) returns None and the
+    # torch path takes that iteration: the same step
+    original, calls = steady.SteadyIterations.iterate, [0]
+
+    def every_other(self, state):
+        calls[0] += 1
+        return None if calls[0] % 2 else original(self, state)
+
+    monkeypatch.setattr(steady.SteadyIterations, "iterate", every_other)
+    result = admm.solve_step(x0, xref, graph)
+    assert calls[0] > 2 and result.iterations == reference.iterations
+    assert torch.equal(result.plans, reference.plans) and torch.equal(result.state.lam, reference.state.lam)
+
+
+def test_the_repeated_solve_declines_non_finite_terms_and_unconverged_problems():
+    admm, x0, xref, graph = _quadrotor_step()
+    ctx, state = admm.prepare(x0, xref, graph)
+    state, stats = admm.iterate(ctx, state)
+    solve = ctx.layer.repeated(stats.problem)
+    assert solve is not None
+    iterations = steady.SteadyIterations(admm.settings, graph, xref, ctx.rho, ctx.tol, solve)
+    assert iterations.iterate(state) is not None
+    assert iterations.iterate(dataclasses.replace(state, lam=state.lam * float("nan"))) is None
+    # a problem the kernel cannot solve within its cap (one interior-point iteration, cold)
+    capped = InteriorPointMPC(ctx.layer.horizon, ctx.layer.dim, ctx.layer.num_neighbors, ctx.layer.nominal,
+                              ctx.layer.u_max, ctx.layer.alpha, max_iter=1, constraints=ctx.layer.constraints)
+    solve = capped.repeated(stats.problem)
+    assert steady.SteadyIterations(admm.settings, graph, xref, ctx.rho, ctx.tol, solve).iterate(
+        dataclasses.replace(state, solver_point=None)) is None
+
+
+@pytest.mark.parametrize("change", [
+    {"admm_compiled": False}, {"admm_acceleration": "anderson"}, {"relinearize": True}, {"solver": "clarabel"},
+    {"solver_warm": False}])
+def test_compiled_iterations_apply_only_where_they_give_the_same_step(change, monkeypatch):
+    admm, x0, xref, graph = _quadrotor_step(3)
+    counts = _count_compiled(monkeypatch)
+    admm.with_settings(admm_max_iter=8).solve_step(x0, xref, graph)
+    assert counts[0] > 0
+    counts[0] = 0
+    admm.with_settings(admm_max_iter=8, **change).solve_step(x0, xref, graph)
+    assert counts[0] == 0
+
+
+def test_compiled_iterations_stay_off_when_gradients_are_wanted(monkeypatch):
+    admm, x0, xref, graph = _quadrotor_step(3)
+    counts = _count_compiled(monkeypatch)
+    rho = torch.tensor(20.0, dtype=F64, requires_grad=True)
+    result = admm.with_settings(admm_max_iter=6).solve_step(x0, xref, graph, rho=rho)
+    assert counts[0] == 0 and result.plans.requires_grad
