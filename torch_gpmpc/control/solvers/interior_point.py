@@ -8,8 +8,8 @@ Data flow: :func:`~torch_gpmpc.control.solvers.canonical.canonicalize` (torch, d
 condensed dynamics, so only the inputs, the neighbour copies and the collision slacks remain) -> the
 compiled kernels (NumPy arrays, CPU): with a guess (a previous solution's ``solver_point``) the warm
 active-set solves of :mod:`torch_gpmpc.control.solvers.ipm_active`, then the interior point of
-:mod:`torch_gpmpc.control.solvers.ipm_kernel` for every problem not solved warm -> outputs and
-gradients back in torch.
+:mod:`torch_gpmpc.control.solvers.ipm_kernel` for every problem not solved warm (both called on the
+NumPy batch by :mod:`~torch_gpmpc.control.solvers.ipm_batch`) -> outputs and gradients back in torch.
 """
 
 from __future__ import annotations
@@ -22,9 +22,8 @@ from torch import Tensor, nn
 
 from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.control.solvers import ipm_threads
-from torch_gpmpc.control.solvers.ipm_batch import (  # noqa: F401 (constants: re-exported)
-    ACTIVE_SET_ROUNDS, POLISH_FACTOR, POLISH_ITERATIONS, KernelLimits, StructureCache, batched_mv, kernel_arrays,
-    point_outputs, solve_points,
+from torch_gpmpc.control.solvers.ipm_batch import (
+    KernelLimits, StructureCache, batched_mv, kernel_arrays, point_outputs, solve_points,
 )
 from torch_gpmpc.control.solvers.repeated import KernelSettings, RepeatedSolve
 from torch_gpmpc.control.solvers.canonical import (  # noqa: F401 (condense_dynamics: re-exported)
