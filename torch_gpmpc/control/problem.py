@@ -290,18 +290,35 @@ def acceptance_failures(data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor,
     :func:`~torch_gpmpc.control.acceptance.failure_codes`: torch's (or NumPy's) per-call overhead on
     these small arrays would cost more than the compiled solve it checks.
     """
-    def arr(t: Tensor) -> np.ndarray:
-        return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
+    return torch.from_numpy(AcceptanceCheck(data, nominal_B, constraints).codes(X, U, Y, slack)).to(X.device)
 
-    Xr = arr(X)
-    batch, T = Xr.shape[0], Xr.shape[1] - 1
-    Ur = arr(U)
-    Bd = arr(nominal_B) if data.dyn_B is None else arr(data.dyn_B)
-    Bd = np.ascontiguousarray(np.broadcast_to(Bd, (batch, T, *Bd.shape[-2:])))
-    box = np.asarray(constraints.input_box or (), dtype=np.float64)
-    u_norm = np.inf if constraints.input_norm is None else float(constraints.input_norm)
-    code = np.empty(batch, dtype=np.int64)
-    failure_codes(Xr, Ur, arr(Y), arr(slack), arr(data.x0), arr(data.dyn_A), Bd, arr(data.dyn_c), arr(data.normals),
-                  arr(data.bounds), np.ascontiguousarray(data.active.detach().cpu().numpy(), dtype=np.bool_), box,
-                  u_norm, float(constraints.input_scale), FEASIBILITY_TOL, _CODES, code)
-    return torch.from_numpy(code).to(X.device)
+
+def _array(t: Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
+
+
+class AcceptanceCheck:
+    """:func:`acceptance_failures` for the problems of ``data``, their arrays converted once: the
+    check of repeated solves of the same problems (ADMM's compiled iterations) converts only the plans.
+
+    Args:
+        data, nominal_B, constraints: as :func:`acceptance_failures`.
+    """
+
+    def __init__(self, data: LocalProblemData, nominal_B: Tensor, constraints: LocalConstraints) -> None:
+        batch, T = data.xref.shape[0], data.xref.shape[1] - 1
+        Bd = _array(nominal_B) if data.dyn_B is None else _array(data.dyn_B)
+        Bd = np.ascontiguousarray(np.broadcast_to(Bd, (batch, T, *Bd.shape[-2:])))
+        self._problem = (_array(data.x0), _array(data.dyn_A), Bd, _array(data.dyn_c), _array(data.normals),
+                         _array(data.bounds),
+                         np.ascontiguousarray(data.active.detach().cpu().numpy(), dtype=np.bool_))
+        self._limits = (np.asarray(constraints.input_box or (), dtype=np.float64),
+                        np.inf if constraints.input_norm is None else float(constraints.input_norm),
+                        float(constraints.input_scale), FEASIBILITY_TOL, _CODES)
+
+    def codes(self, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor) -> np.ndarray:
+        """(B,) int64 failure codes of the plans X (B, T+1, D), U (B, T, Du), Y (B, M, T+1, D) and
+        their slacks (B, M, T)."""
+        code = np.empty(X.shape[0], dtype=np.int64)
+        failure_codes(_array(X), _array(U), _array(Y), _array(slack), *self._problem, *self._limits, code)
+        return code

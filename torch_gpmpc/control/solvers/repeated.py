@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.control.constraints import LocalConstraints
-from torch_gpmpc.control.problem import SLACK_ACTIVE_TOL, LocalProblemData, acceptance_failures
+from torch_gpmpc.control.problem import SLACK_ACTIVE_TOL, AcceptanceCheck, LocalProblemData
 from torch_gpmpc.control.solvers.canonical import CanonicalData
 from torch_gpmpc.control.solvers.ipm_batch import KernelLimits, batched_mv, kernel_arrays, point_outputs, solve_points
 
@@ -92,7 +92,8 @@ class RepeatedSolve:
 
     def __init__(self, data: LocalProblemData, canon: CanonicalData, structure: tuple[np.ndarray, np.ndarray],
                  nominal_B: Tensor, constraints: LocalConstraints, kernel: KernelSettings) -> None:
-        self.data, self.nominal_B, self.constraints, self.kernel = data, nominal_B, constraints, kernel
+        self.data, self.kernel = data, kernel
+        self.acceptance = AcceptanceCheck(data, nominal_B, constraints)
         self.G, self.h = canon.G.detach(), canon.h.detach()
         G, h, normals, bounds, g_u = kernel_arrays((canon.G, canon.h, canon.normals, canon.bounds, canon.g_u))
         self._fixed = (G, h, normals, bounds, g_u)
@@ -135,7 +136,7 @@ class RepeatedSolve:
         X = torch.cat([data.x0[:, None], (batched_mv(self.G, u) + self.h).view(B, T, D)], dim=1)
         U = u.view(B, T, -1)
         Y = torch.cat([torch.from_numpy(buf.y0)[:, :, None], y1], dim=2)  # a copy: the buffers are reused
-        if bool(acceptance_failures(data, X, U, Y, slack, self.nominal_B, self.constraints).any()):
+        if self.acceptance.codes(X, U, Y, slack).any():
             return None
         used = slack.numpy() * self.active[:, :, None]
         softened = int((used > SLACK_ACTIVE_TOL).reshape(B, -1).any(axis=1).sum())
