@@ -32,7 +32,10 @@ report ours.
 Everything is torch: with gradients enabled, an unrolled ADMM is differentiable in
 rho, the risk split and the problem data (used by ``gpmpc tune``). One iteration is
 :meth:`ADMM.iterate`; a control step (:meth:`ADMM.solve_step`) is that loop plus the stopping
-test and the safety check; the tuner's unroll is the same loop without stopping.
+test and the safety check; the tuner's unroll is the same loop without stopping. Within
+:meth:`ADMM.solve_step`, the iterations after a step's second, whose problems change only in their
+consensus terms, run as compiled calls where nothing needs gradients (``admm_compiled``,
+:mod:`~torch_gpmpc.coordination.steady`): the same plans, bit for bit.
 """
 
 from __future__ import annotations

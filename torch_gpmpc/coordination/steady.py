@@ -4,19 +4,19 @@ consensus, the duals and the penalties change.
 With a frozen linearization (``relinearize = false``, the default) every local problem of a step
 keeps its dynamics, rows and margins from the second iteration on (the margins read the variances
 the neighbours reported at the first), so an iteration is: consensus terms from ``z, lam, rho``
-(:func:`~.consensus_kernel.slot_terms`, their sums over slots in torch), the local solves on the kept problems
-(:class:`~torch_gpmpc.control.solvers.repeated.RepeatedSolve`: warm active-set solves from the last
-points), then consensus, duals, residuals and residual balancing
+(:func:`~.consensus_kernel.slot_terms`, their sums over slots in torch), the local solves on the
+kept problems (:class:`~torch_gpmpc.control.solvers.repeated.RepeatedSolve`: warm active-set
+solves from the last points), then consensus, duals, residuals and residual balancing
 (:func:`~.consensus_kernel.consensus_step`). Through the torch path (:meth:`~.admm.ADMM.iterate`)
 the same iteration re-assembles and re-validates everything and costs about three times as much on
 the README's quadrotor demo.
 
 The compiled iterations compute the same numbers (the plans, consensus, duals and penalties bit for
-bit; the residual norms to the last bits, see :mod:`~.consensus_kernel`) and hand back to the torch path whenever anything
-is unusual (:meth:`SteadyIterations.iterate` returns ``None``): a local problem that does not
-converge or whose plan the acceptance rule rejects, non-finite terms. :meth:`~.admm.ADMM.solve_step`
-also runs each step's last iteration through the torch path, so what a step reports (its solution,
-problems, margins, the safety check's data) is that path's.
+bit; the residual norms to the last bits, see :mod:`~.consensus_kernel`) and hand back to the torch
+path whenever anything is unusual (:meth:`SteadyIterations.iterate` returns ``None``): a local
+problem that does not converge or whose plan the acceptance rule rejects, non-finite terms.
+:meth:`~.admm.ADMM.solve_step` also runs each step's last iteration through the torch path, so what
+a step reports (its solution, problems, margins, the safety check's data) is that path's.
 """
 
 from __future__ import annotations

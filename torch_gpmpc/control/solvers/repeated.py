@@ -92,7 +92,7 @@ class RepeatedSolve:
 
     def __init__(self, data: LocalProblemData, canon: CanonicalData, structure: tuple[np.ndarray, np.ndarray],
                  nominal_B: Tensor, constraints: LocalConstraints, kernel: KernelSettings) -> None:
-        self.data, self.kernel = data, kernel
+        self.x0, self.kernel = data.x0, kernel
         self.acceptance = AcceptanceCheck(data, nominal_B, constraints)
         self.G, self.h = canon.G.detach(), canon.h.detach()
         G, h, normals, bounds, g_u = kernel_arrays((canon.G, canon.h, canon.normals, canon.bounds, canon.g_u))
@@ -132,8 +132,7 @@ class RepeatedSolve:
         B, T, D, M = self.batch, self.horizon, self.dim, self.num_neighbors
         u, y1, slack, _ = point_outputs(point, done, normals.shape, self.h)
         y1, slack = y1[:, :M], slack[:, :M]
-        data = self.data
-        X = torch.cat([data.x0[:, None], (batched_mv(self.G, u) + self.h).view(B, T, D)], dim=1)
+        X = torch.cat([self.x0[:, None], (batched_mv(self.G, u) + self.h).view(B, T, D)], dim=1)
         U = u.view(B, T, -1)
         Y = torch.cat([torch.from_numpy(buf.y0)[:, :, None], y1], dim=2)  # a copy: the buffers are reused
         if self.acceptance.codes(X, U, Y, slack).any():
