@@ -165,6 +165,25 @@ def test_a_step_hands_unusual_iterations_back_to_the_torch_path(monkeypatch):
     assert torch.equal(result.plans, reference.plans) and torch.equal(result.state.lam, reference.state.lam)
 
 
+def test_an_exception_in_a_compiled_solve_hands_the_iteration_to_the_torch_path(monkeypatch):
+    from torch_gpmpc.control.solvers import repeated
+
+    admm, x0, xref, graph = _quadrotor_step()
+    reference = admm.solve_step(x0, xref, graph)
+    original, calls = repeated.solve_points, [0]
+
+    def third_raises(*args, **kwargs):
+        calls[0] += 1
+        if calls[0] == 3:
+            raise FloatingPointError("injected")
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(repeated, "solve_points", third_raises)
+    result = admm.solve_step(x0, xref, graph)
+    assert calls[0] > 3 and result.failed_solves == 0 and result.iterations == reference.iterations
+    assert torch.equal(result.plans, reference.plans)
+
+
 def test_the_repeated_solve_declines_non_finite_terms_and_unconverged_problems():
     admm, x0, xref, graph = _quadrotor_step()
     ctx, state = admm.prepare(x0, xref, graph)

@@ -14,13 +14,15 @@ the README's quadrotor demo.
 The compiled iterations compute the same numbers (the plans, consensus, duals and penalties bit for
 bit; the residual norms to the last bits, see :mod:`~.consensus_kernel`) and hand back to the torch
 path whenever anything is unusual (:meth:`SteadyIterations.iterate` returns ``None``): a local
-problem that does not converge or whose plan the acceptance rule rejects, non-finite terms.
+problem that does not converge or whose plan the acceptance rule rejects, non-finite terms, an
+exception in the solve (the torch path solves that iteration again and counts what fails there).
 :meth:`~.admm.ADMM.solve_step` also runs each step's last iteration through the torch path, so what
 a step reports (its solution, problems, margins, the safety check's data) is that path's.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,6 +35,8 @@ from torch_gpmpc.coordination.consensus_kernel import consensus_step, slot_terms
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.penalty import DUAL_TOL_FACTOR, RHO_BALANCE, RHO_BOUNDS, RHO_FACTOR, checks_dual
 from torch_gpmpc.coordination.state import ADMMState
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -105,7 +109,11 @@ class SteadyIterations:
         w_own = torch.from_numpy(self.w_own)
         buf.l_x[:] = (2.0 * self.xref[:, 1:] + w_own[:, :, 1:].sum(dim=1)).flatten(1).numpy()
         buf.c_x[:] = (1.0 + 0.5 * torch.from_numpy(self.rho_own).sum(dim=1)).numpy()
-        sol = self.solve.solve(state.solver_point)
+        try:
+            sol = self.solve.solve(state.solver_point)
+        except Exception as exc:  # noqa: BLE001 - the torch path solves it again, and counts what fails
+            logger.debug("compiled iteration handed to the torch path: %s: %s", type(exc).__name__, exc)
+            return None
         if sol is None:
             return None
         z_new, lam_new, rho_new, report = np.empty_like(z), np.empty_like(lam), np.empty_like(rho), np.empty(5)
