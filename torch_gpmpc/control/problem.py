@@ -19,6 +19,7 @@ from torch import Tensor
 
 from torch_gpmpc.control.acceptance import failure_codes
 from torch_gpmpc.control.constraints import LocalConstraints
+from torch_gpmpc.control.numpy_views import as_array
 from torch_gpmpc.errors import GpmpcError
 
 #: A slack above this counts as a softened (violated) collision row.
@@ -293,10 +294,6 @@ def acceptance_failures(data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor,
     return torch.from_numpy(AcceptanceCheck(data, nominal_B, constraints).codes(X, U, Y, slack)).to(X.device)
 
 
-def _array(t: Tensor) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
-
-
 class AcceptanceCheck:
     """:func:`acceptance_failures` for the problems of ``data``, their arrays converted once: the
     check of repeated solves of the same problems (ADMM's compiled iterations) converts only the plans.
@@ -307,11 +304,10 @@ class AcceptanceCheck:
 
     def __init__(self, data: LocalProblemData, nominal_B: Tensor, constraints: LocalConstraints) -> None:
         batch, T = data.xref.shape[0], data.xref.shape[1] - 1
-        Bd = _array(nominal_B) if data.dyn_B is None else _array(data.dyn_B)
+        Bd = as_array(nominal_B) if data.dyn_B is None else as_array(data.dyn_B)
         Bd = np.ascontiguousarray(np.broadcast_to(Bd, (batch, T, *Bd.shape[-2:])))
-        self._problem = (_array(data.x0), _array(data.dyn_A), Bd, _array(data.dyn_c), _array(data.normals),
-                         _array(data.bounds),
-                         np.ascontiguousarray(data.active.detach().cpu().numpy(), dtype=np.bool_))
+        self._problem = (as_array(data.x0), as_array(data.dyn_A), Bd, as_array(data.dyn_c), as_array(data.normals),
+                         as_array(data.bounds), as_array(data.active, np.bool_))
         self._limits = (np.asarray(constraints.input_box or (), dtype=np.float64),
                         np.inf if constraints.input_norm is None else float(constraints.input_norm),
                         float(constraints.input_scale), FEASIBILITY_TOL, _CODES)
@@ -320,5 +316,5 @@ class AcceptanceCheck:
         """(B,) int64 failure codes of the plans X (B, T+1, D), U (B, T, Du), Y (B, M, T+1, D) and
         their slacks (B, M, T)."""
         code = np.empty(X.shape[0], dtype=np.int64)
-        failure_codes(_array(X), _array(U), _array(Y), _array(slack), *self._problem, *self._limits, code)
+        failure_codes(as_array(X), as_array(U), as_array(Y), as_array(slack), *self._problem, *self._limits, code)
         return code

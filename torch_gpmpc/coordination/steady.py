@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.config.settings import ControllerSettings
+from torch_gpmpc.control.numpy_views import as_array
 from torch_gpmpc.control.solvers.repeated import RepeatedSolve
 from torch_gpmpc.coordination.consensus_kernel import consensus_step, slot_terms
 from torch_gpmpc.coordination.graph import Graph
@@ -60,10 +61,6 @@ class SteadyResult:
     infeasible_solves: int
 
 
-def _array(t: Tensor, dtype=np.float64) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=dtype)
-
-
 class SteadyIterations:
     """The compiled iterations of one control step (module docstring).
 
@@ -80,8 +77,8 @@ class SteadyIterations:
                  solve: RepeatedSolve) -> None:
         self.solve = solve
         self.edges = graph.edges
-        self.slot_edge, self.slot_side = _array(graph.slot_edge, np.int64), _array(graph.slot_side, np.int64)
-        self.active = _array(graph.active, np.bool_)
+        self.slot_edge, self.slot_side = as_array(graph.slot_edge, np.int64), as_array(graph.slot_side, np.int64)
+        self.active = as_array(graph.active, np.bool_)
         self.xref = xref
         K, M = self.active.shape
         self.rho_own = np.empty((K, M))
@@ -100,8 +97,8 @@ class SteadyIterations:
     def iterate(self, state: ADMMState) -> SteadyResult | None:
         """One compiled iteration from ``state`` (the step's previous iterate), or ``None`` where
         the torch path must take it (module docstring)."""
-        z, lam = _array(state.z), _array(state.lam)
-        rho = _array(state.rho) if self.adaptive else np.full(z.shape[0], self.rho)
+        z, lam = as_array(state.z), as_array(state.lam)
+        rho = as_array(state.rho) if self.adaptive else np.full(z.shape[0], self.rho)
         buf = self.solve.buffers
         slot_terms(z, lam, rho, self.slot_edge, self.slot_side, self.active, self.rho_own, self.w_own, buf.rho_y,
                    buf.w_y, buf.y0)
@@ -117,7 +114,7 @@ class SteadyIterations:
         if sol is None:
             return None
         z_new, lam_new, rho_new, report = np.empty_like(z), np.empty_like(lam), np.empty_like(rho), np.empty(5)
-        consensus_step(_array(sol.X), _array(sol.Y), self.slot_edge, self.slot_side, self.active, z, lam, rho,
+        consensus_step(as_array(sol.X), as_array(sol.Y), self.slot_edge, self.slot_side, self.active, z, lam, rho,
                        self.adaptive, self.tolerances, self.checks_dual, z_new, lam_new, rho_new, report)
         nxt = ADMMState(sol.X, sol.U, self.edges, torch.from_numpy(z_new), torch.from_numpy(lam_new), state.pvar,
                         torch.from_numpy(rho_new) if self.adaptive else None, state.risk_left,

@@ -95,15 +95,16 @@ SOUND_LABEL = "gp-chance (sound)"
 def execute(task: Task) -> str:
     """Run ``task`` unless its rollout is cached; return the rollout path (worker entry point).
 
-    The compiled kernels are loaded first (numba's cache, 0.5-1 s once per process), so that a run's
-    timed closed loop (its ``wall_time_s``, the benchmark's compute per agent-step) holds the
-    controller's work and not a process's one-off load."""
+    With ``solver = fast`` the compiled kernels are loaded first (numba's cache, 0.5-1 s once per
+    process), so that a run's timed closed loop (its ``wall_time_s``, the benchmark's compute per
+    agent-step) holds the controller's work and not a process's one-off load."""
     from torch_gpmpc.coordination import kernels
     from torch_gpmpc.sim.closed_loop import simulate
     from torch_gpmpc.sim.scenarios import make_scenario
 
     if not task.path.exists():
-        kernels.warm_up()
+        if task.cfg.solver == "fast":
+            kernels.warm_up()
         threads = torch.get_num_threads()
         torch.set_num_threads(1)  # small problems: extra threads only add overhead
         try:

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from torch_gpmpc.control.constraints import LocalConstraints
+from torch_gpmpc.control.numpy_views import as_array
 from torch_gpmpc.control.solvers import ipm_threads
 from torch_gpmpc.control.solvers.ipm_batch import (
     KernelLimits, StructureCache, batched_mv, kernel_arrays, point_outputs, solve_points,
@@ -124,7 +125,7 @@ class _LocalQpFunction(torch.autograd.Function):
         def arr(g: Tensor | None, *shape: int) -> np.ndarray:
             if g is None:
                 return np.zeros(shape)
-            return np.ascontiguousarray(g.detach().cpu().numpy(), dtype=np.float64).reshape(shape)
+            return as_array(g).reshape(shape)
 
         def ten(a: np.ndarray) -> Tensor:
             return torch.from_numpy(np.ascontiguousarray(a)).to(dtype=ref.dtype, device=ref.device)

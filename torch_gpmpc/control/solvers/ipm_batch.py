@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.control.constraints import LocalConstraints
+from torch_gpmpc.control.numpy_views import as_array
 from torch_gpmpc.control.solvers import ipm_threads
 
 #: The forward pass returns, and the backward pass differentiates at, a point polished to
@@ -34,7 +35,7 @@ def batched_mv(mat: Tensor, vec: Tensor) -> Tensor:
 
 def kernel_arrays(tensors: tuple[Tensor, ...]) -> list[np.ndarray]:
     """The canonical tensors as C-contiguous float64 NumPy arrays (zero-copy when possible)."""
-    return [np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64) for t in tensors]
+    return [as_array(t) for t in tensors]
 
 
 class StructureCache:
