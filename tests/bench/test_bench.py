@@ -67,6 +67,10 @@ def test_bench_cli_scale_short(tmp_path, monkeypatch):
     runs = result["sections"]["scale"]["whole_runs"]
     assert [(r["method"], r["agents"], r["steps"]) for r in runs] == [("gp-chance", 4, 3), ("nonlinear", 4, 3)]
     assert all(0 < r["step_s_median"] <= r["step_s_max"] and r["step_s_mean"] <= r["step_s_max"] for r in runs)
+    cores = result["sections"]["scale"]["threads"]
+    assert cores["cores"] >= 1
+    [row] = cores["table"]
+    assert row["same_plans"] and row["s_per_step_1_thread"] > 0 and row["s_per_step"] > 0
     assert (tmp_path / "figures" / "bench_scale.png").stat().st_size > 0
 
 

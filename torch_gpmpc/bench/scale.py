@@ -21,6 +21,10 @@ margins), every step until every agent arrives or ``max_steps``. Per run: safety
 worst distance), arrival, ADMM convergence (share of steps converged, steps at the iteration
 cap, fallback steps), iterations per step, and the wall time per control step (mean, median,
 worst; the planning only, as :attr:`~torch_gpmpc.sim.rollout.Rollout.step_time`).
+
+``threads`` times the crowd's first ``CORES_STEPS`` steps (``nonlinear``: no GP to fit) with the
+compiled solver on one thread and on every core (:func:`~torch_gpmpc.control.solvers.ipm_threads.planning_threads`;
+torch's own operations on one thread both times), and checks that the plans are the same bits.
 """
 
 from __future__ import annotations
@@ -30,7 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
+from torch_gpmpc.bench.local import available_cores
 from torch_gpmpc.config.schema import Config
+from torch_gpmpc.control.solvers.ipm_threads import planning_threads
 from torch_gpmpc.sim.closed_loop import simulate
 from torch_gpmpc.sim.metrics import compute_metrics
 from torch_gpmpc.sim.scenarios import make_scenario
@@ -43,6 +49,8 @@ CROWD_AGENTS, CROWD_RADIUS = 100, 10.0
 CROWD_METHODS = ("gp-chance", "nonlinear")
 #: The quick crowd: the same density (agents per square metre) with fewer agents and steps.
 QUICK_CROWD_AGENTS, QUICK_CROWD_STEPS = 12, 30
+#: Steps of the crowd timed on one thread and on every core (the quick form: the quick crowd, 3 steps).
+CORES_STEPS, QUICK_CORES_STEPS = 10, 3
 
 
 def _config(num_agents: int, steps: int, iterations: int | None, solver: str) -> Config:
@@ -127,6 +135,30 @@ def measure_whole_run(cfg: Config) -> dict:
     }
 
 
+def measure_cores(num_agents: int, steps: int) -> dict:
+    """The crowd's first ``steps`` steps (``nonlinear``) planned on one thread and on every core.
+
+    Returns:
+        ``{"table": [row], "cores": n}``; the row has the seconds per step each way, the speed-up
+        and whether the two runs planned the same bits.
+    """
+    cfg = crowd_config(num_agents, "nonlinear", max_steps=steps)
+    scenario = make_scenario(cfg)
+    cores = available_cores()
+    rollouts = {}
+    for threads in sorted({1, cores}):
+        with planning_threads(threads):
+            simulate(cfg.replace(max_steps=1), scenario)  # one-off costs
+            rollouts[threads] = simulate(cfg, scenario)
+    step_s = {n: float(np.mean(r.step_time)) for n, r in rollouts.items()}
+    row = {"workload": f"crowd K={num_agents}, first {steps} steps", "threads": cores,
+           "admm_iterations_per_step": float(np.mean(rollouts[1].admm_iterations)),
+           "s_per_step_1_thread": step_s[1], "s_per_step": step_s[cores],
+           "speedup_vs_one_thread": step_s[1] / step_s[cores],
+           "same_plans": bool(np.array_equal(rollouts[1].plans, rollouts[cores].plans))}
+    return {"table": [row], "cores": cores}
+
+
 def plot(rows: list[dict], path: Path) -> None:
     """Time per step per agent vs K (log-x), written atomically."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -155,7 +187,8 @@ def run(quick: bool = False, out: Path | str | None = None) -> dict:
 
     Args:
         quick: K = 3, 10 only, 2 steps of 3 iterations; the crowd with ``QUICK_CROWD_AGENTS``
-            agents for ``QUICK_CROWD_STEPS`` steps (CI smoke).
+            agents for ``QUICK_CROWD_STEPS`` steps, and ``QUICK_CORES_STEPS`` of it on one thread
+            and every core (CI smoke).
         out: output directory of the bench.
     """
     sizes = TEAM_SIZES[:2] if quick else TEAM_SIZES
@@ -170,6 +203,7 @@ def run(quick: bool = False, out: Path | str | None = None) -> dict:
     crowd, crowd_steps = (QUICK_CROWD_AGENTS, QUICK_CROWD_STEPS) if quick else (CROWD_AGENTS, None)
     result["whole_runs"] = [measure_whole_run(crowd_config(crowd, method, max_steps=crowd_steps))
                             for method in CROWD_METHODS]
+    result["threads"] = measure_cores(crowd, QUICK_CORES_STEPS if quick else CORES_STEPS)
     if out is not None:
         plot(rows, Path(out) / "figures" / "bench_scale.png")
     return result

@@ -29,6 +29,7 @@ from torch_gpmpc.coordination.graph import Graph, communication_graph
 from torch_gpmpc.coordination.state import ADMMState, StepResult
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.config.model_spec import ModelSpec
+from torch_gpmpc.control.solvers.ipm_threads import planning_threads
 from torch_gpmpc.dynamics.plants import Plant, plant_from_config
 from torch_gpmpc.dynamics.systems import TrueSystem
 from torch_gpmpc.dynamics.team import TeamSystem, team_system_from_config
@@ -197,6 +198,9 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem | Plant,
     The planner sees the plant's measured states; the rollout records its true states (what
     arrival, collisions and metrics are judged on). With ``learning``, every agent's GP predicts
     each transition it makes (and with ``gp_online`` learns from it) before the next step's plan.
+    The loop runs under :func:`~torch_gpmpc.control.solvers.ipm_threads.planning_threads`: the
+    compiled solver splits its batches over the caller's thread count (``gpmpc --threads``) while
+    torch's own operations run on one thread (the same states; faster, see that module).
 
     Returns:
         The :class:`Rollout`.
@@ -211,7 +215,7 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem | Plant,
     nominal = plant.nominal
     x = plant.reset(scenario.starts)
     states = [plant.true_states]
-    with torch.no_grad():
+    with torch.no_grad(), planning_threads():
         for t in range(cfg.max_steps):
             if bool(((nominal.positions(states[-1]) - scenario.targets).norm(dim=1) < cfg.goal_tol).all()):
                 break

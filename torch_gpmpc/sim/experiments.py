@@ -111,7 +111,8 @@ def execute(task: Task) -> str:
             cfg = task.cfg
             simulate(cfg, make_scenario(cfg, task.scenario_file or None)).save(task.path)
         finally:
-            torch.set_num_threads(threads)  # the caller's setting, unchanged (workers=1 runs here)
+            torch.set_num_threads(threads)  # the caller's setting, unchanged (workers=1 runs here, and
+            # its solver keeps the caller's thread count: run_tasks plans under planning_threads)
     return str(task.path)
 
 
@@ -125,10 +126,13 @@ def run_tasks(tasks: Sequence[Task], workers: int, on_done: Callable[[Task], Non
     """
     todo = [task for task in tasks if not task.path.exists()]
     if workers <= 1:
-        for task in todo:
-            execute(task)
-            if on_done is not None:
-                on_done(task)
+        from torch_gpmpc.control.solvers.ipm_threads import planning_threads
+
+        with planning_threads():  # in this process the solver keeps the caller's threads (--threads)
+            for task in todo:
+                execute(task)
+                if on_done is not None:
+                    on_done(task)
         return
     from torch_gpmpc.coordination import kernels
 

@@ -364,6 +364,66 @@ def _fill_rows_on_two_threads() -> None:
     assert np.all(out == 1.0)
 
 
+def test_planning_threads_hold_the_kernel_count_with_torch_on_one_thread_and_restore_both():
+    """Inside ``planning_threads(n)`` the kernel splits over n threads while torch runs on one
+    (its spinning OpenMP threads would take the kernel's core); nested uses keep the outer count;
+    both counts come back on exit, also after an error, and a count below 1 is refused."""
+    from torch_gpmpc.control.solvers import ipm_threads
+
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        assert ipm_threads.kernel_threads() == 2
+        with ipm_threads.planning_threads(3) as count:
+            assert count == 3 and ipm_threads.kernel_threads() == 3 and torch.get_num_threads() == 1
+            with ipm_threads.planning_threads():
+                assert ipm_threads.kernel_threads() == 3 and torch.get_num_threads() == 1
+            assert ipm_threads.kernel_threads() == 3
+        assert ipm_threads.kernel_threads() == 2 and torch.get_num_threads() == 2
+        with pytest.raises(RuntimeError):
+            with ipm_threads.planning_threads(2):
+                raise RuntimeError("a failed run")
+        assert ipm_threads.kernel_threads() == 2 and torch.get_num_threads() == 2
+        with pytest.raises(ValueError, match="threads must be >= 1"):
+            with ipm_threads.planning_threads(0):
+                pass
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_a_closed_loop_on_two_threads_plans_the_same_bits_with_the_kernel_split(monkeypatch):
+    """A 12-agent crowd's closed loop under ``--threads 2``: the solver's batches are split in two
+    blocks (counted), torch runs on one thread meanwhile, and the rollout is the one-thread run's."""
+    from torch_gpmpc.config.schema import Config
+    from torch_gpmpc.control.solvers import ipm_threads
+    from torch_gpmpc.sim.closed_loop import simulate
+
+    cfg = Config(scenario="random", num_agents=12, circle_radius=10 * (12 / 100) ** 0.5, comm_radius=2.5,
+                 method="nonlinear", max_steps=3)
+    split, torch_threads = [], []
+    original = ipm_threads.block_bounds
+
+    def counted(rows, threads):
+        torch_threads.append(torch.get_num_threads())
+        blocks = original(rows, threads)
+        split.append(len(blocks))
+        return blocks
+
+    monkeypatch.setattr(ipm_threads, "block_bounds", counted)
+    threads = torch.get_num_threads()
+    runs = []
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            split.clear()
+            runs.append(simulate(cfg))
+            assert max(split) == n and set(torch_threads) == {1}
+            assert torch.get_num_threads() == n  # restored after the loop
+    finally:
+        torch.set_num_threads(threads)
+    assert np.array_equal(runs[0].plans, runs[1].plans) and np.array_equal(runs[0].states, runs[1].states)
+
+
 def test_a_forked_process_gets_worker_threads_of_its_own():
     """A process forked after the parent ran blocks on two threads gets its own worker threads
     (a copied pool's threads do not survive a fork, and waiting on them would hang). Torch's
