@@ -21,7 +21,7 @@ from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.config.plant import PLANTS, VEHICLES, WINDS
 from torch_gpmpc.config.team import TeamSpec, team_spec
 from torch_gpmpc.config.settings import (
-    CONTROLLER_CHOICES, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings, check_risk_mode,
+    CONTROLLER_CHOICES, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings, check_coupling, check_risk_mode,
     controller_keys, parse_world, resolve_uncertainty,
 )
 from torch_gpmpc.errors import GpmpcError
@@ -63,6 +63,9 @@ class Config:
         admm_acceleration: ``off`` or ``anderson`` (type-II Anderson acceleration of each step's
             consensus and duals, :mod:`torch_gpmpc.coordination.acceleration`).
         admm_anderson_memory: how many past iterates the Anderson mix uses.
+        admm_coupling: what neighbours agree on: ``copies`` (the paper's copies of the pair's
+            trajectories) or ``planes`` (a separating-plane offset per edge and horizon step;
+            :mod:`torch_gpmpc.coordination.planes`).
         comm_radius: agents closer than this communicate; ``None`` = all pairs.
         goal_tol: an agent has arrived when within this distance of its target.
         max_steps: closed-loop step cap.
@@ -194,6 +197,7 @@ class Config:
     admm_max_iter: int = 100
     admm_acceleration: str = "off"
     admm_anderson_memory: int = 5
+    admm_coupling: str = "copies"
     admm_stop: str = "primal-dual"
     rho_update: str = "adaptive"
     comm_radius: float | None = None
@@ -257,6 +261,7 @@ class Config:
         coerce_lists(self)  # plant_wind_speed = [1, 0, 0], radii = [0.2, 0.3] from Python, TOML or --set
         validate(self, RULES)
         check_risk_mode(self.risk_mode, self.method, self.pair_margin, "config key")
+        check_coupling(self.admm_coupling, self.admm_acceleration, self.relinearize, "config key")
         if isinstance(self.model, str):
             check_model_name(self.model)
         if self.models is not None:

@@ -34,6 +34,7 @@ RISK_MODES = ("pair_step", "mission")
 SOLVERS = ("fast", "clarabel", "reference")
 SAFETY_FALLBACKS = ("cells", "obstacles")
 ADMM_ACCELERATIONS = ("off", "anderson")
+ADMM_COUPLINGS = ("copies", "planes")
 
 CONTROLLER_CHOICES: dict[str, tuple] = {
     "uncertainty": ("auto", *UNCERTAINTY_MODES),
@@ -46,6 +47,7 @@ CONTROLLER_CHOICES: dict[str, tuple] = {
     "risk_mode": RISK_MODES,
     "safety_fallback": SAFETY_FALLBACKS,
     "admm_acceleration": ADMM_ACCELERATIONS,
+    "admm_coupling": ADMM_COUPLINGS,
 }
 
 CONTROLLER_RANGES: dict[str, tuple[typing.Callable[[typing.Any], bool], str]] = {
@@ -111,6 +113,10 @@ class ControllerSettings:
         admm_tol, admm_dual_tol, admm_rel_tol, admm_stop, admm_max_iter: ADMM stopping.
         admm_acceleration: ``off`` or ``anderson`` (each step's consensus and duals mixed by
             :mod:`~torch_gpmpc.coordination.acceleration`); admm_anderson_memory: its history.
+        admm_coupling: what neighbours agree on: ``copies`` (the paper: each agent's copy of the
+            pair's trajectories) or ``planes`` (one separating-plane offset per edge and horizon step,
+            :mod:`~torch_gpmpc.coordination.planes`; in process, one model, no Anderson, no
+            ``relinearize``).
         relinearize: re-linearize at every ADMM iterate (Algorithm 1, step 9).
         comm_radius: agents closer than this communicate (``None``: all pairs).
         workspace: a soft box on the positions (:class:`~torch_gpmpc.config.workspace.Workspace`,
@@ -152,6 +158,7 @@ class ControllerSettings:
     admm_max_iter: int = 100
     admm_acceleration: str = "off"
     admm_anderson_memory: int = 5
+    admm_coupling: str = "copies"
     relinearize: bool = False
     comm_radius: float | None = None
     workspace: Workspace | None = None
@@ -170,6 +177,7 @@ class ControllerSettings:
         coerce_lists(self)  # radii = [0.2, 0.3] from Python
         validate(self, RULES)
         check_risk_mode(self.risk_mode, self.method, self.pair_margin, "controller setting")
+        check_coupling(self.admm_coupling, self.admm_acceleration, self.relinearize, "controller setting")
 
     def replace(self, **changes: typing.Any) -> "ControllerSettings":
         """A copy with ``changes`` applied (same checks; unknown keys name the nearest one)."""
@@ -226,6 +234,23 @@ def check_risk_mode(risk_mode: str, method: str, pair_margin: str, what: str) ->
         raise GpmpcError(f"{what} 'risk_mode': mission needs a sound pair margin (the pair's risk is the sum "
                          "of its agents' shares), but pair_margin=own is the paper's unsound one; "
                          "use pair_margin=sum or joint")
+
+
+def check_coupling(coupling: str, acceleration: str, relinearize: bool, what: str) -> None:
+    """Plane coupling mixes no Anderson history and keeps its planes in the frame of one
+    linearization per step.
+
+    Raises:
+        GpmpcError: ``admm_coupling = planes`` with ``admm_acceleration = anderson`` or ``relinearize``.
+    """
+    if coupling != "planes":
+        return
+    if acceleration != "off":
+        raise GpmpcError(f"{what} 'admm_coupling': planes has no Anderson acceleration yet; "
+                         "use admm_acceleration=off, or admm_coupling=copies")
+    if relinearize:
+        raise GpmpcError(f"{what} 'admm_coupling': planes keeps one linearization per step; "
+                         "use relinearize=false, or admm_coupling=copies")
 
 
 def resolve_uncertainty(uncertainty: str, spec: ModelSpec) -> str:

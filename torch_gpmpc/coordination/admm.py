@@ -23,6 +23,10 @@ fixed rho stops on a feasible consensus that is not yet optimal. With ``admm_acc
 anderson`` each iteration of a step starts from the Anderson mix of the last iterates' consensus
 and duals (:mod:`~torch_gpmpc.coordination.acceleration`).
 
+With ``admm_coupling = planes`` (:mod:`~torch_gpmpc.coordination.planes`) neighbours agree instead
+on one separating-plane offset per edge and horizon step: the same team problem, fewer iterations
+where many pairs are coupled, T numbers per message.
+
 Messages: per iteration agent k sends its copy ``y_{e,k}`` (``2 (T+1) n`` numbers, n the
 model's state size) and, with the ``sum``/``joint`` margins, its T projected variances to each
 neighbour. The paper counts
@@ -63,6 +67,9 @@ from torch_gpmpc.coordination.mission_risk import (
     RISK_FLOOR, agent_charges, edge_allotments, edge_separations, obstacle_risk_bounds, pair_matrix,
     pair_risk_bounds, row_allotments, slot_risks_from_edges, starting_budgets,
 )
+from torch_gpmpc.coordination.planes import (
+    PlaneIterations, midpoint_planes, plane_consensus, plane_geometry, plane_offsets, plane_problem, plane_residuals,
+)
 from torch_gpmpc.coordination.penalty import (
     balance_penalty, edge_residuals, should_stop, starting_penalties, unconverged_edges,
 )
@@ -70,6 +77,7 @@ from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult
 from torch_gpmpc.coordination.steady import SteadyIterations
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
+from torch_gpmpc.errors import GpmpcError
 
 __all__ = ["ADMM", "ADMMState", "IterationStats", "StepContext", "StepResult", "adapt_state", "consensus_update",
            "initial_state"]
@@ -120,6 +128,8 @@ class StepContext:
             ``U_{-1}``), from the warm start; ``None``: 0 (a cold start).
         convexification: the last iterate's convexification (its obstacle rows are charged to a
             mission budget).
+        planes_posed: with ``admm_coupling = planes``, the last iteration's plane problems and their
+            :class:`~.planes.PlaneGeometry` (what the compiled plane iterations keep).
     """
 
     x0: Tensor
@@ -137,6 +147,7 @@ class StepContext:
     u_prev: Tensor | None = None
     eps_obstacle: Tensor | None = None
     convexification: Any = None
+    planes_posed: Any = None
 
 
 class ADMM:
@@ -244,9 +255,14 @@ class ADMM:
             tol: absolute primal tolerance of the stopping test (default ``settings.admm_tol``).
         """
         s = self.settings
+        if s.admm_coupling == "planes" and not isinstance(self.agent_step, LocalStep):
+            raise GpmpcError("admm_coupling=planes plans teams of one model for now; use admm_coupling=copies "
+                             "for a team with 'models'")
         rho_t = torch.as_tensor(s.rho if rho is None else rho, dtype=x0.dtype)
         state = initial_state(x0, s.horizon, graph, self.nominal.input_dim) if warm is None \
             else adapt_state(warm, graph)
+        if state.planes is not None:  # a step's planes start from its own linearization
+            state = dataclasses.replace(state, planes=None)
         eps_edge = eps_obstacle = None
         if s.risk_mode == "mission":
             remaining = starting_budgets(graph.num_agents, s.risk_budget, x0) if state.risk_left is None \
@@ -271,17 +287,11 @@ class ADMM:
         """One ADMM iteration: local solves (failed agents keep their previous plans), consensus,
         duals, penalty update. Returns the next iterate and what the iteration measured."""
         s, graph, step = self.settings, ctx.graph, self.agent_step
+        if s.admm_coupling == "planes" and graph.num_edges:
+            return self._iterate_planes(ctx, state)
         adaptive = s.rho_update == "adaptive"
-        lin_state = state if ctx.lin_plans is None else \
-            dataclasses.replace(state, plans=ctx.lin_plans, inputs=ctx.lin_inputs)
         rho_now = state.rho if adaptive else ctx.rho
-        rho_slots = state.rho[graph.slot_edge] if adaptive and graph.num_edges else ctx.rho
-        assembled = step.assemble(ctx.x0, ctx.xref, lin_state, graph, rho_slots, ctx.eps_self,
-                                  linearization=ctx.linearization, eps_nbr=ctx.eps_nbr, u_prev=ctx.u_prev,
-                                  eps_obstacle=ctx.eps_obstacle)
-        if ctx.lin_plans is not None:
-            ctx.linearization = assembled.linearization
-        ctx.convexification = assembled.linearization
+        assembled = self._assemble(ctx, state)
         data = assembled.data
         t0 = time.perf_counter()
         sol = step.solve(ctx.layer, data, state.solver_point)
@@ -311,6 +321,64 @@ class ADMM:
             pvar = edge_variances(assembled.own_variance, graph, state.pvar)
         return ADMMState(sol.X, sol.U, graph.edges, z_new, lam, pvar, rho_now if adaptive else None,
                          state.risk_left, solver_point=sol.solver_point), stats
+
+    def _assemble(self, ctx: StepContext, state: ADMMState):
+        """The iteration's local problems (:meth:`~.agent_step.LocalStep.assemble`) at the step's
+        linearization (computed once and kept in ``ctx``), or at ``state`` with ``relinearize``."""
+        s, graph = self.settings, ctx.graph
+        adaptive = s.rho_update == "adaptive"
+        lin_state = state if ctx.lin_plans is None else \
+            dataclasses.replace(state, plans=ctx.lin_plans, inputs=ctx.lin_inputs)
+        rho_slots = state.rho[graph.slot_edge] if adaptive and graph.num_edges else ctx.rho
+        assembled = self.agent_step.assemble(ctx.x0, ctx.xref, lin_state, graph, rho_slots, ctx.eps_self,
+                                             linearization=ctx.linearization, eps_nbr=ctx.eps_nbr,
+                                             u_prev=ctx.u_prev, eps_obstacle=ctx.eps_obstacle)
+        if ctx.lin_plans is not None:
+            ctx.linearization = assembled.linearization
+        ctx.convexification = assembled.linearization
+        return assembled
+
+    def _iterate_planes(self, ctx: StepContext, state: ADMMState) -> tuple[ADMMState, IterationStats]:
+        """:meth:`iterate` with ``admm_coupling = planes`` (:mod:`~.planes`): local solves on plane
+        halves, then each edge's plane consensus, duals and penalty. The iteration reports the
+        assembled problems (full rows: what the safety check and a centralized solve use)."""
+        s, graph, step = self.settings, ctx.graph, self.agent_step
+        adaptive = s.rho_update == "adaptive"
+        assembled = self._assemble(ctx, state)
+        data = assembled.data
+        geometry = plane_geometry(data, graph)
+        planes = state.planes if state.planes is not None else \
+            midpoint_planes(geometry, state.plans if ctx.lin_plans is None else ctx.lin_plans, graph,
+                            self.nominal.position)
+        duals = state.plane_duals if state.plane_duals is not None else planes.new_zeros(graph.num_edges, 2,
+                                                                                        planes.shape[1])
+        rho = state.rho if adaptive else ctx.rho.expand(graph.num_edges)
+        posed = plane_problem(data, geometry, planes[:, None] - duals / rho[:, None, None], rho)
+        ctx.planes_posed = (posed, geometry)
+        t0 = time.perf_counter()
+        sol = step.solve(ctx.layer, posed, state.solver_point)
+        solve_time = time.perf_counter() - t0
+        stats = IterationStats(solution=sol, problem=data, primal=ctx.x0.new_zeros(()), dual=ctx.x0.new_zeros(()),
+                               max_margin=float(assembled.max_margin.detach()), solve_time_s=solve_time)
+        step.count_failures(sol, stats)
+        offsets = plane_offsets(sol, geometry, planes)
+        sol = fall_back_to_previous(sol, state, graph)
+        stats.solution = sol
+        stats.infeasible_solves = int((sol.slack_active | ~sol.ok).sum())
+        planes_new, duals, gaps, dual_norms = plane_consensus(offsets, planes, duals, rho)
+        res = plane_residuals(gaps, dual_norms, duals, s)
+        stop = res if ctx.tol == s.admm_tol else plane_residuals(gaps, dual_norms, duals, s, ctx.tol)
+        stats.primal, stats.dual = res.primal.max(), res.dual.max()
+        stats.primal_ratio = float(stop.primal_ratio.max().detach())
+        stats.dual_ratio = float(stop.dual_ratio.max().detach())
+        stats.unconverged_edges = unconverged_edges(stop, s)
+        pvar = state.pvar
+        if assembled.own_variance is not None:
+            pvar = edge_variances(assembled.own_variance, graph, state.pvar)
+        nxt = ADMMState(sol.X, sol.U, graph.edges, state.z, state.lam, pvar,
+                        balance_penalty(rho, res) if adaptive else None, state.risk_left,
+                        solver_point=sol.solver_point, planes=planes_new, plane_duals=duals)
+        return nxt, stats
 
     def solve_step(
         self,
@@ -379,9 +447,10 @@ class ADMM:
         return result
 
     def _steady_iterations(self, ctx: StepContext, state: ADMMState, stats: IterationStats,
-                           accelerator: AndersonAcceleration | None) -> SteadyIterations | None:
-        """The step's compiled iterations (:mod:`~.steady`) after its second iteration (``state``,
-        ``stats``), or ``None`` where they do not apply: ``admm_compiled`` off, Anderson acceleration,
+                           accelerator: AndersonAcceleration | None) -> SteadyIterations | PlaneIterations | None:
+        """The step's compiled iterations (:mod:`~.steady`; :class:`~.planes.PlaneIterations` with
+        ``admm_coupling = planes``) after its second iteration (``state``, ``stats``), or ``None`` where
+        they do not apply: ``admm_compiled`` off, Anderson acceleration,
         a linearization per iterate, no edge, a solver other than ``fast`` with warm starts, a failed
         solve, gradients wanted, or tensors not float64 on the CPU."""
         if not self.settings.admm_compiled or accelerator is not None or ctx.lin_plans is None \
@@ -395,6 +464,11 @@ class ADMM:
         if torch.is_grad_enabled() and any(t is not None and t.requires_grad
                                            for t in (state.plans, state.z, state.lam, state.rho, ctx.rho)):
             return None
+        if self.settings.admm_coupling == "planes":
+            posed, geometry = ctx.planes_posed
+            solve = layer.repeated(posed)
+            return None if solve is None else PlaneIterations(self.settings, ctx.graph, posed, geometry, ctx.rho,
+                                                              ctx.tol, solve)
         solve = layer.repeated(stats.problem)
         return None if solve is None else SteadyIterations(self.settings, ctx.graph, ctx.xref, ctx.rho, ctx.tol, solve)
 

@@ -331,14 +331,13 @@ class InteriorPointMPC(nn.Module):
     def repeated(self, data: LocalProblemData) -> RepeatedSolve | None:
         """``data``'s problems kept for solves with new consensus terms only (ADMM's later iterations
         of a control step; :mod:`~torch_gpmpc.control.solvers.repeated`), or ``None`` where they cannot
-        be: the neighbour copies carry their own ``rho_nbr``, or the fixed part is not finite.
+        be: the fixed part is not finite. The caller writes every consensus term before each solve
+        (the copies' penalties ``rho``/``rho_nbr`` are terms, not part of the kept problems).
 
         Args:
             data: the problems as last solved by this layer (shapes as in :meth:`forward`).
         """
         batch = data.validate(self.horizon, self.dim, self.num_neighbors, self.input_dim, self.num_halfspaces)
-        if data.rho_nbr is not None:
-            return None
         B = self._input_matrix(data)
         canon = with_state_rows(canonicalize(data, B, self._condensed, self.input_rate_weight),
                                 self._state_rows(data, batch))

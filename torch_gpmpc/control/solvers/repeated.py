@@ -81,7 +81,7 @@ class RepeatedSolve:
 
     Args:
         data: the problems as last posed (their fixed part is kept; shapes as
-            :class:`~torch_gpmpc.control.problem.LocalProblemData`, ``rho_nbr`` None).
+            :class:`~torch_gpmpc.control.problem.LocalProblemData`).
         canon: ``data`` in canonical form with the soft state rows appended
             (:func:`~.canonical.with_state_rows`): G (B, T*D, T*Du), normals (B, M + L, T, D), ...
         structure: the kernel's structure of ``canon`` (``GtG (B, n, n), A (B, (M + L) T, n)``).
