@@ -33,6 +33,24 @@ def test_graph_slots_map_each_edge_to_both_ends():
     assert not g.active[3].any()
 
 
+def test_graph_slots_hold_each_agents_edges_in_edge_order_on_random_graphs():
+    """The vectorized slot view against the definition, one edge at a time: agent k's slot m holds
+    the m-th edge (in edge order) that has k as an end; unused slots are inactive and point at k."""
+    gen = torch.Generator().manual_seed(3)
+    for trial in range(50):
+        K = int(torch.randint(1, 12, (1,), generator=gen))
+        raw = torch.randint(0, K, (int(torch.randint(0, 30, (1,), generator=gen)), 2), generator=gen).tolist()
+        g = graph_from_edges(K, [tuple(e) for e in raw])
+        assert g.edges.tolist() == [list(p) for p in sorted({(min(i, j), max(i, j)) for i, j in raw if i != j})]
+        for k in range(K):
+            mine = [(e, 0 if lo == k else 1, hi if lo == k else lo) for e, (lo, hi) in enumerate(g.edges.tolist())
+                    if k in (lo, hi)]
+            assert g.active[k].tolist() == [m < len(mine) for m in range(g.num_slots)]
+            for m in range(g.num_slots):
+                expected = mine[m] if m < len(mine) else (0, 0, k)
+                assert (int(g.slot_edge[k, m]), int(g.slot_side[k, m]), int(g.slot_nbr[k, m])) == expected
+
+
 def test_communication_radius_selects_pairs():
     x = torch.tensor([[0.0, 0.0], [1.0, 0.0], [3.0, 0.0]], dtype=torch.float64)
     assert communication_graph(x, 1.5).edges.tolist() == [[0, 1]]

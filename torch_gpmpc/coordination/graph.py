@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -66,19 +67,27 @@ def graph_from_edges(num_agents: int, edges: list[tuple[int, int]]) -> Graph:
         edges: pairs ``(i, j)``, ``i != j``; order and duplicates do not matter.
     """
     pairs = sorted({(min(i, j), max(i, j)) for i, j in edges if i != j})
-    neighbours: list[list[tuple[int, int, int]]] = [[] for _ in range(num_agents)]
-    for e, (lo, hi) in enumerate(pairs):
-        neighbours[lo].append((e, 0, hi))
-        neighbours[hi].append((e, 1, lo))
-    slots = max((len(n) for n in neighbours), default=0)
+    edge_array = np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    E = edge_array.shape[0]
+    # each edge's two ends as (agent, edge, side, neighbour); an agent's slots hold its edges in
+    # edge order (one vectorized sort: per-element tensor writes took 5 ms for 190 edges)
+    agent = np.concatenate([edge_array[:, 0], edge_array[:, 1]])
+    edge = np.concatenate([np.arange(E), np.arange(E)])
+    side = np.concatenate([np.zeros(E, np.int64), np.ones(E, np.int64)])
+    nbr = np.concatenate([edge_array[:, 1], edge_array[:, 0]])
+    order = np.lexsort((edge, agent))
+    agent, edge, side, nbr = agent[order], edge[order], side[order], nbr[order]
+    degree = np.bincount(agent, minlength=num_agents)
+    slot = np.arange(agent.shape[0]) - np.repeat(np.cumsum(degree) - degree, degree)
+    slots = int(degree.max()) if num_agents else 0
     slot_edge = torch.zeros(num_agents, slots, dtype=torch.long)
     slot_side = torch.zeros(num_agents, slots, dtype=torch.long)
     slot_nbr = torch.arange(num_agents).unsqueeze(1).repeat(1, slots)
     active = torch.zeros(num_agents, slots, dtype=torch.bool)
-    for k, entries in enumerate(neighbours):
-        for m, (e, side, nbr) in enumerate(entries):
-            slot_edge[k, m], slot_side[k, m], slot_nbr[k, m], active[k, m] = e, side, nbr, True
-    edge_tensor = torch.tensor(pairs, dtype=torch.long).reshape(-1, 2)
+    at = (torch.from_numpy(agent), torch.from_numpy(slot))
+    slot_edge[at], slot_side[at], slot_nbr[at], active[at] = (torch.from_numpy(edge), torch.from_numpy(side),
+                                                              torch.from_numpy(nbr), True)
+    edge_tensor = torch.from_numpy(edge_array)
     return Graph(num_agents, edge_tensor, slot_edge, slot_side, slot_nbr, active)
 
 
