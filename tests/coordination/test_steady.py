@@ -220,3 +220,23 @@ def test_compiled_iterations_stay_off_when_gradients_are_wanted(monkeypatch):
     rho = torch.tensor(20.0, dtype=F64, requires_grad=True)
     result = admm.with_settings(admm_max_iter=6).solve_step(x0, xref, graph, rho=rho)
     assert counts[0] == 0 and result.plans.requires_grad
+
+
+@pytest.mark.parametrize("method, torch_path_iterations", [("nominal", 2), ("gp-chance", 3)])
+def test_compiled_iterations_start_after_the_first_where_no_variances_are_exchanged(method, torch_path_iterations,
+                                                                                    monkeypatch):
+    """Without exchanged variances a step's problems are fixed from its first iteration, so only that
+    one and the last run through the torch path; with them (the margins read the neighbours'
+    variances reported at the first iteration) the first two and the last."""
+    calls = [0]
+    original = ADMM.iterate
+
+    def counted(self, ctx, state):
+        calls[0] += 1
+        return original(self, ctx, state)
+
+    monkeypatch.setattr(ADMM, "iterate", counted)
+    rollout = simulate(Config(scenario="circle", num_agents=6, method=method, noise_std=0.0, max_steps=20,
+                              gp_iters=10))
+    expected = int(np.minimum(rollout.admm_iterations, torch_path_iterations).sum())
+    assert rollout.admm_iterations.max() > torch_path_iterations and calls[0] == expected

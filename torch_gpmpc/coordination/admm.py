@@ -37,8 +37,8 @@ Everything is torch: with gradients enabled, an unrolled ADMM is differentiable 
 rho, the risk split and the problem data (used by ``gpmpc tune``). One iteration is
 :meth:`ADMM.iterate`; a control step (:meth:`ADMM.solve_step`) is that loop plus the stopping
 test and the safety check; the tuner's unroll is the same loop without stopping. Within
-:meth:`ADMM.solve_step`, the iterations after a step's second, whose problems change only in their
-consensus terms, run as compiled calls where nothing needs gradients (``admm_compiled``,
+:meth:`ADMM.solve_step`, the iterations after a step's second (its first where no variances are
+exchanged), whose problems change only in their consensus terms, run as compiled calls where nothing needs gradients (``admm_compiled``,
 :mod:`~torch_gpmpc.coordination.steady`): the same plans, bit for bit.
 """
 
@@ -432,7 +432,9 @@ class ADMM:
             if should_stop(stats.primal_ratio, stats.dual_ratio, s):
                 result.converged = True
                 break
-            if it == 1:  # from the second iteration on the problems change only in their consensus terms
+            # the problems change only in their consensus terms from the second iteration on (from the
+            # first where no variances are exchanged: the margins then do not read the neighbours')
+            if it == 1 or (it == 0 and not self.agent_step.exchanges_variance):
                 steady = self._steady_iterations(ctx, state, stats, accelerator)
             if accelerator is not None and it < max_iter - 1:  # a capped step keeps its plain iterate
                 state = accelerator.next_input(previous, state)
@@ -449,7 +451,7 @@ class ADMM:
     def _steady_iterations(self, ctx: StepContext, state: ADMMState, stats: IterationStats,
                            accelerator: AndersonAcceleration | None) -> SteadyIterations | PlaneIterations | None:
         """The step's compiled iterations (:mod:`~.steady`; :class:`~.planes.PlaneIterations` with
-        ``admm_coupling = planes``) after its second iteration (``state``, ``stats``), or ``None`` where
+        ``admm_coupling = planes``) from the iteration after ``state``, ``stats`` on, or ``None`` where
         they do not apply: ``admm_compiled`` off, Anderson acceleration,
         a linearization per iterate, no edge, a solver other than ``fast`` with warm starts, a failed
         solve, gradients wanted, or tensors not float64 on the CPU."""

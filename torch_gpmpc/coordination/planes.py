@@ -171,7 +171,7 @@ def plane_residuals(primal: Tensor, dual: Tensor, duals: Tensor, cfg: Controller
 
 
 class PlaneIterations:
-    """A control step's plane iterations after its second on the kept problems (the planes' form of
+    """A control step's later plane iterations on the kept problems (the planes' form of
     :class:`~.steady.SteadyIterations`): only the copies' targets and weights change, so each
     iteration writes their terms (as :func:`~torch_gpmpc.control.solvers.canonical.canonicalize`
     computes them from :func:`plane_problem`) into a

@@ -1,9 +1,9 @@
-"""ADMM's compiled iterations: a control step's iterations after its second, where only the
-consensus, the duals and the penalties change.
+"""ADMM's compiled iterations: a control step's iterations after its second (after its first where
+no variances are exchanged), where only the consensus, the duals and the penalties change.
 
 With a frozen linearization (``relinearize = false``, the default) every local problem of a step
 keeps its dynamics, rows and margins from the second iteration on (the margins read the variances
-the neighbours reported at the first), so an iteration is: consensus terms from ``z, lam, rho``
+the neighbours reported at the first; without exchanged variances from the first), so an iteration is: consensus terms from ``z, lam, rho``
 (:func:`~.consensus_kernel.slot_terms`, their sums over slots in torch), the local solves on the
 kept problems (:class:`~torch_gpmpc.control.solvers.repeated.RepeatedSolve`: warm active-set
 solves from the last points), then consensus, duals, residuals and residual balancing
