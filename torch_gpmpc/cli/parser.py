@@ -26,9 +26,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads, and the threads the compiled solver splits a "
-                             "batch of local problems over (default 1: parallel commands already "
-                             "use one process per core)")
+                        help="the threads the compiled solver splits a batch of local problems over, "
+                             "and torch's intra-op threads outside the closed loop (inside it torch runs "
+                             "on one; default 1: parallel commands already use one process per core)")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     p = sub.add_parser("collect", help="log transitions of the true system (paper data recipe)")

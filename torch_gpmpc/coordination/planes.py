@@ -108,14 +108,21 @@ def plane_problem(data: LocalProblemData, geometry: PlaneGeometry, targets: Tens
     g = geometry
     normals = torch.zeros_like(data.normals).index_put((g.agent, g.slot), g.sign[:, None, None] * g.normals[g.edge])
     bounds = torch.zeros_like(data.bounds).index_put((g.agent, g.slot), g.distance[g.edge] / 2)
-    unit = g.normals[g.edge] / g.normals[g.edge].square().sum(-1, keepdim=True).clamp_min(1e-300)
+    along = along_normals(g)
     pull = torch.zeros_like(data.z_nbr)
-    pull = pull.index_put((g.agent, g.slot), torch.cat([torch.zeros_like(unit[:, :1]),
-                                                        targets[g.edge, g.side][..., None] * unit], dim=1))
-    weight = torch.zeros(data.active.shape, dtype=data.bounds.dtype).index_put((g.agent, g.slot), rho[g.edge])
+    pull = pull.index_put((g.agent, g.slot), torch.cat([torch.zeros_like(along[:, :1]),
+                                                        targets[g.edge, g.side][..., None] * along], dim=1))
+    weight = data.bounds.new_zeros(data.active.shape).index_put((g.agent, g.slot), rho[g.edge])
     zero = torch.zeros_like(data.z_own)
-    return dataclasses.replace(data, normals=normals, bounds=bounds, rho=torch.zeros((), dtype=data.bounds.dtype),
+    return dataclasses.replace(data, normals=normals, bounds=bounds, rho=data.bounds.new_zeros(()),
                                rho_nbr=weight, z_own=zero, lam_own=zero, z_nbr=pull, lam_nbr=zero)
+
+
+def along_normals(geometry: PlaneGeometry) -> Tensor:
+    """(S, T, n) each active slot's edge normal over its squared length, ``n / |n|^2``: the copy
+    ``c n / |n|^2`` has offset ``n^T Y = c`` (the normals are unit, except an all-zero one)."""
+    normals = geometry.normals[geometry.edge]
+    return normals / normals.square().sum(-1, keepdim=True).clamp_min(1e-300)
 
 
 def plane_offsets(solution: LocalSolution, geometry: PlaneGeometry, fallback: Tensor) -> Tensor:
@@ -202,8 +209,7 @@ class PlaneIterations:
         buf.rho_y[:, :M] = terms.rho_y.numpy()
         buf.w_y[:, :M] = terms.w_nbr[:, :, 1:].numpy()
         buf.y0[:] = (terms.w_nbr[:, :, 0] / terms.rho_y[:, :, None]).numpy()
-        self.unit = geometry.normals[geometry.edge] / \
-            geometry.normals[geometry.edge].square().sum(-1, keepdim=True).clamp_min(1e-300)
+        self.along = along_normals(geometry)
         self.agent, self.slot = geometry.agent.numpy(), geometry.slot.numpy()
 
     def iterate(self, state: ADMMState) -> SteadyResult | None:
@@ -214,7 +220,7 @@ class PlaneIterations:
         # the active slots' terms as plane_problem and ConsensusTerms.of make them (the same bits)
         weight = rho[g.edge]
         buf.rho_y[self.agent, self.slot] = weight.numpy()
-        buf.w_y[self.agent, self.slot] = (weight[:, None, None] * (targets[g.edge, g.side][..., None] * self.unit)).numpy()
+        buf.w_y[self.agent, self.slot] = (weight[:, None, None] * (targets[g.edge, g.side][..., None] * self.along)).numpy()
         try:
             sol = self.solve.solve(state.solver_point)
         except Exception as exc:  # noqa: BLE001 - the torch path solves it again, and counts what fails
