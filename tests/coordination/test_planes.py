@@ -162,15 +162,35 @@ def test_planes_refuse_what_they_do_not_support_yet(changes, key):
         ControllerSettings(admm_coupling="planes", **changes)
 
 
-def test_planes_refuse_the_distributed_backend_and_tuning():
+def test_planes_refuse_the_distributed_backend_and_mixed_teams():
     from torch_gpmpc.sim.distributed import simulate_distributed
-    from torch_gpmpc.tuning.objective import TuningObjective
 
     cfg = Config(admm_coupling="planes", method="nominal", noise_std=0.0, max_steps=2)
     with pytest.raises(GpmpcError, match="planes runs in process only"):
         simulate_distributed(cfg)
-    with pytest.raises(GpmpcError, match="admm_coupling"):
-        TuningObjective(ADMM(cfg), [object()])
+    team = Config(admm_coupling="planes", method="nominal", noise_std=0.0, max_steps=2, scenario="circle",
+                  num_agents=2, models=["single-integrator", "double-integrator"])
+    with pytest.raises(GpmpcError, match="admm_coupling=planes plans teams of one model"):
+        simulate(team)
+
+
+def test_tuning_gradients_through_the_planes_match_finite_differences():
+    """``gpmpc tune``'s objective through the unrolled plane ADMM (4 iterations, 2 MPC steps,
+    adaptive rho, sum margins): d loss / d (log rho, the three pair splits) against Richardson-
+    extrapolated central differences."""
+    from tests.tuning.test_tuner import _gradient_and_differences, _small_objective
+    from torch_gpmpc.tuning import TuneSettings, TuningParameters
+
+    settings = TuneSettings(admm_iters=4, mpc_steps=2)
+    objective = _small_objective([0], settings, pair_margin="sum", admm_coupling="planes")
+    params = TuningParameters(3, rho=5.0)
+    with torch.no_grad():
+        params.theta[0, 1], params.theta[0, 2], params.theta[1, 2] = 0.3, -0.2, 0.1
+    objective(params).loss.backward()
+    grad, fd = _gradient_and_differences(objective, params)
+    assert all(abs(g) > 1e-4 for g in grad), grad
+    for g, d in zip(grad, fd, strict=True):
+        assert abs(g - d) <= 1e-6 * abs(d), (grad, fd)
 
 
 def test_paper_scenario_with_planes_arrives_safely_noiseless():

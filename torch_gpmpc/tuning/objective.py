@@ -65,9 +65,6 @@ class TuningObjective:
         warmup_iters: int = 0,
         system: TrueSystem | None = None,
     ) -> None:
-        if admm.settings.admm_coupling == "planes":
-            raise GpmpcError("config key 'admm_coupling': tuning unrolls the copies' ADMM only so far (the "
-                             "planes' gradients are not checked yet); use admm_coupling=copies to tune")
         if not instances:
             raise GpmpcError("TuningObjective needs at least one instance")
         for inst in instances:
