@@ -77,7 +77,6 @@ from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult
 from torch_gpmpc.coordination.steady import SteadyIterations
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
-from torch_gpmpc.errors import GpmpcError
 
 __all__ = ["ADMM", "ADMMState", "IterationStats", "StepContext", "StepResult", "adapt_state", "consensus_update",
            "initial_state"]
@@ -255,9 +254,6 @@ class ADMM:
             tol: absolute primal tolerance of the stopping test (default ``settings.admm_tol``).
         """
         s = self.settings
-        if s.admm_coupling == "planes" and not isinstance(self.agent_step, LocalStep):
-            raise GpmpcError("admm_coupling=planes plans teams of one model for now; use admm_coupling=copies "
-                             "for a team with 'models'")
         rho_t = torch.as_tensor(s.rho if rho is None else rho, dtype=x0.dtype)
         state = initial_state(x0, s.horizon, graph, self.nominal.input_dim) if warm is None \
             else adapt_state(warm, graph)
