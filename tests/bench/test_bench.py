@@ -4,6 +4,7 @@ measurements, run by hand; see the README's performance section)."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 from torch_gpmpc.cli import main
 
@@ -58,6 +59,7 @@ def test_bench_cli_scale_short(tmp_path, monkeypatch):
     monkeypatch.setattr(bench_scale, "TEAM_SIZES", (3, 6))
     monkeypatch.setattr(bench_scale, "QUICK_CROWD_AGENTS", 4)
     monkeypatch.setattr(bench_scale, "QUICK_CROWD_STEPS", 3)
+    monkeypatch.setattr(bench_scale, "QUICK_TRANSITION_AGENTS", 3)
     assert main(["bench", "--sections", "scale", "--quick", "--out", str(tmp_path)]) == 0
     result = json.loads((tmp_path / "bench.json").read_text())
     rows = result["sections"]["scale"]["table"]
@@ -71,6 +73,11 @@ def test_bench_cli_scale_short(tmp_path, monkeypatch):
     assert cores["cores"] >= 1
     [row] = cores["table"]
     assert row["same_plans"] and row["s_per_step_1_thread"] > 0 and row["s_per_step"] > 0
+    transitions = result["sections"]["scale"]["transitions"]
+    assert [r["workload"].split(", ", 1)[1] for r in transitions["table"]][:2] == ["copies, 1 thread (default)",
+                                                                                  "planes, 1 thread"]
+    assert transitions["met"] is None and transitions["table"][0]["speedup_vs_default"] == 1.0
+    assert all(r["compute_ms_per_agent_step"] > 0 and 0 <= r["success"] <= 1 for r in transitions["table"])
     assert (tmp_path / "figures" / "bench_scale.png").stat().st_size > 0
 
 
@@ -118,3 +125,12 @@ def test_bench_run_short_breakdown_times_every_iteration_once():
     rows.pop("GP fit (3 agents)")
     assert all(r["total_s"] >= 0 for r in rows.values())  # nested timers: remainders are not negative
     assert rows["solve: kernel (warm active set)"]["total_s"] > 0 and rows["linearize"]["total_s"] > 0
+
+
+def test_the_transition_benchmarks_model_is_the_example_files():
+    """The bench's random-transition agent is examples/transition/di3d.toml (the README's command)."""
+    from torch_gpmpc.bench.scale import transition_config
+    from torch_gpmpc.config import Config
+
+    example = Path(__file__).resolve().parents[2] / "examples" / "transition" / "di3d.toml"
+    assert transition_config(4, 0, "copies").model_spec() == Config(model=str(example)).model_spec()

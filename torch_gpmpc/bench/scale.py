@@ -22,6 +22,14 @@ worst distance), arrival, ADMM convergence (share of steps converged, steps at t
 cap, fallback steps), iterations per step, and the wall time per control step (mean, median,
 worst; the planning only, as :attr:`~torch_gpmpc.sim.rollout.Rollout.step_time`).
 
+``transitions`` is the random 3D transition benchmark of the DMPC line of work (README "Benchmark":
+3D double integrators at dt 0.2 with a per-axis acceleration bound 1, ``TRANSITION_AGENTS`` agents
+in a 1.59 m cube, r_safe 0.35, horizon 15, all pairs coupled, ``nominal``, noiseless), whole runs of
+``TRANSITION_SEEDS`` seeds for three planners: the default (copies, one thread, the baseline),
+plane coupling on one thread, and plane coupling on every core. Per planner: compute per agent and
+step (the benchmark's ``compute_ms_per_agent_step``), its ratio to the baseline's, the success rate
+and the mean transition time; the scale issue's target is ``TRANSITION_TARGET_MS`` at N = 20.
+
 ``threads`` times the crowd's first ``CORES_STEPS`` steps (``nonlinear``: no GP to fit) with the
 compiled solver on one thread and on every core (:func:`~torch_gpmpc.control.solvers.ipm_threads.planning_threads`;
 torch's own operations on one thread both times), and checks that the plans are the same bits.
@@ -38,6 +46,7 @@ from torch_gpmpc.bench.local import available_cores
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.control.solvers.ipm_threads import planning_threads
 from torch_gpmpc.sim.closed_loop import simulate
+from torch_gpmpc.sim.benchmark import run_outcome
 from torch_gpmpc.sim.metrics import compute_metrics
 from torch_gpmpc.sim.scenarios import make_scenario
 
@@ -49,6 +58,24 @@ CROWD_AGENTS, CROWD_RADIUS = 100, 10.0
 CROWD_METHODS = ("gp-chance", "nonlinear")
 #: The quick crowd: the same density (agents per square metre) with fewer agents and steps.
 QUICK_CROWD_AGENTS, QUICK_CROWD_STEPS = 12, 30
+#: The random-transition benchmark (README "Benchmark"; examples/transition/di3d.toml): team size,
+#: seeds (the quick form: 4 agents, 1 seed), its compute target per agent and step (ms) at N = 20.
+TRANSITION_AGENTS, TRANSITION_SEEDS, TRANSITION_TARGET_MS = 20, 3, 4.0
+QUICK_TRANSITION_AGENTS, QUICK_TRANSITION_SEEDS = 4, 1
+TRANSITION_MODEL = {
+    "name": "3D double integrator, dt 0.2, acceleration box 1", "dt": 0.2,
+    "A": [[1, 0, 0, 0.2, 0, 0], [0, 1, 0, 0, 0.2, 0], [0, 0, 1, 0, 0, 0.2],
+          [0, 0, 0, 1, 0, 0], [0, 0, 0, 0, 1, 0], [0, 0, 0, 0, 0, 1]],
+    "B": [[0.02, 0, 0], [0, 0.02, 0], [0, 0, 0.02], [0.2, 0, 0], [0, 0.2, 0], [0, 0, 0.2]],
+    "position": [0, 1, 2], "residual": [3, 4, 5], "gp_inputs": ["x0", "x1"], "input_bound": {"box": [1.0, 1.0, 1.0]},
+}
+#: The benchmark's setting: the cube of side 1.59 m grown by r_safe / 2 as the workspace (starts and
+#: goals drawn inside the cube), reference = target, rows asking admm_tol beyond r_safe.
+TRANSITION_SETTING = {
+    "scenario": "random", "model": TRANSITION_MODEL, "r_safe": 0.35, "min_separation": 0.35, "horizon": 15,
+    "workspace": {"min": [-0.97] * 3, "max": [0.97] * 3}, "reference": "target", "method": "nominal",
+    "noise_std": 0.0, "wind_scale": 0.0, "pair_buffer": 0.001,
+}
 #: Steps of the crowd timed on one thread and on every core (the quick form: the quick crowd, 3 steps).
 CORES_STEPS, QUICK_CORES_STEPS = 10, 3
 
@@ -159,6 +186,43 @@ def measure_cores(num_agents: int, steps: int) -> dict:
     return {"table": [row], "cores": cores}
 
 
+def transition_config(num_agents: int, seed: int, coupling: str) -> Config:
+    """One run of the random-transition benchmark (:data:`TRANSITION_SETTING`)."""
+    return Config(num_agents=num_agents, seed=seed, admm_coupling=coupling, **TRANSITION_SETTING)
+
+
+def measure_transitions(num_agents: int, seeds: int) -> dict:
+    """Whole runs of the random-transition benchmark for the default planner and plane coupling on
+    one thread and on every core (module docstring).
+
+    Returns:
+        ``{"table": rows, "target_ms", "met"}``: one row per planner; ``met`` is whether plane
+        coupling on every core is at most the target at N = 20 (``None`` at another size).
+    """
+    cores = available_cores()
+    planners = [("copies, 1 thread (default)", "copies", 1), ("planes, 1 thread", "planes", 1),
+                (f"planes, {cores} threads", "planes", cores)]
+    rows = []
+    for label, coupling, threads in planners:
+        outcomes = []
+        with planning_threads(threads):
+            simulate(transition_config(num_agents, 0, coupling).replace(max_steps=1))  # one-off costs
+            for seed in range(seeds):
+                metrics = compute_metrics(simulate(transition_config(num_agents, seed, coupling)))
+                outcomes.append(run_outcome(metrics, "random", TRANSITION_SETTING["model"]["dt"]))
+        times = [o["transition_time_s"] for o in outcomes if o["success"]]
+        rows.append({"workload": f"random 3D transitions N={num_agents}, {label}", "runs": seeds,
+                     "success": sum(o["success"] for o in outcomes) / seeds,
+                     "transition_time_s": float(np.mean(times)) if times else None,
+                     "compute_ms_per_agent_step": float(np.mean([o["compute_ms_per_agent_step"] for o in outcomes]))})
+    base = rows[0]["compute_ms_per_agent_step"]
+    for row in rows:
+        row["speedup_vs_default"] = base / row["compute_ms_per_agent_step"]
+    best = rows[-1]["compute_ms_per_agent_step"]
+    return {"table": rows, "target_ms": TRANSITION_TARGET_MS,
+            "met": best <= TRANSITION_TARGET_MS if num_agents == TRANSITION_AGENTS else None}
+
+
 def plot(rows: list[dict], path: Path) -> None:
     """Time per step per agent vs K (log-x), written atomically."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -187,8 +251,9 @@ def run(quick: bool = False, out: Path | str | None = None) -> dict:
 
     Args:
         quick: K = 3, 10 only, 2 steps of 3 iterations; the crowd with ``QUICK_CROWD_AGENTS``
-            agents for ``QUICK_CROWD_STEPS`` steps, and ``QUICK_CORES_STEPS`` of it on one thread
-            and every core (CI smoke).
+            agents for ``QUICK_CROWD_STEPS`` steps, ``QUICK_CORES_STEPS`` of it on one thread
+            and every core, and the transition benchmark with ``QUICK_TRANSITION_AGENTS`` agents
+            (CI smoke).
         out: output directory of the bench.
     """
     sizes = TEAM_SIZES[:2] if quick else TEAM_SIZES
@@ -204,6 +269,8 @@ def run(quick: bool = False, out: Path | str | None = None) -> dict:
     result["whole_runs"] = [measure_whole_run(crowd_config(crowd, method, max_steps=crowd_steps))
                             for method in CROWD_METHODS]
     result["threads"] = measure_cores(crowd, QUICK_CORES_STEPS if quick else CORES_STEPS)
+    result["transitions"] = measure_transitions(*((QUICK_TRANSITION_AGENTS, QUICK_TRANSITION_SEEDS) if quick
+                                                  else (TRANSITION_AGENTS, TRANSITION_SEEDS)))
     if out is not None:
         plot(rows, Path(out) / "figures" / "bench_scale.png")
     return result

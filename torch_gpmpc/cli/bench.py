@@ -63,6 +63,7 @@ def main(args) -> int:
         _print_table(f"{name}: default ADMM stopping", section.get("default_stopping", []))
         _print_table(f"{name}: whole runs of a crowd", section.get("whole_runs", []))
         _print_table(f"{name}: one thread vs every core", section.get("threads", {}).get("table", []))
+        _print_table(f"{name}: random 3D transitions", section.get("transitions", {}).get("table", []))
         _print_table(f"{name}: constraint families", section.get("families", {}).get("table", []))
         _print_table(f"{name}: warm active-set solves vs cold", section.get("warm_start", []))
     write_json(out / "bench.json", result)
