@@ -21,8 +21,8 @@ from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.config.plant import PLANTS, VEHICLES, WINDS
 from torch_gpmpc.config.team import TeamSpec, team_spec
 from torch_gpmpc.config.settings import (
-    CONTROLLER_CHOICES, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings, check_coupling, check_risk_mode,
-    controller_keys, parse_world, resolve_uncertainty,
+    CONTROLLER_CHOICES, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings, check_coupling,
+    check_risk_mode, controller_keys, parse_world, resolve_uncertainty,
 )
 from torch_gpmpc.errors import GpmpcError
 

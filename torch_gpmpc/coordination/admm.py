@@ -38,8 +38,9 @@ rho, the risk split and the problem data (used by ``gpmpc tune``). One iteration
 :meth:`ADMM.iterate`; a control step (:meth:`ADMM.solve_step`) is that loop plus the stopping
 test and the safety check; the tuner's unroll is the same loop without stopping. Within
 :meth:`ADMM.solve_step`, the iterations after a step's second (its first where no variances are
-exchanged), whose problems change only in their consensus terms, run as compiled calls where nothing needs gradients (``admm_compiled``,
-:mod:`~torch_gpmpc.coordination.steady`): the same plans, bit for bit.
+exchanged), whose problems change only in their consensus terms, run as compiled calls where
+nothing needs gradients (``admm_compiled``, :mod:`~torch_gpmpc.coordination.steady`): the same
+plans, bit for bit.
 """
 
 from __future__ import annotations
@@ -448,9 +449,9 @@ class ADMM:
                            accelerator: AndersonAcceleration | None) -> SteadyIterations | PlaneIterations | None:
         """The step's compiled iterations (:mod:`~.steady`; :class:`~.planes.PlaneIterations` with
         ``admm_coupling = planes``) from the iteration after ``state``, ``stats`` on, or ``None`` where
-        they do not apply: ``admm_compiled`` off, Anderson acceleration,
-        a linearization per iterate, no edge, a solver other than ``fast`` with warm starts, a failed
-        solve, gradients wanted, or tensors not float64 on the CPU."""
+        they do not apply: ``admm_compiled`` off, Anderson acceleration, a linearization per iterate,
+        no edge, a solver other than ``fast`` with warm starts, a failed solve, gradients wanted, or
+        tensors not float64 on the CPU."""
         if not self.settings.admm_compiled or accelerator is not None or ctx.lin_plans is None \
                 or not ctx.graph.num_edges or stats.failed_solves:
             return None
