@@ -218,3 +218,15 @@ def test_compiled_plane_iterations_give_the_torch_paths_closed_loop_bit_for_bit(
     assert np.array_equal(fast.plans, reference.plans) and np.array_equal(fast.states, reference.states)
     assert np.array_equal(fast.admm_iterations, reference.admm_iterations)
     assert fast.admm_iterations.max() > 2  # compiled iterations ran
+
+
+def test_the_fallback_keeps_a_capped_crowd_safe_on_planes():
+    """The scale issue's fallback test with plane coupling: 8 agents crossing on a circle, ADMM capped
+    at 2 iterations, noiseless: the fallback acts at many steps, no pair comes closer than r_safe, and
+    every agent arrives."""
+    cfg = Config(scenario="circle", num_agents=8, admm_max_iter=2, noise_std=0.0, gp_samples=50, gp_iters=20,
+                 admm_coupling="planes")
+    m = compute_metrics(simulate(cfg))
+    assert m["fallback_steps"] > 10 and m["converged_fraction"] < 0.9
+    assert m["violations"] == 0 and m["min_pair_distance"] >= cfg.r_safe
+    assert all(a is not None for a in m["arrival_steps"])
