@@ -56,6 +56,7 @@ from torch import Tensor, nn
 from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
+from torch_gpmpc.control.problem import LocalProblemData, LocalSolution
 from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
 from torch_gpmpc.coordination.acceleration import AndersonAcceleration
 from torch_gpmpc.coordination.bodies import edge_distances
@@ -283,22 +284,13 @@ class ADMM:
     def iterate(self, ctx: StepContext, state: ADMMState) -> tuple[ADMMState, IterationStats]:
         """One ADMM iteration: local solves (failed agents keep their previous plans), consensus,
         duals, penalty update. Returns the next iterate and what the iteration measured."""
-        s, graph, step = self.settings, ctx.graph, self.agent_step
+        s, graph = self.settings, ctx.graph
         if s.admm_coupling == "planes" and graph.num_edges:
             return self._iterate_planes(ctx, state)
         adaptive = s.rho_update == "adaptive"
         rho_now = state.rho if adaptive else ctx.rho
         assembled = self._assemble(ctx, state)
-        data = assembled.data
-        t0 = time.perf_counter()
-        sol = step.solve(ctx.layer, data, state.solver_point)
-        solve_time = time.perf_counter() - t0
-        stats = IterationStats(solution=sol, problem=data, primal=ctx.x0.new_zeros(()), dual=ctx.x0.new_zeros(()),
-                               max_margin=float(assembled.max_margin.detach()), solve_time_s=solve_time)
-        step.count_failures(sol, stats)
-        sol = fall_back_to_previous(sol, state, graph)
-        stats.solution = sol
-        stats.infeasible_solves = int((sol.slack_active | ~sol.ok).sum())
+        _, sol, stats = self._local_solves(ctx, state, assembled.data, assembled)
         z_new, lam = state.z, state.lam
         if graph.num_edges:
             copies = edge_copies(sol, graph)
@@ -319,7 +311,7 @@ class ADMM:
         return ADMMState(sol.X, sol.U, graph.edges, z_new, lam, pvar, rho_now if adaptive else None,
                          state.risk_left, solver_point=sol.solver_point), stats
 
-    def _assemble(self, ctx: StepContext, state: ADMMState):
+    def _assemble(self, ctx: StepContext, state: ADMMState) -> Any:
         """The iteration's local problems (:meth:`~.agent_step.LocalStep.assemble`) at the step's
         linearization (computed once and kept in ``ctx``), or at ``state`` with ``relinearize``."""
         s, graph = self.settings, ctx.graph
@@ -335,11 +327,27 @@ class ADMM:
         ctx.convexification = assembled.linearization
         return assembled
 
+    def _local_solves(self, ctx: StepContext, state: ADMMState, posed: LocalProblemData,
+                      assembled: Any) -> tuple[LocalSolution, LocalSolution, IterationStats]:
+        """Solve the batch ``posed`` and account for it: ``(solution, the same with failed agents on
+        their previous plans, the iteration's stats)``; the stats report the assembled problems."""
+        step = self.agent_step
+        t0 = time.perf_counter()
+        sol = step.solve(ctx.layer, posed, state.solver_point)
+        stats = IterationStats(solution=sol, problem=assembled.data, primal=ctx.x0.new_zeros(()),
+                               dual=ctx.x0.new_zeros(()), max_margin=float(assembled.max_margin.detach()),
+                               solve_time_s=time.perf_counter() - t0)
+        step.count_failures(sol, stats)
+        kept = fall_back_to_previous(sol, state, ctx.graph)
+        stats.solution = kept
+        stats.infeasible_solves = int((kept.slack_active | ~kept.ok).sum())
+        return sol, kept, stats
+
     def _iterate_planes(self, ctx: StepContext, state: ADMMState) -> tuple[ADMMState, IterationStats]:
         """:meth:`iterate` with ``admm_coupling = planes`` (:mod:`~.planes`): local solves on plane
         halves, then each edge's plane consensus, duals and penalty. The iteration reports the
         assembled problems (full rows: what the safety check and a centralized solve use)."""
-        s, graph, step = self.settings, ctx.graph, self.agent_step
+        s, graph = self.settings, ctx.graph
         adaptive = s.rho_update == "adaptive"
         assembled = self._assemble(ctx, state)
         data = assembled.data
@@ -352,16 +360,8 @@ class ADMM:
         rho = state.rho if adaptive else ctx.rho.expand(graph.num_edges)
         posed = plane_problem(data, geometry, planes[:, None] - duals / rho[:, None, None], rho)
         ctx.planes_posed = (posed, geometry)
-        t0 = time.perf_counter()
-        sol = step.solve(ctx.layer, posed, state.solver_point)
-        solve_time = time.perf_counter() - t0
-        stats = IterationStats(solution=sol, problem=data, primal=ctx.x0.new_zeros(()), dual=ctx.x0.new_zeros(()),
-                               max_margin=float(assembled.max_margin.detach()), solve_time_s=solve_time)
-        step.count_failures(sol, stats)
-        offsets = plane_offsets(sol, geometry, planes)
-        sol = fall_back_to_previous(sol, state, graph)
-        stats.solution = sol
-        stats.infeasible_solves = int((sol.slack_active | ~sol.ok).sum())
+        raw, sol, stats = self._local_solves(ctx, state, posed, assembled)
+        offsets = plane_offsets(raw, geometry, planes)
         planes_new, duals, gaps, dual_norms = plane_consensus(offsets, planes, duals, rho)
         res = plane_residuals(gaps, dual_norms, duals, s)
         stop = res if ctx.tol == s.admm_tol else plane_residuals(gaps, dual_norms, duals, s, ctx.tol)

@@ -32,7 +32,6 @@ every local solver serves both couplings unchanged.
 from __future__ import annotations
 
 import dataclasses
-import logging
 from dataclasses import dataclass
 
 import torch
@@ -46,9 +45,7 @@ from torch_gpmpc.coordination.penalty import (
     DUAL_TOL_FACTOR, EdgeResiduals, balance_penalty, unconverged_edges,
 )
 from torch_gpmpc.coordination.state import ADMMState
-from torch_gpmpc.coordination.steady import SteadyResult
-
-logger = logging.getLogger(__name__)
+from torch_gpmpc.coordination.steady import SteadyResult, solve_or_hand_back
 
 
 @dataclass(frozen=True)
@@ -221,11 +218,7 @@ class PlaneIterations:
         weight = rho[g.edge]
         buf.rho_y[self.agent, self.slot] = weight.numpy()
         buf.w_y[self.agent, self.slot] = (weight[:, None, None] * (targets[g.edge, g.side][..., None] * self.along)).numpy()
-        try:
-            sol = self.solve.solve(state.solver_point)
-        except Exception as exc:  # noqa: BLE001 - the torch path solves it again, and counts what fails
-            logger.debug("compiled plane iteration handed to the torch path: %s: %s", type(exc).__name__, exc)
-            return None
+        sol = solve_or_hand_back(self.solve, state.solver_point)
         if sol is None:
             return None
         offsets = plane_offsets(LocalSolution(sol.X, sol.U, sol.Y, sol.slack, None, None, None), g, state.planes)

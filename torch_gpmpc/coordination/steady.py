@@ -31,7 +31,7 @@ from torch import Tensor
 
 from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.control.numpy_views import as_array
-from torch_gpmpc.control.solvers.repeated import RepeatedSolve
+from torch_gpmpc.control.solvers.repeated import RepeatedSolution, RepeatedSolve
 from torch_gpmpc.coordination.consensus_kernel import consensus_step, slot_terms
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.penalty import DUAL_TOL_FACTOR, RHO_BALANCE, RHO_BOUNDS, RHO_FACTOR, checks_dual
@@ -59,6 +59,16 @@ class SteadyResult:
     dual_ratio: float
     unconverged_edges: int
     infeasible_solves: int
+
+
+def solve_or_hand_back(solve: RepeatedSolve, guess) -> RepeatedSolution | None:
+    """``solve.solve(guess)``, or ``None`` when it declines or raises (the torch path then solves the
+    iteration again, and counts what fails)."""
+    try:
+        return solve.solve(guess)
+    except Exception as exc:  # noqa: BLE001 - handed to the torch path, which reports it
+        logger.debug("compiled iteration handed to the torch path: %s: %s", type(exc).__name__, exc)
+        return None
 
 
 class SteadyIterations:
@@ -106,11 +116,7 @@ class SteadyIterations:
         w_own = torch.from_numpy(self.w_own)
         buf.l_x[:] = (2.0 * self.xref[:, 1:] + w_own[:, :, 1:].sum(dim=1)).flatten(1).numpy()
         buf.c_x[:] = (1.0 + 0.5 * torch.from_numpy(self.rho_own).sum(dim=1)).numpy()
-        try:
-            sol = self.solve.solve(state.solver_point)
-        except Exception as exc:  # noqa: BLE001 - the torch path solves it again, and counts what fails
-            logger.debug("compiled iteration handed to the torch path: %s: %s", type(exc).__name__, exc)
-            return None
+        sol = solve_or_hand_back(self.solve, state.solver_point)
         if sol is None:
             return None
         z_new, lam_new, rho_new, report = np.empty_like(z), np.empty_like(lam), np.empty_like(rho), np.empty(5)
