@@ -104,15 +104,20 @@ def load_faults(directory: Path):
     return module
 
 
-@pytest.mark.parametrize("acceleration", ["off", "anderson"])
+#: ADMM variants the in-process fault test runs: plain, Anderson, plane coupling
+ADMM_VARIANTS = {"off": {}, "anderson": {"admm_acceleration": "anderson"}, "planes": {"admm_coupling": "planes"}}
+
+
+@pytest.mark.parametrize("acceleration", list(ADMM_VARIANTS))
 @pytest.mark.parametrize("fault", list(KINDS))
 @pytest.mark.parametrize("model", list(MODELS))
 def test_solver_fault_falls_back_and_the_run_finishes_in_process(model, fault, acceleration, tmp_path, monkeypatch,
                                                                   caplog):
-    """(Also with Anderson acceleration: the failed agent's previous plan enters the mix's history.)"""
+    """(Also with Anderson acceleration: the failed agent's previous plan enters the mix's history;
+    and with plane coupling: the failed agent's ends vote the current planes.)"""
     import torch_gpmpc.coordination.agent_step as agent_step
 
-    cfg = Config(**{**SHORT, **MODELS[model]}, admm_acceleration=acceleration)
+    cfg = Config(**{**SHORT, **MODELS[model]}, **ADMM_VARIANTS[acceleration])
     monkeypatch.setattr(agent_step, "make_local_solver", agent_step.make_local_solver)  # restored afterwards
     monkeypatch.setattr(agent_step.LocalStep, "rescue_inaccurate", agent_step.LocalStep.rescue_inaccurate)
     load_faults(tmp_path).install(fault, FAILING_CALL)
