@@ -21,7 +21,7 @@ bound, and the neighbour's own plan is pulled towards the average of its neighbo
 a crowd an edge's residual then contracts slowly (README "Scale"). Here each agent enforces its
 own half on its own plan, and the only thing averaged is where the plane lies. Measured on the
 random-transition benchmark's first steps (N = 20, all 190 pairs coupled, one step replayed
-from each state): 14-64 iterations against 35-221 with copies, to the same plan cost.
+from each state, steps 0-7): 26-73 iterations against 35-221 with copies, to the same plan cost.
 
 The local problems are the copy formulation's with their neighbour copies re-read: the copy
 ``Y_{e,a}`` is pulled towards ``c n`` (``c`` the target offset), its row bound is ``d / 2``, and
