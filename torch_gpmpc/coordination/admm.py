@@ -466,8 +466,8 @@ class ADMM:
         if self.settings.admm_coupling == "planes":
             posed, geometry = ctx.planes_posed
             solve = layer.repeated(posed)
-            return None if solve is None else PlaneIterations(self.settings, ctx.graph, posed, geometry, ctx.rho,
-                                                              ctx.tol, solve)
+            return None if solve is None else PlaneIterations(self.settings, ctx.graph, geometry, ctx.rho, ctx.tol,
+                                                              solve)
         solve = layer.repeated(stats.problem)
         return None if solve is None else SteadyIterations(self.settings, ctx.graph, ctx.xref, ctx.rho, ctx.tol, solve)
 

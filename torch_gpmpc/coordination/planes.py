@@ -38,7 +38,7 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.config.settings import ControllerSettings
-from torch_gpmpc.control.problem import ConsensusTerms, LocalProblemData, LocalSolution
+from torch_gpmpc.control.problem import LocalProblemData, LocalSolution
 from torch_gpmpc.control.solvers.repeated import RepeatedSolve
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.penalty import (
@@ -185,27 +185,20 @@ class PlaneIterations:
 
     Args:
         settings: the controller settings. graph: the step's graph.
-        posed: the plane problems as last posed (batch K; only their targets and weights change).
         geometry: the step's :class:`PlaneGeometry`.
         rho: the step's penalty, 0-d (every edge's with ``rho_update = fixed``).
         tol: the stopping test's absolute primal tolerance.
-        solve: ``posed`` as a :class:`RepeatedSolve`.
+        solve: the plane problems as last posed (batch K), as a :class:`RepeatedSolve`: only their
+            copies' targets and weights change.
     """
 
-    def __init__(self, settings: ControllerSettings, graph: Graph, posed: LocalProblemData,
-                 geometry: PlaneGeometry, rho: Tensor, tol: float, solve: RepeatedSolve) -> None:
-        self.settings, self.graph, self.posed, self.geometry = settings, graph, posed, geometry
+    def __init__(self, settings: ControllerSettings, graph: Graph, geometry: PlaneGeometry, rho: Tensor,
+                 tol: float, solve: RepeatedSolve) -> None:
+        self.settings, self.graph, self.geometry = settings, graph, geometry
         self.adaptive = settings.rho_update == "adaptive"
         self.rho, self.tol, self.solve = rho, tol, solve
-        # the terms canonicalize computes from the posed problems: the own terms are 0, the copies'
-        # tau = 0 points 0 (no row there) and inactive slots neutral; written once
-        terms = ConsensusTerms.of(posed)
-        buf, M = solve.buffers, terms.rho_y.shape[1]
-        buf.c_x[:] = terms.c_x.numpy()
-        buf.l_x[:] = (2.0 * posed.xref[:, 1:] + terms.w_own[:, :, 1:].sum(dim=1)).flatten(1).numpy()
-        buf.rho_y[:, :M] = terms.rho_y.numpy()
-        buf.w_y[:, :M] = terms.w_nbr[:, :, 1:].numpy()
-        buf.y0[:] = (terms.w_nbr[:, :, 0] / terms.rho_y[:, :, None]).numpy()
+        # the solve starts with the posed problems' terms; of them only the active copies' weights
+        # and targets change (the own terms stay 0, the copies' tau = 0 points 0, inactive slots neutral)
         self.along = along_normals(geometry)
         self.agent, self.slot = geometry.agent.numpy(), geometry.slot.numpy()
 

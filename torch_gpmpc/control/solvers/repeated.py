@@ -44,7 +44,8 @@ class KernelSettings:
 
 @dataclass
 class ConsensusBuffers:
-    """The terms one repeated solve reads, written in place by the caller before each solve.
+    """The terms one repeated solve reads: at first those of the problems it was made from, then
+    written in place by the caller before each solve.
 
     Attributes:
         c_x: (B,). l_x: (B, T*D). rho_y: (B, M + L), the L state-row slots fixed at 1.
@@ -102,9 +103,10 @@ class RepeatedSolve:
         self.batch, self.horizon, self.dim = B, T, D
         self.num_neighbors = int(data.active.shape[1])
         self.active = data.active.detach().cpu().numpy().astype(np.float64)
-        rho_y = np.ones((B, slots))
-        self.buffers = ConsensusBuffers(np.empty(B), np.empty((B, T * D)), rho_y, np.zeros((B, slots, T, D)),
-                                        np.empty((B, self.num_neighbors, D)))
+        # the terms of the problems as posed (the caller replaces those that change)
+        terms = [np.array(t.detach().cpu().numpy(), dtype=np.float64) for t in
+                 (canon.c_x, canon.l_x, canon.rho_y, canon.w_y, canon.y0)]
+        self.buffers = ConsensusBuffers(*terms)
 
     @property
     def fixed_part_finite(self) -> bool:
