@@ -40,6 +40,21 @@ def test_detour_bends_points_onto_the_clearance_circle_on_a_fixed_side():
     assert both[0, 2, 1].item() == pytest.approx(1.0) and both[1, 2, 1].item() == pytest.approx(-1.0)
 
 
+def test_detour_clearance_is_per_agent_and_never_moves_a_target():
+    from torch_gpmpc.sim.detours import detour_clearance
+
+    # body + margin, at least r_safe: 0.25 + 0.475 for the first agent, r_safe for the second
+    clearance = detour_clearance(0.5, torch.tensor([0.25, 0.0], dtype=F64), 0.475)
+    torch.testing.assert_close(clearance, torch.tensor([0.725, 0.5], dtype=F64))
+    field = ObstacleField.parse([{"center": [0.0, 0.2], "radius": 0.5}])
+    starts = torch.tensor([[-3.0, 0.0], [-3.0, 0.0]], dtype=F64)
+    targets = torch.tensor([[3.0, 0.0], [0.0, -0.6]], dtype=F64)  # the second target 0.8 from the centre
+    window = torch.tensor([[[0.0, 0.0]], [[0.0, -0.6]]], dtype=F64)  # (K=2, N=1, 2)
+    bent = detour_reference(field, window, starts, targets, clearance)
+    assert bent[0, 0, 1].item() == pytest.approx(0.2 - 1.225)  # onto the circle of radius 0.5 + 0.725
+    assert torch.equal(bent[1, 0], window[1, 0])  # its target is nearer than 0.5 + 0.5: it stays put
+
+
 def _metrics(cfg, scenario):
     m = compute_metrics(simulate(cfg, scenario))
     return m
@@ -64,6 +79,21 @@ def test_a_forest_with_chance_constraints_and_noise_short():
                  max_steps=110)
     m = compute_metrics(simulate(cfg))
     assert m["obstacle_violations"] == 0 and m["violations"] == 0
+    assert all(a is not None for a in m["arrival_steps"])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_issue_forest_succeeds_with_no_hit(seed):
+    """examples/forest.toml (10 agents, 30 trees, s = 0.1), three of the README's ten seeds: every
+    agent home, no collision, no obstacle hit (about 55 s a run)."""
+    from pathlib import Path
+
+    from torch_gpmpc.config import load_config
+
+    cfg = load_config(Path(__file__).resolve().parents[2] / "examples" / "forest.toml", {"seed": seed})
+    m = compute_metrics(simulate(cfg))
+    assert m["obstacle_violations"] == 0 and m["violations"] == 0 and m["failed_local_solves"] == 0
     assert all(a is not None for a in m["arrival_steps"])
 
 

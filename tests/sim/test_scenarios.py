@@ -216,22 +216,28 @@ def test_random_impossible_separation_raises():
 
 
 def test_forest_lanes_cross_a_seeded_field_of_trees_with_passable_gaps():
-    from torch_gpmpc.config.obstacles import FOREST_FILL, FOREST_GAP_EXTRA, FOREST_TREE_RADIUS
+    from torch_gpmpc.config.obstacles import FOREST_FILL, FOREST_GAP_EXTRA, FOREST_PACE, FOREST_TREE_RADIUS
 
     cfg = Config(scenario="forest", num_agents=10, num_obstacles=30, seed=3)
     sc = make_scenario(cfg)
     assert sc.num_agents == 10 and len(sc.obstacles) == 30
     torch.testing.assert_close(sc.starts[:, 1], sc.targets[:, 1])
-    torch.testing.assert_close(sc.starts[:, 1], torch.arange(10, dtype=torch.float64) - 4.5)
-    # the band 2 (R - 1) x 2 H holds the 30 spacing discs at fill FOREST_FILL; H = 4.5 + 1
+    lane = max(cfg.min_separation, cfg.r_safe) + FOREST_GAP_EXTRA / 2  # 1.5: room to swerve beside a neighbour
+    torch.testing.assert_close(sc.starts[:, 1], (torch.arange(10, dtype=torch.float64) - 4.5) * lane)
+    # the band 2 (R - 1) x 2 H holds the 30 spacing discs at fill FOREST_FILL; H = 4.5 lane + 1
     spacing = 2 * FOREST_TREE_RADIUS + cfg.r_safe + FOREST_GAP_EXTRA
-    R = 30 * math.pi * (spacing / 2) ** 2 / FOREST_FILL / (4 * 5.5) + 1.0
+    H = 4.5 * lane + 1.0
+    R = 30 * math.pi * (spacing / 2) ** 2 / FOREST_FILL / (4 * H) + 1.0
     assert cfg.scenario_extent == pytest.approx(R) and cfg.gp_fit_settings().box == pytest.approx(R)
     assert bool((sc.starts[:, 0] == -R).all()) and bool((sc.targets[:, 0] == R).all())
     centres = torch.tensor([o.center for o in sc.obstacles.obstacles], dtype=torch.float64)
     gaps = torch.pdist(centres) - 2 * FOREST_TREE_RADIUS
     assert float(gaps.min()) >= cfg.r_safe + FOREST_GAP_EXTRA - 1e-12
-    assert float(centres[:, 0].abs().max()) <= R - 1.0 and float(centres[:, 1].abs().max()) <= 5.5
+    assert float(centres[:, 0].abs().max()) <= R - 1.0 and float(centres[:, 1].abs().max()) <= H
+    # the line asks at most FOREST_PACE of the input bound's speed (more points than ref_points = 50)
+    speed = 2 * R / (sc.ref_points - 1) / cfg.dt
+    assert sc.ref_points > cfg.ref_points and FOREST_PACE * cfg.u_max * 0.99 <= speed <= FOREST_PACE * cfg.u_max
+    assert make_scenario(cfg.replace(ref_points=500)).ref_points == 500  # a slower line is kept
     again = make_scenario(cfg)
     assert again.obstacles == sc.obstacles and make_scenario(cfg.replace(seed=4)).obstacles != sc.obstacles
     in_3d = make_scenario(cfg.replace(dim=3, num_obstacles=10))
@@ -242,16 +248,17 @@ def test_forest_gap_widens_every_gap_and_lengthens_the_band():
     from torch_gpmpc.config.obstacles import FOREST_FILL, FOREST_TREE_RADIUS
 
     base = Config(scenario="forest", num_agents=10, num_obstacles=30, seed=3)
-    wide = base.replace(forest_gap=1.0)
+    wide = base.replace(forest_gap=1.5)
     sc = make_scenario(wide)
     centres = torch.tensor([o.center for o in sc.obstacles.obstacles], dtype=torch.float64)
     assert len(sc.obstacles) == 30
-    assert float((torch.pdist(centres) - 2 * FOREST_TREE_RADIUS).min()) >= wide.r_safe + 1.0 - 1e-12
-    # the same fill of a longer band: spacing 2 x 0.25 + 0.5 + 1.0 = 2.0, H = 5.5
-    R = 30 * math.pi * (2.0 / 2) ** 2 / FOREST_FILL / (4 * 5.5) + 1.0
+    assert float((torch.pdist(centres) - 2 * FOREST_TREE_RADIUS).min()) >= wide.r_safe + 1.5 - 1e-12
+    # spacing 2 x 0.25 + 0.5 + 1.5 = 2.5; lanes 1.0 + 0.75 apart, H = 4.5 x 1.75 + 1
+    H = 4.5 * 1.75 + 1.0
+    R = 30 * math.pi * (2.5 / 2) ** 2 / FOREST_FILL / (4 * H) + 1.0
     assert wide.scenario_extent == pytest.approx(R) and R > base.scenario_extent
     assert bool((sc.starts[:, 0] == -R).all()) and float(centres[:, 0].abs().max()) <= R - 1.0
-    assert make_scenario(base.replace(forest_gap=0.5)).obstacles == make_scenario(base).obstacles  # the default
+    assert make_scenario(base.replace(forest_gap=1.0)).obstacles == make_scenario(base).obstacles  # the default
     with pytest.raises(GpmpcError, match="forest_gap"):
         Config(forest_gap=-0.1)
 

@@ -134,24 +134,34 @@ class ObstacleField:
                                  f"{position_dim}; {fix}")
 
 
-#: ``forest`` trees: their radius, the default free gap kept between two trees beyond ``r_safe`` (room
-#: for an agent's chance margins on both sides; config key ``forest_gap``), and the fraction of the
-#: band their spacing discs fill.
+#: ``forest`` trees: their radius, the default free gap kept between two trees beyond ``r_safe``
+#: (config key ``forest_gap``; 1.5 m between trunks: an agent's body, 0.25, and an obstacle row's
+#: margin of up to 0.5 on each side, 4.75 sigma at s = 0.1 with the default ``obstacle_eps``), the
+#: fraction of the band their spacing discs fill, and the share of the input bound's speed the lanes'
+#: line references ask (the rest is left for detours round the trees and for noise).
 FOREST_TREE_RADIUS = 0.25
-FOREST_GAP_EXTRA = 0.5
+FOREST_GAP_EXTRA = 1.0
 FOREST_FILL = 0.45
+FOREST_PACE = 0.65
+
+
+def forest_lane_spacing(min_separation: float, r_safe: float, gap: float = FOREST_GAP_EXTRA) -> float:
+    """The distance between two ``forest`` lanes: ``max(min_separation, r_safe) + gap / 2``, so that
+    neighbours start with room for their pair margins and can swerve round a tree without pressing
+    on each other."""
+    return max(min_separation, r_safe) + gap / 2
 
 
 def forest_extent(num_agents: int, num_obstacles: int, circle_radius: float, min_separation: float,
                   r_safe: float, gap: float = FOREST_GAP_EXTRA) -> tuple[float, float]:
     """Half-length R (starts at x1 = -R, targets at +R) and half-height H of the ``forest`` band.
 
-    The lanes are ``max(min_separation, r_safe)`` apart; the band ``|x1| <= R - 1``,
+    The lanes are :func:`forest_lane_spacing` apart; the band ``|x1| <= R - 1``,
     ``|x2| <= H`` is long enough that the trees' spacing discs (diameter :func:`forest_spacing`)
     fill at most :data:`FOREST_FILL` of it, and never shorter than ``circle_radius``; ``gap`` is
     the free gap between two trees beyond ``r_safe`` (config ``forest_gap``).
     """
-    lane_span = (num_agents - 1) * max(min_separation, r_safe)
+    lane_span = (num_agents - 1) * forest_lane_spacing(min_separation, r_safe, gap)
     half_height = max(lane_span / 2 + 1.0, circle_radius)
     spacing = forest_spacing(r_safe, gap)
     area = num_obstacles * math.pi * (spacing / 2) ** 2 / FOREST_FILL
@@ -162,6 +172,13 @@ def forest_spacing(r_safe: float, gap: float = FOREST_GAP_EXTRA) -> float:
     """The least distance between two ``forest`` tree centres: two trunks and a free gap of
     ``r_safe + gap`` between them."""
     return 2 * FOREST_TREE_RADIUS + r_safe + gap
+
+
+def forest_ref_points(length: float, speed: float, dt: float, ref_points: int) -> int:
+    """Points of a ``forest`` lane's line reference: ``ref_points``, or more where the line would
+    otherwise ask more than :data:`FOREST_PACE` of ``speed`` (the input bound, m/s) over ``length``
+    (m) at sample time ``dt`` (s)."""
+    return max(ref_points, math.ceil(length / (FOREST_PACE * speed * dt)) + 1)
 
 
 #: ``doorway``: the wall's thickness and its gap, in units of ``r_safe`` (the gap is narrower than

@@ -134,8 +134,9 @@ class Config:
             ``{"center": [x, y], "radius": r, "z": [zmin, zmax]}`` (vertical cylinder, 3D) and
             ``{"min": [...], "max": [...]}`` (box) tables, or null; a scenario's obstacles set it.
             An agent's centre keeps ``r_safe / 2`` from every obstacle.
-        obstacle_eps: the risk of one obstacle row (chance methods: the row's margin is
-            ``Phi^{-1}(1 - obstacle_eps)`` times the agent's own standard deviation along it).
+        obstacle_eps: the risk of one obstacle row per step (chance methods: the row's margin is
+            ``Phi^{-1}(1 - obstacle_eps)`` times the agent's own standard deviation along it;
+            default 1e-6, as an agent rides a row for many steps of a run).
         obstacle_rows: obstacle rows per agent and horizon step (its nearest obstacles).
         radii: each agent's body radius, a list of K numbers (a pair keeps ``r_k + r_j`` between
             centres, an agent ``r_k`` from every obstacle), or null: ``r_safe / 2`` each; a
@@ -154,7 +155,7 @@ class Config:
         num_obstacles: the cylinders (discs in 2D) of ``scenario = forest``.
         forest_gap: the free gap ``scenario = forest`` keeps between two trees beyond ``r_safe``
             (room for an agent's chance margins on both sides; a wider gap also lengthens the band,
-            whose trees keep the same share of it).
+            whose trees keep the same share of it, and widens the lanes by half of it).
         deadlock_detour: an agent stuck behind a neighbour (no progress for 10 steps) detours
             round it on a fixed side (:class:`~torch_gpmpc.sim.detours.DeadlockBreaker`).
         plant: what the closed loop steps: ``model`` (the model's true system, the paper's world)
@@ -233,7 +234,7 @@ class Config:
     risk_budget: float = 0.05
     risk_pacing: int = 10
     obstacles: ObstacleField | None = None
-    obstacle_eps: float = 0.01
+    obstacle_eps: float = 1e-6
     obstacle_rows: int = 4
     radii: tuple[float, ...] | None = None
     models: tuple[str, ...] | None = None

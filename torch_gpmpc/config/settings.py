@@ -166,7 +166,7 @@ class ControllerSettings:
     risk_budget: float = 0.05
     risk_pacing: int = 10
     obstacles: ObstacleField | None = None
-    obstacle_eps: float = 0.01
+    obstacle_eps: float = 1e-6
     obstacle_rows: int = 4
     radii: tuple[float, ...] | None = None
     pair_buffer: float = 0.0

@@ -23,6 +23,8 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.config.schema import Config
+from torch_gpmpc.config.settings import agent_radii
+from torch_gpmpc.control.risk import chance_quantile
 from torch_gpmpc.coordination.admm import ADMM
 from torch_gpmpc.coordination.controller import make_controller
 from torch_gpmpc.coordination.graph import Graph, communication_graph
@@ -35,7 +37,7 @@ from torch_gpmpc.dynamics.systems import TrueSystem
 from torch_gpmpc.dynamics.team import TeamSystem, team_system_from_config
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.gp.online import OnlineLearning, online_gps
-from torch_gpmpc.sim.detours import DeadlockBreaker, detour_reference
+from torch_gpmpc.sim.detours import DeadlockBreaker, detour_clearance, detour_reference
 from torch_gpmpc.sim.path_following import PathFollower
 from torch_gpmpc.sim.recorder import StepInfo, StepRecorder, log_step
 from torch_gpmpc.sim.rollout import Rollout
@@ -162,13 +164,26 @@ def simulate(
 def reference_window(cfg: Config, scenario: Scenario, t: int, follower: PathFollower | None = None) -> Tensor:
     """The position references of step ``t`` (K, T+1, P): routed agents' along their routes from
     where they are (``follower``), then bent round the run's discs and cylinders
-    (:mod:`~torch_gpmpc.sim.detours`; clearance ``r_safe`` beyond each obstacle's radius)."""
+    (:mod:`~torch_gpmpc.sim.detours`; clearance :func:`reference_clearance` beyond each obstacle's
+    radius)."""
     window = scenario.reference_window(t, cfg.horizon)
     if follower is not None:
         window = follower.shape(window)
     if cfg.obstacles is None or not len(cfg.obstacles):
         return window
-    return detour_reference(cfg.obstacles, window, scenario.starts, scenario.targets, cfg.r_safe)
+    return detour_reference(cfg.obstacles, window, scenario.starts, scenario.targets,
+                            reference_clearance(cfg, scenario.num_agents))
+
+
+def reference_clearance(cfg: Config, num_agents: int) -> Tensor:
+    """(K,) how far beyond an obstacle's radius the references bend: each agent's body radius
+    plus one obstacle row's chance margin at the model plant's noise, ``Phi^{-1}(1 - obstacle_eps)
+    noise_std`` (chance methods; 0 for other plants, whose disturbance is not a noise level), and
+    at least ``r_safe`` (:func:`~torch_gpmpc.sim.detours.detour_clearance`)."""
+    noisy = Method.parse(cfg.method).chance and cfg.plant == "model"
+    margin = float(chance_quantile(cfg.obstacle_eps)) * cfg.noise_std if noisy else 0.0
+    radii = torch.tensor(agent_radii(cfg.radii, cfg.r_safe, num_agents), dtype=torch.float64)
+    return detour_clearance(cfg.r_safe, radii, margin)
 
 
 def deadlock_breaker(cfg: Config, scenario: Scenario) -> DeadlockBreaker | None:

@@ -23,15 +23,31 @@ from torch import Tensor
 from torch_gpmpc.config.obstacles import ObstacleField
 
 
+def detour_clearance(r_safe: float, radii: Tensor, margin: float) -> Tensor:
+    """How far beyond an obstacle's radius each agent's bent reference stays: its body radius plus
+    ``margin`` (one obstacle row's chance margin), and at least ``r_safe``. A reference inside the
+    rows' margins has the agent ride them, where every large push of noise is a hit.
+
+    Args:
+        r_safe: the run's. radii: (K,) body radii. margin: metres (0 without chance margins).
+
+    Returns:
+        (K,) clearances.
+    """
+    return torch.clamp(radii + margin, min=r_safe)
+
+
 def detour_reference(field: ObstacleField, window: Tensor, starts: Tensor, targets: Tensor,
-                     clearance_extra: float) -> Tensor:
+                     clearance_extra: float | Tensor) -> Tensor:
     """The reference window with its points bent round the discs they pass through.
 
     Args:
         field: the obstacles (only ``sphere`` and ``cylinder`` ones bend the reference).
         window: reference positions, shape (K, N, P), P >= 2.
         starts, targets: the agents' lines, shapes (K, P) each (their x1-x2 direction sets the side).
-        clearance_extra: how far beyond an obstacle's radius the bent points stay.
+        clearance_extra: how far beyond an obstacle's radius the bent points stay: a number, or one
+            per agent, (K,) (:func:`detour_clearance`); never farther than the agent's target (a
+            target near an obstacle stays where it is).
 
     Returns:
         The bent window, shape (K, N, P) (a new tensor; coordinates beyond x1-x2 unchanged).
@@ -44,11 +60,14 @@ def detour_reference(field: ObstacleField, window: Tensor, starts: Tensor, targe
         return out
     d = torch.where(moving[:, None], direction / length.clamp(min=1e-12), torch.zeros_like(direction))  # (K, 2)
     left = torch.stack([-d[:, 1], d[:, 0]], dim=-1)  # (K, 2): d turned by +90 degrees
+    extra = torch.as_tensor(clearance_extra, dtype=window.dtype, device=window.device).expand(window.shape[0])
     for o in field.obstacles:
         if o.kind not in ("sphere", "cylinder"):
             continue
         centre = torch.tensor(o.center[:2], dtype=window.dtype, device=window.device)
-        clearance = o.radius + clearance_extra
+        # never bend a line round an obstacle nearer its target than the clearance: the end would move
+        target_gap = torch.linalg.vector_norm(targets[:, :2] - centre, dim=-1)  # (K,)
+        clearance = torch.clamp(target_gap, max=o.radius + extra)[:, None]  # (K, 1)
         centre_side = ((centre - starts[:, :2]) * left).sum(-1)  # (K,): > 0 when the centre is left of the line
         side = torch.where(centre_side > 1e-9, -1.0, 1.0).to(window.dtype)  # pass away from it, else left
         rel = out[..., :2] - centre  # (K, N, 2)

@@ -12,14 +12,16 @@ Generated scenarios (``Config.scenario``):
   ``workspace``: inside it, ``r_safe / 2`` from its faces), drawn from a generator seeded with
   ``Config.seed``; starts are pairwise at least ``max(min_separation, r_safe)`` apart, and so
   are targets.
-* ``forest``: K agents start on the line x1 = -R, spread ``max(min_separation, r_safe)``
-  apart along x2 (centred), and cross to x1 = +R at the same x2, through ``num_obstacles``
-  discs of radius ``FOREST_TREE_RADIUS`` (vertical cylinders in 3D) placed uniformly, seeded
-  with ``Config.seed``, in the band ``|x1| <= R - 1``; trees keep a free gap of at least
-  ``r_safe + forest_gap`` (default 0.5) between each other, so an agent whose chance margins are
-  at most ``forest_gap / 2`` fits through every gap. R and the band's height grow with the trees,
-  the gap and the lanes (:func:`~torch_gpmpc.config.obstacles.forest_extent`; at least
-  ``circle_radius``).
+* ``forest``: K agents start on the line x1 = -R, spread ``max(min_separation, r_safe) +
+  forest_gap / 2`` apart along x2 (centred), and cross to x1 = +R at the same x2, through
+  ``num_obstacles`` discs of radius ``FOREST_TREE_RADIUS`` (vertical cylinders in 3D) placed
+  uniformly, seeded with ``Config.seed``, in the band ``|x1| <= R - 1``; trees keep a free gap of
+  at least ``r_safe + forest_gap`` (default 1.0) between each other, so an agent whose chance
+  margins are at most ``forest_gap / 2`` fits through every gap. R and the band's height grow
+  with the trees, the gap and the lanes (:func:`~torch_gpmpc.config.obstacles.forest_extent`; at
+  least ``circle_radius``). The lines are paced to at most ``FOREST_PACE`` (0.65) of the input
+  bound's speed (more points than ``ref_points`` where needed,
+  :func:`~torch_gpmpc.config.obstacles.forest_ref_points`).
 * ``doorway``: two rooms ``|x1| <= X`` (X = ``circle_radius``) split by a wall at x1 = 0 of
   thickness ``DOORWAY_WALL r_safe`` with one gap of width ``DOORWAY_GAP r_safe`` at x2 = 0,
   narrower than two agents side by side; the workspace is the two rooms. ``ceil(K/2)`` agents
@@ -56,7 +58,8 @@ from torch import Tensor
 
 from torch_gpmpc.config.fields import nearest_key
 from torch_gpmpc.config.obstacles import (
-    DOORWAY_GAP, DOORWAY_WALL, FOREST_TREE_RADIUS, ObstacleField, doorway_extent, forest_extent, forest_spacing,
+    DOORWAY_GAP, DOORWAY_WALL, FOREST_TREE_RADIUS, ObstacleField, doorway_extent, forest_extent, forest_lane_spacing,
+    forest_ref_points, forest_spacing,
 )
 from torch_gpmpc.config.reader import read_table
 from torch_gpmpc.config.schema import REFERENCES, Config
@@ -247,7 +250,8 @@ def forest_scenario(cfg: Config) -> Scenario:
     P, K = cfg.position_dim, cfg.num_agents
     R, half_height = forest_extent(K, cfg.num_obstacles, cfg.circle_radius, cfg.min_separation, cfg.r_safe,
                                    cfg.forest_gap)
-    lanes = (torch.arange(K, dtype=torch.float64) - (K - 1) / 2) * max(cfg.min_separation, cfg.r_safe)
+    lanes = (torch.arange(K, dtype=torch.float64) - (K - 1) / 2) * forest_lane_spacing(
+        cfg.min_separation, cfg.r_safe, cfg.forest_gap)
     starts = torch.zeros(K, P, dtype=torch.float64)
     starts[:, 0], starts[:, 1] = -R, lanes
     targets = starts.clone()
@@ -256,7 +260,8 @@ def forest_scenario(cfg: Config) -> Scenario:
     trees = [{"center": c, "radius": FOREST_TREE_RADIUS} for c in centres.tolist()]
     if P == 3:  # vertical cylinders through the agents' height
         trees = [{**t, "z": [-half_height, half_height]} for t in trees]
-    return Scenario(starts, targets, cfg.reference, cfg.ref_points, "forest", obstacles=ObstacleField.parse(trees))
+    ref_points = forest_ref_points(2 * R, cfg.u_max, cfg.dt, cfg.ref_points)
+    return Scenario(starts, targets, cfg.reference, ref_points, "forest", obstacles=ObstacleField.parse(trees))
 
 
 def doorway_scenario(cfg: Config) -> Scenario:
