@@ -239,6 +239,47 @@ def test_buffered_voronoi_cells_closed_form_and_the_re_plan_keeps_each_agent_in_
     assert float((sol.X[0, 1:] - sol.X[1, 1:]).norm(dim=-1).min()) >= 0.5 - 2e-5
 
 
+def test_cell_rows_price_slack_by_danger_so_a_jam_opens_its_closest_pair_first():
+    """Three agents on a line, every pair inside its bound 1.0: the middle one cannot keep both cell
+    rows at tau = 1. With equal slack prices it is indifferent between them and tracking (a target
+    on the left) sends it towards its 0.6 m neighbour; priced by danger ((b - c) / (d - c): 5 for the
+    0.6 m pair, 1.43 for the 0.85 m pair, contact c = 0.5) it opens the closest pair instead."""
+    from torch_gpmpc.control.solvers import make_local_solver
+    from torch_gpmpc.coordination.fallback import MAX_DANGER_WEIGHT, cell_problem, danger_weights
+
+    T = 6
+    x0 = torch.tensor([[-0.6, 0.0], [0.0, 0.0], [0.85, 0.0]], dtype=torch.float64)
+    graph = communication_graph(x0, None)
+    nominal = NominalModel(2)
+    admm = ADMM(LocalStep(Config(method="nominal", horizon=T, r_safe=1.0), nominal))
+    xref = torch.tensor([[-3.0, 0.0], [-3.0, 0.0], [3.0, 0.0]], dtype=torch.float64)[:, None].expand(3, T + 1, 2).clone()
+    ctx, state = admm.prepare(x0, xref, graph, None)
+    data = admm.agent_step.assemble(x0, xref, state, graph, ctx.rho, ctx.eps_self).data
+    nbr = state.plans[graph.slot_nbr]
+    w = danger_weights(state.plans, nbr, data.bounds[:, :, 0], 0.5, [0, 1])
+    torch.testing.assert_close(w, torch.tensor([[5.0, 1.0], [5.0, 0.5 / 0.35], [1.0, 0.5 / 0.35]], dtype=torch.float64))
+    inside = danger_weights(state.plans, nbr, data.bounds[:, :, 0], 0.7, [0, 1])  # the 0.6 m pair in contact
+    assert float(inside[0, 0]) == MAX_DANGER_WEIGHT
+
+    solve = make_local_solver(T, 2, 2, nominal, 2.0, 1e-3, 1e4, "fast")
+    equal = solve(cell_problem(data, state.plans, nbr, [0, 1]))
+    priced = solve(cell_problem(data, state.plans, nbr, [0, 1], contact=0.5))
+    assert bool(equal.ok.all()) and bool(priced.ok.all())
+    # the outer agents step away at full speed either way
+    torch.testing.assert_close(priced.X[[0, 2], 1, 0], torch.tensor([-0.8, 1.05], dtype=torch.float64))
+    assert float(equal.X[1, 1, 0]) < 0.0  # towards the close neighbour: 0.735 m from it
+    assert abs(float(priced.X[1, 1, 0]) - 0.2) < 1e-3  # away at full speed: its bound kept, 0.85 m to the other
+    closest = lambda sol: float(torch.pdist(sol.X[:, 1]).min())  # noqa: E731
+    assert closest(priced) > closest(equal) + 0.1
+    # pairs outside their bounds keep weight 1: the re-plan is the unpriced one to the bit
+    far = x0 * 3.0
+    ctx, state = admm.prepare(far, xref, communication_graph(far, None), None)
+    data = admm.agent_step.assemble(far, xref, state, graph, ctx.rho, ctx.eps_self).data
+    a = solve(cell_problem(data, state.plans, state.plans[graph.slot_nbr], [0, 1]))
+    b = solve(cell_problem(data, state.plans, state.plans[graph.slot_nbr], [0, 1], contact=0.5))
+    assert torch.equal(a.X, b.X)
+
+
 def test_buffered_voronoi_fallback_keeps_a_capped_crowd_safe():
     """ADMM capped at 2 iterations in a crowded crossing (8 agents on a circle, noiseless): the
     fallback acts on most steps; no pair comes closer than r_safe and every agent arrives."""

@@ -193,6 +193,19 @@ def test_risk_spent_sums_the_pair_bounds_and_survives_a_round_trip(hand_rollout,
     assert m["risk_spent"] == pytest.approx(0.012) and m["risk_mode"] == "mission" and m["risk_budget"] == 0.05
 
 
+def test_risk_spent_shortfall_counts_only_pair_steps_whose_plans_fell_short_of_their_rows(hand_rollout, tmp_path):
+    """Of the pair bounds 0.01, 0.002 and 0.3, only the last step's plan (0.6 apart where its rows
+    asked 0.8) fell short by more than ``admm_tol``; the first is short by less than it."""
+    assert compute_metrics(hand_rollout)["risk_spent_shortfall"] is None
+    hand_rollout.pair_risk = np.array([[0.01], [np.nan], [0.002], [0.3]])
+    hand_rollout.pair_separation = np.array([[0.7995], [np.nan], [0.9], [0.6]])
+    hand_rollout.pair_required = np.array([[0.8], [np.nan], [0.8], [0.8]])
+    path = tmp_path / "r.npz"
+    hand_rollout.save(path)
+    m = compute_metrics(Rollout.load(path))
+    assert m["risk_spent"] == pytest.approx(0.312) and m["risk_spent_shortfall"] == pytest.approx(0.3)
+
+
 def test_step_times_are_summarized_by_hand_and_survive_a_round_trip(hand_rollout, tmp_path):
     """Mean, median and worst of the recorded control-step times (4 steps, hand values);
     ``None`` where a run did not record them (files written before they were)."""

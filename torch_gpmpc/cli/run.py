@@ -124,7 +124,9 @@ def _risk_note(m: dict) -> str:
     if m.get("risk_spent") is None:
         return ""
     budget = f" of budget {m['risk_budget']:g}" if m.get("risk_budget") is not None else ""
-    return f", risk spent {m['risk_spent']:.3g}{budget}"
+    short = m.get("risk_spent_shortfall")
+    short = f" ({short:.3g} of it where plans fell short of their rows)" if short else ""
+    return f", risk spent {m['risk_spent']:.3g}{budget}{short}"
 
 
 def _obstacle_note(m: dict) -> str:

@@ -59,7 +59,7 @@ from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.control.problem import LocalProblemData, LocalSolution
 from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
 from torch_gpmpc.coordination.acceleration import AndersonAcceleration
-from torch_gpmpc.coordination.bodies import edge_distances
+from torch_gpmpc.coordination.bodies import edge_distances, slot_distances
 from torch_gpmpc.coordination.agent_step import (
     LocalStep, edge_copies, edge_variances, fall_back_to_previous, slot_risks,
 )
@@ -487,8 +487,9 @@ class ADMM:
                                             self.settings.safety_fallback)
         if bool(replan.any()):
             with torch.no_grad():
+                contact = slot_distances(self.settings, torch.arange(graph.num_agents), graph.slot_nbr)
                 sol = self.agent_step.solve(layer, fallback_problem(data, state.plans, state.plans[graph.slot_nbr],
-                                                                    position, cells))
+                                                                    position, cells, contact))
             use = replan & sol.ok
             if bool(use.any()):
                 state = dataclasses.replace(state, plans=torch.where(use[:, None, None], sol.X, state.plans),

@@ -4,7 +4,9 @@ decides who re-plans.
 Agents that can stop at once (and whose neighbours can) re-plan inside their buffered Voronoi
 cells (Zhou et al. 2017) when their plans leave them; the others re-plan against their
 neighbours' latest plans as fixed obstacles when their pair is unsafe at tau = 1. Both
-backends apply the same rule (:func:`fallback_agents`, :func:`fallback_problem`).
+backends apply the same rule (:func:`fallback_agents`, :func:`fallback_problem`). A cell row's
+slack is priced by how far its pair has eaten into its margin (:func:`danger_weights`), so an
+agent squeezed between pairs already inside their bounds opens the closest pair first.
 """
 
 from __future__ import annotations
@@ -63,7 +65,8 @@ def cell_planes(own_plans: Tensor, nbr_plans: Tensor, position: list[int]) -> tu
     return n, m
 
 
-def cell_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, position: list[int]) -> LocalProblemData:
+def cell_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, position: list[int],
+                 contact: Tensor | float | None = None) -> LocalProblemData:
     """The safety fallback's re-plan: the local problems with each collision row replaced by the
     agent's buffered Voronoi cell at every step, ``n^T p_tau >= m + b_tau / 2`` (:func:`cell_planes`;
     ``b_tau`` the row's bound, chance margin included), and no consensus pull.
@@ -79,6 +82,8 @@ def cell_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, p
         own_plans: (B, T+1, D) the agents' latest plans (tau = 0: the measured states).
         nbr_plans: (B, M, T+1, D) their neighbours' latest plans.
         position: the state indices of the position.
+        contact: the pairs' collision distances, (B, M, 1) or a number: each row's slack is then
+            priced by :func:`danger_weights`; ``None``: every row at the solver's one price.
     """
     n, m = cell_planes(own_plans.detach(), nbr_plans.detach(), position)
     T, D = data.normals.shape[2], data.normals.shape[3]
@@ -86,7 +91,38 @@ def cell_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, p
     # a virtual neighbour at m - b/2 along n turns the row n^T (X - Y) >= b into n^T X >= m + b / 2
     anchor = (m[..., None, None] - 0.5 * data.bounds.detach()[..., None]) * normals
     obstacles = torch.cat([anchor[:, :, :1], anchor], dim=2)  # tau = 0 has no row
-    return obstacle_problem(dataclasses.replace(data, normals=normals), obstacles)
+    cell = obstacle_problem(dataclasses.replace(data, normals=normals), obstacles)
+    if contact is None:
+        return cell
+    w = danger_weights(own_plans.detach(), nbr_plans.detach(), data.bounds.detach()[:, :, 0], contact, position)
+    # scaling a row by w prices its slack w times higher; the copies' pin scales by w^2 so that
+    # moving a copy relieves the row no more than before
+    return dataclasses.replace(cell, normals=cell.normals * w[..., None, None], bounds=cell.bounds * w[..., None],
+                               rho_nbr=cell.rho_nbr * w ** 2)
+
+
+#: The largest factor by which a cell row's slack is priced above the others'.
+MAX_DANGER_WEIGHT = 10.0
+
+
+def danger_weights(own_plans: Tensor, nbr_plans: Tensor, bounds: Tensor, contact: Tensor | float,
+                   position: list[int]) -> Tensor:
+    """How much more each cell row's slack should cost, (B, M): ``(b - c) / (d - c)`` clipped to
+    ``[1, MAX_DANGER_WEIGHT]``, with ``d`` the pair's measured distance, ``b`` its tau = 1 bound and
+    ``c`` its contact distance (the largest weight where ``d <= c``; 1, no change, where ``d >= b``).
+    Rows of pairs already inside their bounds cannot all be met at once in a jam; with equal prices an agent squeezed between a neighbour at 0.3 m and one at 0.8 m is
+    indifferent between them (the L1 slack trades one for the other) and tracking decides. Pricing
+    by how far a pair has eaten into its margin makes the re-plan open the closest pair first.
+
+    Args:
+        own_plans: (B, T+1, D). nbr_plans: (B, M, T+1, D). bounds: (B, M) tau = 1 bounds.
+        contact: (B, M, 1) or a number: the pair's collision distance.
+        position: the state indices of the position.
+    """
+    d = torch.linalg.vector_norm(own_plans[:, None, 0, position] - nbr_plans[:, :, 0, position], dim=-1)
+    c = contact[..., 0] if torch.is_tensor(contact) else contact
+    ratio = torch.where(d > c, (bounds - c) / (d - c).clamp_min(1e-12), torch.full_like(d, MAX_DANGER_WEIGHT))
+    return ratio.clamp(1.0, MAX_DANGER_WEIGHT)
 
 
 def leaves_cell(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, position: list[int]) -> Tensor:
@@ -140,7 +176,7 @@ def fallback_agents(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, pos
 
 
 def fallback_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, position: list[int],
-                     cells: Tensor) -> LocalProblemData:
+                     cells: Tensor, contact: Tensor | float | None = None) -> LocalProblemData:
     """The safety fallback's re-plan of each agent: inside its buffered Voronoi cell
     (:func:`cell_problem`) where ``cells`` (:func:`cell_agents`), else against its neighbours'
     latest plans as fixed obstacles (:func:`obstacle_problem`).
@@ -148,15 +184,18 @@ def fallback_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tenso
     Args:
         data: the last iteration's problems. own_plans: (B, T+1, D). nbr_plans: (B, M, T+1, D).
         position: the state indices of the position. cells: (B,) bool.
+        contact: the pairs' collision distances for the cell rows' prices (:func:`cell_problem`).
     """
     if not bool(cells.any()):
         return obstacle_problem(data, nbr_plans)
-    cell = cell_problem(data, own_plans, nbr_plans, position)
+    cell = cell_problem(data, own_plans, nbr_plans, position, contact)
     if bool(cells.all()):
         return cell
     fixed = obstacle_problem(data, nbr_plans)
     rows = cells[:, None, None, None]
     return dataclasses.replace(fixed, normals=torch.where(rows, cell.normals, fixed.normals),
+                               bounds=torch.where(cells[:, None, None], cell.bounds, fixed.bounds),
+                               rho_nbr=torch.where(cells[:, None], cell.rho_nbr, fixed.rho_nbr),
                                z_nbr=torch.where(rows, cell.z_nbr, fixed.z_nbr))
 
 

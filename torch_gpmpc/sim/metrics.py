@@ -365,8 +365,22 @@ def risk_metrics(rollout: Rollout) -> dict[str, Any]:
                                                                getattr(rollout, "obstacle_risk", None)) if r is not None]
     risks = np.concatenate(parts) if parts else None
     spent = None if risks is None or not np.isfinite(risks).any() else float(np.nansum(risks))
-    return {"risk_spent": spent, "risk_mode": mode,
+    return {"risk_spent": spent, "risk_spent_shortfall": shortfall_risk(rollout, run_setting(cfg, "admm_tol")),
+            "risk_mode": mode,
             "risk_budget": float(cfg.get("risk_budget", Config().risk_budget)) if mode == "mission" else None}
+
+
+def shortfall_risk(rollout: Rollout, tol: float) -> float | None:
+    """The part of ``risk_spent``'s pair risk spent at pair-steps whose applied plans were closer at
+    tau = 1 than their rows require (by more than ``tol``, the consensus tolerance): slack or an
+    unconverged stop, risk the controller took beyond what its rows promise. The rest is the rows'
+    own per-step risk, which grows with the number of pair-steps at the bound. ``None`` without
+    pair risks."""
+    risk, sep, req = (getattr(rollout, k, None) for k in ("pair_risk", "pair_separation", "pair_required"))
+    if risk is None or sep is None or req is None or not np.isfinite(risk).any():
+        return None
+    short = np.nan_to_num(sep, nan=np.inf) < np.nan_to_num(req, nan=-np.inf) - tol
+    return float(np.nansum(np.where(short, risk, 0.0)))
 
 
 def _count(flags: Any) -> int | None:

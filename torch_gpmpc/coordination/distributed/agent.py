@@ -33,6 +33,7 @@ from torch_gpmpc.control.problem import FAILURE_KINDS, LocalSolution
 from torch_gpmpc.coordination.acceleration import PartialAnderson
 from torch_gpmpc.coordination.admm import consensus_update
 from torch_gpmpc.coordination.penalty import balance_penalty, edge_residuals, starting_penalties
+from torch_gpmpc.coordination.bodies import slot_distances
 from torch_gpmpc.coordination.agent_step import edge_copies, fall_back_to_previous, slot_risks
 from torch_gpmpc.coordination.fallback import fallback_agents, fallback_problem, pair_safety
 from torch_gpmpc.coordination.controller import make_agent_step
@@ -369,8 +370,9 @@ class AgentController:
                                             self.team_nominal.momentum(self.num_agents), unsafe,
                                             self.cfg.safety_fallback)
         if bool(replan[k]):
+            contact = slot_distances(self.local.settings, torch.tensor([k]), self.graph.slot_nbr[k:k + 1])
             data = fallback_problem(self.assembled.data, state.plans[k:k + 1], state.plans[self.graph.slot_nbr[k:k + 1]],
-                                    position, cells[k:k + 1])
+                                    position, cells[k:k + 1], contact)
             sol = self.local.solve(self.layer, data)
             if bool(sol.ok[0]):
                 plans, inputs = state.plans.clone(), state.inputs.clone()
