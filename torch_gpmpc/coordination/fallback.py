@@ -82,8 +82,10 @@ def cell_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, p
         own_plans: (B, T+1, D) the agents' latest plans (tau = 0: the measured states).
         nbr_plans: (B, M, T+1, D) their neighbours' latest plans.
         position: the state indices of the position.
-        contact: the pairs' collision distances, (B, M, 1) or a number: each row's slack is then
-            priced by :func:`danger_weights`; ``None``: every row at the solver's one price.
+        contact: the distance each pair's rows ask before margins, (B, M, 1) or a number
+            (:func:`~torch_gpmpc.coordination.bodies.slot_distances`: ``r_k + r_j`` or ``r_safe``, plus
+            ``pair_buffer``): each row's slack is then priced by :func:`danger_weights`; ``None``:
+            every row at the solver's one price.
     """
     n, m = cell_planes(own_plans.detach(), nbr_plans.detach(), position)
     T, D = data.normals.shape[2], data.normals.shape[3]
@@ -110,13 +112,14 @@ def danger_weights(own_plans: Tensor, nbr_plans: Tensor, bounds: Tensor, contact
     """How much more each cell row's slack should cost, (B, M): ``(b - c) / (d - c)`` clipped to
     ``[1, MAX_DANGER_WEIGHT]``, with ``d`` the pair's measured distance, ``b`` its tau = 1 bound and
     ``c`` its contact distance (the largest weight where ``d <= c``; 1, no change, where ``d >= b``).
-    Rows of pairs already inside their bounds cannot all be met at once in a jam; with equal prices an agent squeezed between a neighbour at 0.3 m and one at 0.8 m is
-    indifferent between them (the L1 slack trades one for the other) and tracking decides. Pricing
-    by how far a pair has eaten into its margin makes the re-plan open the closest pair first.
+    Rows of pairs already inside their bounds cannot all be met at once in a jam; with equal
+    prices an agent squeezed between a neighbour at 0.3 m and one at 0.8 m is indifferent between
+    them (the L1 slack trades one for the other) and tracking decides. Pricing by how far a pair
+    has eaten into its margin makes the re-plan open the closest pair first.
 
     Args:
         own_plans: (B, T+1, D). nbr_plans: (B, M, T+1, D). bounds: (B, M) tau = 1 bounds.
-        contact: (B, M, 1) or a number: the pair's collision distance.
+        contact: (B, M, 1) or a number: the distance the pair's rows ask before margins.
         position: the state indices of the position.
     """
     d = torch.linalg.vector_norm(own_plans[:, None, 0, position] - nbr_plans[:, :, 0, position], dim=-1)
