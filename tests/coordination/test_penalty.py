@@ -41,6 +41,16 @@ def test_balancing_doubles_halves_or_keeps_each_edge_on_the_residual_ratios():
     assert balance_penalty(torch.tensor([4.0], dtype=F64), res).tolist() == [8.0]
 
 
+def test_balancing_can_relax_settled_edges_whatever_their_round_off():
+    """Round-off residuals (an edge whose rows do not bind) decide nothing when settled: halved
+    whichever way their ratio points (or none, at exact zeros); an edge above the settled ratio is
+    balanced as before, even when it meets its tolerances."""
+    rho = torch.tensor([4.0, 4.0, 4.0, 4.0, 4.0, 4.0], dtype=F64)
+    res = _residuals([1e-14, 1e-17, 0.0, 20.0, 1.0, 1e-3], [1e-17, 1e-14, 0.0, 1.0, 20.0, 1e-5])
+    assert balance_penalty(rho, res).tolist() == [8.0, 2.0, 4.0, 8.0, 2.0, 8.0]
+    assert balance_penalty(rho, res, relax_settled=True).tolist() == [2.0, 2.0, 2.0, 8.0, 2.0, 8.0]
+
+
 def test_balancing_stays_within_bounds_and_passes_gradients_to_the_start():
     low, high = RHO_BOUNDS
     rho = torch.tensor([high, low], dtype=F64)

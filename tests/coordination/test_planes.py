@@ -17,7 +17,8 @@ from torch_gpmpc.coordination.agent_step import message_size
 from torch_gpmpc.coordination.centralized import solve_centralized
 from torch_gpmpc.coordination.graph import communication_graph, graph_from_edges
 from torch_gpmpc.coordination.planes import (
-    midpoint_planes, plane_consensus, plane_geometry, plane_offsets, plane_problem, plane_residuals,
+    PlaneGeometry, lost_end_offsets, midpoint_planes, plane_consensus, plane_geometry, plane_offsets, plane_problem,
+    plane_residuals,
 )
 from torch_gpmpc.coordination.state import adapt_state, initial_state
 from torch_gpmpc.dynamics.systems import NominalModel
@@ -150,7 +151,8 @@ def test_messages_carry_the_planes_offsets():
     s = ControllerSettings(method="nominal", horizon=13)
     assert message_size(s, 2) == 2 * 14 * 2
     assert message_size(s.replace(admm_coupling="planes"), 2) == 13
-    assert message_size(s.replace(admm_coupling="planes", method="gp-chance"), 4) == 26  # + T variances
+    # the variances (and the rows) are agreed once per step, not sent with every iteration's offsets
+    assert message_size(s.replace(admm_coupling="planes", method="gp-chance"), 4) == 13
 
 
 @pytest.mark.parametrize("changes, key", [({"admm_acceleration": "anderson"}, "admm_coupling"),
@@ -162,12 +164,27 @@ def test_planes_refuse_what_they_do_not_support_yet(changes, key):
         ControllerSettings(admm_coupling="planes", **changes)
 
 
-def test_planes_refuse_the_distributed_backend():
+def test_planes_refuse_a_mixed_team_on_the_distributed_backend():
     from torch_gpmpc.sim.distributed import simulate_distributed
 
-    cfg = Config(admm_coupling="planes", method="nominal", noise_std=0.0, max_steps=2)
-    with pytest.raises(GpmpcError, match="planes runs in process only"):
+    cfg = Config(admm_coupling="planes", method="nominal", noise_std=0.0, max_steps=2, scenario="circle", num_agents=2,
+                 models=["double-integrator", "single-integrator"])
+    with pytest.raises(GpmpcError, match="config key 'admm_coupling'.*mixed team"):
         simulate_distributed(cfg)
+
+
+def test_a_lost_neighbour_votes_the_plane_that_touches_its_last_plan():
+    """Closed form: the lost end's half holds with equality on its last shared plan (lo:
+    ``n^T p = w + d/2``, hi: ``n^T p = w - d/2``), so the survivor is pushed to keep the whole row."""
+    T = 4
+    normals = torch.tensor([[0.6, 0.8]], dtype=torch.float64).expand(T, 2)
+    geometry = PlaneGeometry(torch.tensor([0, 1]), torch.tensor([0, 0]), torch.tensor([0, 0]), torch.tensor([0, 1]),
+                             torch.tensor([1.0, -1.0], dtype=torch.float64), normals[None].clone(),
+                             torch.full((1, T), 0.7, dtype=torch.float64))
+    plan = torch.arange(2 * (T + 1), dtype=torch.float64).reshape(T + 1, 2)
+    along = (normals * plan[1:]).sum(-1)
+    assert torch.allclose(lost_end_offsets(geometry, plan, 0, 1, [0, 1]), along + 0.35)
+    assert torch.allclose(lost_end_offsets(geometry, plan, 0, 0, [0, 1]), along - 0.35)
 
 
 def test_a_mixed_team_crosses_the_vortex_on_planes_without_violation():

@@ -154,6 +154,59 @@ def test_agent_controllers_reproduce_accelerated_admm():
             x = system.step(x, clip_norm(u, cfg.u_max), noise=noise[t])
 
 
+def _exchange(own: dict) -> dict:
+    """Deliver every agent's messages ``{k: {j: msg}}`` by hand: ``{j: {k: msg}}``."""
+    return {j: {k: msgs[j] for k, msgs in own.items() if j in msgs} for j in own}
+
+
+@pytest.mark.parametrize("admm_max_iter", [40, 3])
+def test_agent_controllers_reproduce_the_plane_admm(admm_max_iter):
+    """No processes: with ``admm_coupling = planes`` each agent agrees on the step's variances and
+    rows with its neighbours once, then sends T offsets per iteration, and its final plan: the
+    in-process plane ADMM's residuals and inputs (the fast solver: batch 1 against batch 4 rounds
+    differently in the last bits; measured 1e-13), uncapped (5-27 iterations a step) and capped at 3
+    iterations (the safety fallback on the final plans)."""
+    from torch_gpmpc.gp import fit_agent_gps
+
+    cfg = load_config(None, {"method": "gp-chance", "scenario": "circle", "num_agents": 4, "circle_radius": 1.5,
+                             "admm_coupling": "planes", "admm_max_iter": admm_max_iter, "gp_samples": 30,
+                             "gp_iters": 5, "max_steps": 8})
+    sc = make_scenario(cfg)
+    K = sc.num_agents
+    system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
+    gps = fit_agent_gps(cfg, system, K)
+    admm = ADMM(cfg, cfg.method, system.nominal, gps=gps)
+    agents = [AgentController(k, K, cfg, sc.reference_path()[k], gps[k]) for k in range(K)]
+    noise = noise_sequence(cfg, K)
+    x, warm, iterations = sc.starts.clone(), None, []
+    with torch.no_grad():
+        for t in range(cfg.max_steps):
+            res = admm.solve_step(x, sc.reference_window(t, cfg.horizon), communication_graph(x, None), warm=warm)
+            warm = res.state.shifted()
+            begin_agents(agents, t, x)
+            variances = _exchange({k: agents[k].step_variances() for k in range(K)})
+            for k in range(K):
+                agents[k].take_step_variances(variances[k])
+            rows = _exchange({k: agents[k].plane_rows() for k in range(K)})
+            for k in range(K):
+                agents[k].take_plane_rows(rows[k])
+            primal = []
+            for _ in range(res.iterations):
+                offsets = _exchange({k: agents[k].solve() for k in range(K)})
+                assert all(m.shape == (cfg.horizon,) for msgs in offsets.values() for m in msgs.values())
+                primal.append(max(agents[k].update(offsets[k])[0] for k in range(K)))
+            plans = _exchange({k: {j: agents[k].own_plan().clone() for j in agents[k].nbrs} for k in range(K)})
+            for k in range(K):
+                agents[k].take_final_plans(plans[k])
+                agents[k].check_safety(res.converged)
+            np.testing.assert_allclose(primal, res.primal_residuals, rtol=0, atol=1e-10)
+            u = torch.stack([a.end_step().u for a in agents])
+            assert torch.allclose(u, res.inputs[:, 0], rtol=0, atol=1e-10)
+            iterations.append(res.iterations)
+            x = system.step(x, clip_norm(u, cfg.u_max), noise=noise[t])
+    assert max(iterations) > 10 if admm_max_iter == 40 else set(iterations) == {3}
+
+
 def test_bad_arguments_raise_before_launching():
     cfg = Config(method="nominal", max_steps=1)
     with pytest.raises(GpmpcError, match="agents_per_process"):
@@ -203,6 +256,33 @@ def test_cli_distributed_equals_inprocess_and_counts_bytes(tmp_path):
     assert m["backend"] == "distributed" and m["processes"] == 3 and m["lost_agents"] == []
 
 
+def test_plane_distributed_run_equals_inprocess_and_counts_bytes(tmp_path):
+    """``admm_coupling = planes`` across processes (two agents per process, so in-memory and gloo
+    deliveries both): the in-process states and iterations; per iteration T offsets per neighbour,
+    per step the variances, rows and final plan."""
+    keys = {"method": "gp-chance", "scenario": "circle", "num_agents": 4, "circle_radius": 1.5,
+            "admm_coupling": "planes", "max_steps": 6, "admm_max_iter": 30, "gp_iters": 5}
+    out = tmp_path / "dist"
+    args = ["run", "--backend", "distributed", "--agents-per-process", "2", "--timeout", "60", "--no-figures",
+            "--out", str(out), "--method", keys["method"]]
+    for key, value in keys.items():
+        args += ["--set", f"{key}={value}"] if key != "method" else []
+    assert main(args) == 0
+    cfg = load_config(None, keys)
+    ref = simulate(cfg)
+    with np.load(out / "rollout.npz", allow_pickle=False) as r:
+        states, iterations, messages = r["states"], r["admm_iterations"], r["messages_per_iteration"]
+    assert np.abs(states - ref.states).max() <= 1e-9
+    assert np.array_equal(iterations, ref.admm_iterations) and iterations.max() > 5
+    T, D, K = cfg.horizon, cfg.dim, 4
+    assert np.array_equal(messages, np.full((cfg.max_steps, K), T * (K - 1)))
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["copy_bytes_per_agent_per_iteration"] == [8.0 * T * (K - 1)] * K
+    per_step = T + (T + T * D) + (T + 1) * D  # variances, rows, final plan
+    warm_plans = (T + 1) * D  # once, when the edge appears (t = 0)
+    assert m["plan_exchange_bytes_per_agent"] == [8.0 * (K - 1) * (cfg.max_steps * per_step + warm_plans)] * K
+
+
 def test_accelerated_distributed_run_equals_inprocess(tmp_path):
     """Anderson acceleration across processes (the agents' terms reduced by the world with their
     residuals): the in-process states up to the order of the least squares' sums, the same
@@ -219,9 +299,11 @@ def test_accelerated_distributed_run_equals_inprocess(tmp_path):
     assert m["reduce_bytes_per_agent_per_iteration"] == [8.0 * (2 + 3 + mem * mem + mem)] * 3
 
 
-def test_killed_agent_becomes_an_obstacle_and_the_run_reports_it(tmp_path):
+@pytest.mark.parametrize("coupling", ["copies", "planes"])
+def test_killed_agent_becomes_an_obstacle_and_the_run_reports_it(tmp_path, coupling):
     """No noise, no wind. Agent 2's process is killed at step 2; agents 0 and 1 (one
-    process, messages in memory) go on, treat 2 as an obstacle on its last shared plan,
+    process, messages in memory) go on, treat 2 as an obstacle on its last shared plan (with
+    planes: 2's end of each plane votes where its half touches that plan),
     keep r_safe between themselves (to within admm_tol, as in the in-process tests), and
     the run ends with a report naming agent 2."""
     scen = tmp_path / "close.json"
@@ -229,7 +311,7 @@ def test_killed_agent_becomes_an_obstacle_and_the_run_reports_it(tmp_path):
                                 "targets": [[-1.5, 0.0], [0.75, -1.299], [0.75, 1.299]],
                                 "reference": "line", "ref_points": 12}))
     cfg = Config(scenario="circle", num_agents=3, method="nominal", noise_std=0.0, wind_scale=0.0,
-                 max_steps=9, admm_max_iter=20)
+                 max_steps=9, admm_max_iter=20, admm_coupling=coupling)
     pids: dict[int, int] = {}
 
     def on_step(t: int, info: dict) -> None:
@@ -247,10 +329,11 @@ def test_killed_agent_becomes_an_obstacle_and_the_run_reports_it(tmp_path):
     assert remaining.min() < cfg.r_safe + 0.1  # they really met
     m = report.metrics(rollout, cfg)
     assert m["lost_agents"] == [2] and m["lost_at_step"] == {"2": 2}
-    # after the loss, 0 and 1 send copies only to each other: between 1 and 2 neighbours' worth
+    # after the loss, 0 and 1 send copies (offsets) only to each other: between 1 and 2 neighbours' worth
     T, D = cfg.horizon, cfg.dim
+    per_neighbour = T if coupling == "planes" else 2 * (T + 1) * D
     for k in (0, 1):
-        assert 8 * 2 * (T + 1) * D < m["copy_bytes_per_agent_per_iteration"][k] < 8 * 2 * (T + 1) * D * 2
+        assert 8 * per_neighbour < m["copy_bytes_per_agent_per_iteration"][k] < 8 * per_neighbour * 2
     assert report.log_dir is not None  # kept for inspection after a fault
 
 

@@ -70,7 +70,8 @@ from torch_gpmpc.coordination.mission_risk import (
     pair_risk_bounds, row_allotments, slot_risks_from_edges, starting_budgets,
 )
 from torch_gpmpc.coordination.planes import (
-    PlaneIterations, midpoint_planes, plane_consensus, plane_geometry, plane_offsets, plane_problem, plane_residuals,
+    PlaneIterations, balance_plane_penalty, midpoint_planes, plane_consensus, plane_geometry, plane_offsets, plane_problem,
+    plane_residuals,
 )
 from torch_gpmpc.coordination.penalty import (
     balance_penalty, edge_residuals, should_stop, starting_penalties, unconverged_edges,
@@ -349,6 +350,8 @@ class ADMM:
         assembled problems (full rows: what the safety check and a centralized solve use)."""
         s, graph = self.settings, ctx.graph
         adaptive = s.rho_update == "adaptive"
+        if state.planes is None:  # the step's first iteration: its rows read the step's own variances
+            state = self._with_step_variances(ctx, state)
         assembled = self._assemble(ctx, state)
         data = assembled.data
         geometry = plane_geometry(data, graph)
@@ -373,9 +376,21 @@ class ADMM:
         if assembled.own_variance is not None:
             pvar = edge_variances(assembled.own_variance, graph, state.pvar)
         nxt = ADMMState(sol.X, sol.U, graph.edges, state.z, state.lam, pvar,
-                        balance_penalty(rho, res) if adaptive else None, state.risk_left,
+                        balance_plane_penalty(rho, res) if adaptive else None, state.risk_left,
                         solver_point=sol.solver_point, planes=planes_new, plane_duals=duals)
         return nxt, stats
+
+    def _with_step_variances(self, ctx: StepContext, state: ADMMState) -> ADMMState:
+        """``state`` with every edge end's projected variance (``pvar``, (E, 2, T)) from this step's
+        linearization rather than the last step's reports, where the margins read the neighbours'.
+
+        With planes the pair rows then hold from the step's first iteration to its last (the frozen
+        linearization fixes the variances), so the planes' geometry (their normals and distances) is
+        the step's, and the distributed backend's agents can agree on it once per step."""
+        if not self.agent_step.exchanges_variance:
+            return state
+        own = self._assemble(ctx, state).own_variance
+        return dataclasses.replace(state, pvar=edge_variances(own, ctx.graph, state.pvar))
 
     def solve_step(
         self,
@@ -430,8 +445,9 @@ class ADMM:
                 result.converged = True
                 break
             # the problems change only in their consensus terms from the second iteration on (from the
-            # first where no variances are exchanged: the margins then do not read the neighbours')
-            if it == 1 or (it == 0 and not self.agent_step.exchanges_variance):
+            # first where no variances are exchanged, the margins then not reading the neighbours', or
+            # with planes, whose first iteration reads the step's own variances)
+            if it == 1 or (it == 0 and (not self.agent_step.exchanges_variance or s.admm_coupling == "planes")):
                 steady = self._steady_iterations(ctx, state, stats, accelerator)
             if accelerator is not None and it < max_iter - 1:  # a capped step keeps its plain iterate
                 state = accelerator.next_input(previous, state)

@@ -144,11 +144,13 @@ def exchanges_variance(settings: ControllerSettings, method: str | Method | None
 
 def message_size(settings: ControllerSettings, state_dim: int, method: str | Method | None = None) -> int:
     """Numbers one agent sends one neighbour per ADMM iteration: its copy ``y_{e,k}``
-    (``2 (T+1) n``, n the model's state dimension; with ``admm_coupling = planes`` its T plane
-    offsets instead) and, when exchanged, its T projected variances."""
+    (``2 (T+1) n``, n the model's state dimension) and, when exchanged, its T projected variances;
+    with ``admm_coupling = planes`` its T plane offsets alone (the variances and the rows are agreed
+    once per step)."""
     T = settings.horizon
-    shared = T if settings.admm_coupling == "planes" else 2 * (T + 1) * state_dim
-    return shared + (T if exchanges_variance(settings, method) else 0)
+    if settings.admm_coupling == "planes":
+        return T
+    return 2 * (T + 1) * state_dim + (T if exchanges_variance(settings, method) else 0)
 
 
 def as_settings(settings: ControllerSettings | Config) -> ControllerSettings:

@@ -72,14 +72,40 @@ class PlaneGeometry:
 def plane_geometry(data: LocalProblemData, graph: Graph) -> PlaneGeometry:
     """The planes of the assembled problems ``data`` (batch K, every agent of ``graph``; at least
     one edge): lo's normals (hi's rows use their negation) and each edge's larger bound."""
+    return rows_geometry(data.normals, data.bounds, graph)
+
+
+def rows_geometry(normals: Tensor, bounds: Tensor, graph: Graph) -> PlaneGeometry:
+    """:func:`plane_geometry` from the rows alone: ``normals`` (K, M, T, n) and ``bounds`` (K, M, T)
+    of every active slot of ``graph`` (a distributed agent fills its neighbours' slots with the rows
+    they sent)."""
     agent, slot = torch.nonzero(graph.active, as_tuple=True)
     edge, side = graph.slot_edge[agent, slot], graph.slot_side[agent, slot]
-    E, T, n = graph.num_edges, data.normals.shape[2], data.normals.shape[3]
+    E, T, n = graph.num_edges, normals.shape[2], normals.shape[3]
     lo_slot = side == 0
-    normals = data.normals.new_zeros(E, T, n).index_put((edge[lo_slot],), data.normals[agent[lo_slot], slot[lo_slot]])
-    ends = data.bounds.new_zeros(E, 2, T).index_put((edge, side), data.bounds[agent, slot])
-    sign = torch.where(lo_slot, 1.0, -1.0).to(data.bounds.dtype)
-    return PlaneGeometry(agent, slot, edge, side, sign, normals, ends.amax(dim=1))
+    edge_normals = normals.new_zeros(E, T, n).index_put((edge[lo_slot],), normals[agent[lo_slot], slot[lo_slot]])
+    ends = bounds.new_zeros(E, 2, T).index_put((edge, side), bounds[agent, slot])
+    sign = torch.where(lo_slot, 1.0, -1.0).to(bounds.dtype)
+    return PlaneGeometry(agent, slot, edge, side, sign, edge_normals, ends.amax(dim=1))
+
+
+def agent_rows(geometry: PlaneGeometry, k: int) -> PlaneGeometry:
+    """The part of ``geometry`` agent ``k`` poses: its own slots, with ``agent`` 0 (its problems as
+    a batch of one, as a distributed agent solves them); the edges' normals and distances whole."""
+    own = geometry.agent == k
+    return dataclasses.replace(geometry, agent=torch.zeros_like(geometry.agent[own]), slot=geometry.slot[own],
+                               edge=geometry.edge[own], side=geometry.side[own], sign=geometry.sign[own])
+
+
+def lost_end_offsets(geometry: PlaneGeometry, plan: Tensor, edge: int, side: int, position: list[int]) -> Tensor:
+    """The offsets (T,) a lost neighbour votes on edge ``edge`` at its end ``side``: where its half
+    of the plane touches its last shared plan (T+1, n), which it is taken to follow as an obstacle
+    (lo: ``n^T p - d / 2``; hi: ``n^T p + d / 2``)."""
+    p = torch.zeros_like(plan[1:])
+    p[..., position] = plan[1:][..., position]
+    offset = (geometry.normals[edge] * p).sum(-1)
+    half = geometry.distance[edge] / 2
+    return offset - half if side == 0 else offset + half
 
 
 def midpoint_planes(geometry: PlaneGeometry, plans: Tensor, graph: Graph, position: list[int]) -> Tensor:
@@ -174,6 +200,12 @@ def plane_residuals(primal: Tensor, dual: Tensor, duals: Tensor, cfg: Controller
     return EdgeResiduals(primal.amax(dim=1), dual, eps_primal, eps_dual)
 
 
+def balance_plane_penalty(rho: Tensor, residuals: EdgeResiduals) -> Tensor:
+    """(E,) the edges' next penalties: residual balancing with settled edges relaxed
+    (:func:`~.penalty.balance_penalty`'s ``relax_settled``; their residuals are round-off)."""
+    return balance_penalty(rho, residuals, relax_settled=True)
+
+
 class PlaneIterations:
     """A control step's later plane iterations on the kept problems (the planes' form of
     :class:`~.steady.SteadyIterations`): only the copies' targets and weights change, so each
@@ -218,7 +250,8 @@ class PlaneIterations:
         planes, duals, gaps, dual_norms = plane_consensus(offsets, state.planes, state.plane_duals, rho)
         res = plane_residuals(gaps, dual_norms, duals, s)
         stop = res if self.tol == s.admm_tol else plane_residuals(gaps, dual_norms, duals, s, self.tol)
+        rho_next = balance_plane_penalty(rho, res) if self.adaptive else None
         nxt = dataclasses.replace(state, plans=sol.X, inputs=sol.U, solver_point=sol.point, planes=planes,
-                                  plane_duals=duals, rho=balance_penalty(rho, res) if self.adaptive else None)
+                                  plane_duals=duals, rho=rho_next)
         return SteadyResult(nxt, float(res.primal.max()), float(res.dual.max()), float(stop.primal_ratio.max()),
                             float(stop.dual_ratio.max()), unconverged_edges(stop, s), sol.slack_active)

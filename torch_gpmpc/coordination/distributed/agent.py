@@ -12,6 +12,12 @@ copies) and its *own* ``lambda_{e,k}`` (eq. 29). No agent ever receives another 
 covariance, GP or data. A lost neighbour is treated as an obstacle following its last
 shared plan: its missing copy is replaced by ``[own plan; last shared plan]``.
 
+With ``admm_coupling = planes`` an agent agrees with its neighbours once per step on the step's
+variances and collision rows (:meth:`AgentController.step_variances`,
+:meth:`AgentController.plane_rows`), sends T plane offsets per iteration, and its plan after the
+stop decision; both ends of an edge compute its consensus, both duals and its penalty from the
+same two offsets, as :mod:`~torch_gpmpc.coordination.planes` does for the whole team.
+
 In a mixed team (config key ``models``) an agent plans with its own model's step, lifted to the
 team's state size (:mod:`~torch_gpmpc.coordination.team_step`): the rows it solves are the ones
 the in-process :class:`~torch_gpmpc.coordination.team_step.TeamStep` gives its model's step, and
@@ -39,6 +45,10 @@ from torch_gpmpc.coordination.fallback import fallback_agents, fallback_problem,
 from torch_gpmpc.coordination.controller import make_agent_step
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
 from torch_gpmpc.coordination.graph import graph_from_edges
+from torch_gpmpc.coordination.planes import (
+    agent_rows, balance_plane_penalty, lost_end_offsets, midpoint_planes, plane_consensus, plane_offsets, plane_problem,
+    plane_residuals, rows_geometry,
+)
 from torch_gpmpc.coordination.state import ADMMState, StepResult, adapt_state, initial_state
 from torch_gpmpc.coordination.team_step import TeamStep
 from torch_gpmpc.dynamics.team import team_system_from_config
@@ -124,6 +134,8 @@ class AgentController:
         #: team its model's step, as the in-process TeamStep uses for its rows)
         self.local = step.groups[step.team.group_of[k]] if isinstance(step, TeamStep) else step
         self.rho = torch.as_tensor(cfg.rho, dtype=DTYPE)
+        #: neighbours agree on separating planes (admm_coupling = planes), not on copies
+        self.planes = cfg.admm_coupling == "planes"
         self.state: ADMMState | None = None
         self.known = torch.zeros(num_agents, dtype=torch.bool)
         self.nbrs: list[int] = []
@@ -163,7 +175,7 @@ class AgentController:
         else:
             self.state = ADMMState(self.state.plans.clone(), self.state.inputs, self.state.edges,
                                    self.state.z, self.state.lam, self.state.pvar, self.state.rho,
-                                   solver_point=self.state.solver_point)
+                                   solver_point=self.state.solver_point, plane_duals=self.state.plane_duals)
         self.known[k] = True
         self._next_nbrs = sorted(int(j) for j in nbr_ids if int(j) != k)
         return [j for j in self._next_nbrs if j not in self.nbrs]
@@ -202,6 +214,7 @@ class AgentController:
         m = torch.arange(self.graph.num_slots)
         self.slot_e = self.graph.slot_edge[k, m]
         self.slot_a = self.graph.slot_side[k, m]
+        self.geometry = self.own_rows = None  # the step's planes (admm_coupling = planes), by take_plane_rows
         self.anderson = None  # this step's share of the Anderson mix (admm_acceleration = anderson)
         self._rho_seen: Tensor | None = None
         if cfg.admm_acceleration == "anderson":
@@ -221,13 +234,14 @@ class AgentController:
     # --- one ADMM iteration
     @property
     def message_size(self) -> int:
-        """Numbers of one copy message: ``y_{kj,k}`` (2 (T+1) D) and, for the ``sum``/``joint``
-        margins, the T projected variances along the edge's normal."""
+        """Numbers of one iteration's message to a neighbour: the copy ``y_{kj,k}`` (2 (T+1) D) and,
+        for the ``sum``/``joint`` margins, the T projected variances along the edge's normal; with
+        planes the T offsets alone."""
         return self.local.message_size
 
-    def solve(self) -> dict[int, Tensor]:
-        """Local solve (27) and fallback; returns the message per neighbour: the own copy
-        ``y_{kj,k}`` (2, T+1, D), flattened, then the projected variances when exchanged."""
+    def _assemble(self) -> Any:
+        """This agent's local problem at the step's linearization (computed on the first call and
+        kept unless relinearizing), with its neighbours' variances as last reported."""
         cfg, k, state = self.cfg, self.k, self.state
         lin_state = state if cfg.relinearize else \
             dataclasses.replace(state, plans=self.frozen[0], inputs=self.frozen[1])
@@ -238,7 +252,12 @@ class AgentController:
         if not cfg.relinearize:
             self.linearization = assembled.linearization
         self.assembled = assembled
-        data, max_margin = assembled.data, assembled.max_margin
+        return assembled
+
+    def _solve_local(self, data: Any) -> LocalSolution:
+        """Solve this agent's problem ``data`` (batch 1) and account for it; returns the raw solution
+        and keeps, as ``self.solution``, its K-row view with a failed solve on the previous plan."""
+        k, state = self.k, self.state
         t0 = time.perf_counter()
         sol = self.local.solve(self.layer, data, state.solver_point)
         self.result.solve_time_s += time.perf_counter() - t0
@@ -246,8 +265,19 @@ class AgentController:
         self.local.count_failures(full, self.result)
         full = fall_back_to_previous(full, state, self.graph)
         self.result.infeasible_solves += int((full.slack_active | ~full.ok)[k])
-        self.result.max_margin = float(max_margin)
+        self.result.max_margin = float(self.assembled.max_margin)
         self.solution = full
+        return sol
+
+    def solve(self) -> dict[int, Tensor]:
+        """Local solve (27) and fallback; returns the message per neighbour: the own copy
+        ``y_{kj,k}`` (2, T+1, D), flattened, then the projected variances when exchanged (with
+        planes, :meth:`plane_solve`'s offsets)."""
+        if self.planes:
+            return self.plane_solve()
+        assembled = self._assemble()
+        self._solve_local(assembled.data)
+        full = self.solution
         self.copies = edge_copies(full, self.graph) if self.graph.num_edges else None
         out = {}
         for m, j in enumerate(self.nbrs):
@@ -268,6 +298,8 @@ class AgentController:
             own edges, the largest ``rho ||z_e - z_e_prev||``, and the largest of each over its
             tolerance (:mod:`~torch_gpmpc.coordination.penalty`).
         """
+        if self.planes:
+            return self.plane_update(received)
         k, state, sol = self.k, self.state, self.solution
         self._before = state
         plans = sol.X.clone()  # row k: own plan; neighbour rows are overwritten below (same layout)
@@ -311,6 +343,117 @@ class AgentController:
         self.result.iterations += 1
         self.counters["iterations_total"] += 1
         return float(primal), float(dual), *ratios
+
+    # --- plane coupling (admm_coupling = planes): the step's rows once, then T offsets per iteration
+    def step_variances(self) -> dict[int, Tensor]:
+        """Where the margins read the neighbours' variances: this step's own projected variance
+        along each edge's normal at tau = 1..T, (T,) per neighbour (sent once per step; the in-process
+        :meth:`~torch_gpmpc.coordination.admm.ADMM.iterate` gives every end these at a step's start)."""
+        own = self._assemble().own_variance
+        return {j: own[0, m] for m, j in enumerate(self.nbrs)}
+
+    def take_step_variances(self, received: dict[int, Tensor | None]) -> None:
+        """Every end's variance of this step (``state.pvar``, (E, 2, T)) from :meth:`step_variances`
+        and the neighbours' (a lost neighbour keeps its last report)."""
+        own, state = self.assembled.own_variance, self.state
+        pvar = own.new_full((self.graph.num_edges, 2, own.shape[-1]), float("nan")) if state.pvar is None \
+            else state.pvar.clone()
+        for m, j in enumerate(self.nbrs):
+            e, a = self.slot_e[m], self.slot_a[m]
+            pvar[e, a] = own[0, m]
+            if received.get(j) is not None:
+                pvar[e, 1 - a] = received[j]
+        self.state = dataclasses.replace(state, pvar=pvar)
+
+    def plane_rows(self) -> dict[int, Tensor]:
+        """This step's collision rows (the problem assembled with the step's variances), per
+        neighbour: the slot's bounds (T,) then its normals (T, D), flattened (sent once per step)."""
+        data = self._assemble().data
+        return {j: torch.cat([data.bounds[0, m], data.normals[0, m].flatten()]) for m, j in enumerate(self.nbrs)}
+
+    def take_plane_rows(self, received: dict[int, Tensor | None]) -> None:
+        """The step's planes from both ends' rows (a lost neighbour's: this agent's, mirrored): their
+        :class:`~torch_gpmpc.coordination.planes.PlaneGeometry`, the starting offsets halfway between
+        the linearization plans, and the duals carried by edge (zero on new edges)."""
+        data, graph, k, T = self.assembled.data, self.graph, self.k, self.cfg.horizon
+        if not graph.num_edges:
+            return
+        normals = data.normals.new_zeros(self.num_agents, *data.normals.shape[1:])
+        bounds = data.bounds.new_zeros(self.num_agents, *data.bounds.shape[1:])
+        normals[k], bounds[k] = data.normals[0], data.bounds[0]
+        for m, j in enumerate(self.nbrs):
+            slot = int(torch.nonzero(graph.active[j] & (graph.slot_nbr[j] == k))[0])
+            msg = received.get(j)
+            if msg is None:
+                bounds[j, slot], normals[j, slot] = data.bounds[0, m], -data.normals[0, m]
+            else:
+                bounds[j, slot], normals[j, slot] = msg[:T], msg[T:].view_as(normals[j, slot])
+        self.geometry = rows_geometry(normals, bounds, graph)
+        self.own_rows = agent_rows(self.geometry, k)
+        planes = midpoint_planes(self.geometry, self.frozen[0], graph, self.local.nominal.position)
+        duals = self.state.plane_duals if self.state.plane_duals is not None else \
+            planes.new_zeros(graph.num_edges, 2, T)
+        self.state = dataclasses.replace(self.state, planes=planes, plane_duals=duals)
+
+    def _plane_rho(self) -> Tensor:
+        """(E,) the edges' penalties."""
+        return self.state.rho if self.adaptive else self.rho.expand(self.graph.num_edges)
+
+    def plane_solve(self) -> dict[int, Tensor]:
+        """The local solve on this agent's plane halves; returns its offsets ``w_{e,k}`` (T,) per
+        neighbour (:func:`~torch_gpmpc.coordination.planes.plane_offsets`)."""
+        state = self.state
+        if not self.graph.num_edges:
+            self._solve_local(self._assemble().data)
+            return {}
+        rho = self._plane_rho()
+        targets = state.planes[:, None] - state.plane_duals / rho[:, None, None]
+        raw = self._solve_local(plane_problem(self._assemble().data, self.own_rows, targets, rho))
+        self.offsets = plane_offsets(raw, self.own_rows, state.planes)
+        return {j: self.offsets[self.slot_e[m], self.slot_a[m]] for m, j in enumerate(self.nbrs)}
+
+    def plane_update(self, received: dict[int, Tensor | None]) -> tuple[float, float, float, float]:
+        """Each own edge's plane consensus, duals and penalty from both ends' offsets (a lost
+        neighbour votes where its half touches its last shared plan); both ends compute the same.
+
+        Returns:
+            ``(primal, dual, primal ratio, dual ratio)`` over this agent's edges (both ends), as
+            :func:`~torch_gpmpc.coordination.planes.plane_residuals` measures them.
+        """
+        k, state, sol = self.k, self.state, self.solution
+        inputs = state.inputs.clone()
+        inputs[k] = sol.U[k]
+        rho_next = None
+        if self.graph.num_edges:
+            offsets = self.offsets.clone()
+            for m, j in enumerate(self.nbrs):
+                e, a = self.slot_e[m], self.slot_a[m]
+                msg = received.get(j)
+                offsets[e, 1 - a] = msg if msg is not None else \
+                    lost_end_offsets(self.geometry, state.plans[j], e, 1 - a, self.local.nominal.position)
+            rho = self._plane_rho()
+            planes, duals, gaps, dual_norms = plane_consensus(offsets, state.planes, state.plane_duals, rho)
+            res = plane_residuals(gaps, dual_norms, duals, self.cfg)
+            out = (float(res.primal.max()), float(res.dual.max()), float(res.primal_ratio.max()),
+                   float(res.dual_ratio.max()))
+            if self.adaptive:
+                rho_next = balance_plane_penalty(rho, res)
+        else:
+            planes, duals, out = state.planes, state.plane_duals, (0.0, 0.0, 0.0, 0.0)
+        self.state = dataclasses.replace(state, plans=sol.X.clone(), inputs=inputs, rho=rho_next,
+                                         solver_point=sol.solver_point, planes=planes, plane_duals=duals)
+        self.result.iterations += 1
+        self.counters["iterations_total"] += 1
+        return out
+
+    def take_final_plans(self, received: dict[int, Tensor | None]) -> None:
+        """With planes, the neighbours' plans (T+1, D) at the step's last iteration (what the safety
+        check and the next step's linearization read; a lost neighbour keeps its last)."""
+        plans = self.state.plans.clone()
+        for j, plan in received.items():
+            if plan is not None:
+                plans[j] = plan.view_as(plans[j])
+        self.state = dataclasses.replace(self.state, plans=plans)
 
     def residual_message(self, residuals: tuple[float, float, float, float]) -> Tensor:
         """The residual message (:func:`~.protocol.residual_size` numbers) of the iteration

@@ -136,7 +136,24 @@ class AgentHost:
                 self.controllers[k].set_neighbour_plan(j, plan)
         for k in self.agents:
             self.controllers[k].finish_setup()
+        if self.cfg.admm_coupling == "planes":
+            self._agree_on_rows()
         return time.perf_counter() - t0
+
+    def _agree_on_rows(self) -> None:
+        """With planes: the step's variances (where the margins read them), then each edge's rows,
+        so that both ends pose the same planes for the whole step."""
+        T, D = self.cfg.horizon, self.cfg.state_dim
+        first = self.controllers[self.agents[0]]
+        if first.local.exchanges_variance:
+            own = {k: self.controllers[k].step_variances() for k in self.agents}
+            received = self._exchange_with_neighbours(own, Kind.VARIANCE, T, "plan_bytes")
+            for k in self.agents:
+                self.controllers[k].take_step_variances(received[k])
+        own = {k: self.controllers[k].plane_rows() for k in self.agents}
+        received = self._exchange_with_neighbours(own, Kind.ROWS, T + T * D, "plan_bytes")
+        for k in self.agents:
+            self.controllers[k].take_plane_rows(received[k])
 
     def _iterate(self) -> float:
         """ADMM iterations until the world's stop flag; returns the communication time."""
@@ -144,7 +161,7 @@ class AgentHost:
         while True:
             own = {k: self.controllers[k].solve() for k in self.agents}
             t0 = time.perf_counter()
-            received = self._exchange_copies(own)
+            received = self._exchange_with_neighbours(own, Kind.COPY, None, "copy_bytes")
             resid = {k: self.controllers[k].update(received[k]) for k in self.agents}
             sends = [(self.controllers[k].residual_message(resid[k]), 0, tag(Kind.RESID, k)) for k in self.agents]
             for k in self.agents:
@@ -156,13 +173,25 @@ class AgentHost:
                 self.controllers[k].accelerate(decision)
             stop = float(decisions[0][2])
             if stop > 0.5:
+                if self.cfg.admm_coupling == "planes":  # the neighbours' last plans, for the safety check
+                    t1 = time.perf_counter()
+                    own = {k: {j: self.controllers[k].own_plan().clone() for j in self.controllers[k].nbrs}
+                           for k in self.agents}
+                    received = self._exchange_with_neighbours(own, Kind.FINAL_PLAN,
+                                                              (self.cfg.horizon + 1) * self.cfg.state_dim, "plan_bytes")
+                    for k in self.agents:
+                        self.controllers[k].take_final_plans(received[k])
+                    comm_time += time.perf_counter() - t1
                 for k in self.agents:
                     self.controllers[k].result.converged = stop > 1.5
                     self.controllers[k].check_safety(stop > 1.5)
                 return comm_time
 
-    def _exchange_copies(self, own: dict[int, dict[int, Tensor]]) -> dict[int, dict[int, Tensor | None]]:
-        """Send every agent's copies to its neighbours and collect theirs (``None``: lost)."""
+    def _exchange_with_neighbours(self, own: dict[int, dict[int, Tensor]], kind: Kind, size: int | None,
+                                  counter: str) -> dict[int, dict[int, Tensor | None]]:
+        """Send every hosted agent's message of ``kind`` to each of its neighbours and collect theirs
+        (``None``: lost): ``size`` numbers each (``None``: the receiver's ``message_size``), the bytes
+        sent counted in ``counter``."""
         sends, recvs, meta = [], [], []
         received: dict[int, dict[int, Tensor | None]] = {k: {} for k in self.agents}
         for k in self.agents:
@@ -171,12 +200,13 @@ class AgentHost:
                 if j in ctrl.dead or rank_of(j, self.per) in self.net.dead:
                     ctrl.dead.add(j)
                     continue
-                ctrl.counters["copy_bytes"] += FLOAT_BYTES * copy.numel()
+                ctrl.counters[counter] += FLOAT_BYTES * copy.numel()
                 if j in self.controllers:
                     received[j][k] = copy
                 else:
-                    sends.append((copy, rank_of(j, self.per), tag(Kind.COPY, k, j)))
-                    recvs.append(((ctrl.message_size,), rank_of(j, self.per), tag(Kind.COPY, j, k)))
+                    sends.append((copy, rank_of(j, self.per), tag(kind, k, j)))
+                    recvs.append(((ctrl.message_size if size is None else size,), rank_of(j, self.per),
+                                  tag(kind, j, k)))
                     meta.append((k, j))
         for (k, j), msg in zip(meta, self.net.exchange(sends, recvs, self.timeout_s)):
             received[k][j] = msg

@@ -23,6 +23,20 @@ agent k -> world: telemetry   :func:`telemetry_size`: input    every step
                               ``u_k``, plan, inputs, counters
 ============================  ===============================  ===========================
 
+With ``admm_coupling = planes`` the copy is replaced by k's T plane offsets ``w_{kj,k}``, and
+three messages are added per step and neighbour:
+
+============================  ===============================  ===========================
+message                       size (float64 numbers)           when
+============================  ===============================  ===========================
+agent k -> neighbour j:       T: k's projected variances of    every step, before the
+variances                     the step (``sum``/``joint``)     first iteration
+agent k -> neighbour j: rows  ``T + T D``: k's row bounds and  every step, after the
+                              normals on the edge              variances
+agent k -> neighbour j: final ``(T+1) D``: k's plan at the     every step, after the
+plan                          step's last iteration            stop decision
+============================  ===============================  ===========================
+
 The global stopping test is a max over all edges of two floats per iteration, routed
 through rank 0 (reduce, then broadcast) rather than a gloo collective so that a crashed
 agent cannot block it.
@@ -61,6 +75,9 @@ class Kind(enum.IntEnum):
     TELEM = 6
     COPY = 7
     PLAN = 8
+    VARIANCE = 9
+    ROWS = 10
+    FINAL_PLAN = 11
 
 
 #: Commands in the first entry of the sensing message.
