@@ -164,15 +164,6 @@ def test_planes_refuse_what_they_do_not_support_yet(changes, key):
         ControllerSettings(admm_coupling="planes", **changes)
 
 
-def test_planes_refuse_a_mixed_team_on_the_distributed_backend():
-    from torch_gpmpc.sim.distributed import simulate_distributed
-
-    cfg = Config(admm_coupling="planes", method="nominal", noise_std=0.0, max_steps=2, scenario="circle", num_agents=2,
-                 models=["double-integrator", "single-integrator"])
-    with pytest.raises(GpmpcError, match="config key 'admm_coupling'.*mixed team"):
-        simulate_distributed(cfg)
-
-
 def test_a_lost_neighbour_votes_the_plane_that_touches_its_last_plan():
     """Closed form: the lost end's half holds with equality on its last shared plan (lo:
     ``n^T p = w + d/2``, hi: ``n^T p = w - d/2``), so the survivor is pushed to keep the whole row."""

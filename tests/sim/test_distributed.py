@@ -364,16 +364,19 @@ def test_shaped_references_reach_the_agents_doorway():
     assert waited < 1e-3
 
 
-def test_a_mixed_team_runs_distributed_as_in_process():
+@pytest.mark.parametrize("coupling", ["copies", "planes"])
+def test_a_mixed_team_runs_distributed_as_in_process(coupling):
     """Two double-integrator drones (radius 0.2) and a single-integrator robot (0.3), gp-chance with
     each agent's own learned GP: agents 0 and 1 in one process, agent 2 in another; each plans with its
-    own model's step on lifted states, so the states and ADMM iterations equal the in-process
-    TeamStep's (which solves each model's agents as one batch)."""
+    own model's step on lifted states (with planes, its rows' normals are lifted too), so the states
+    and ADMM iterations equal the in-process TeamStep's (which solves each model's agents as one batch)."""
     cfg = Config(scenario="circle", num_agents=3, models=["double-integrator", "single-integrator", "double-integrator"],
-                 radii=[0.2, 0.3, 0.2], max_steps=6, admm_max_iter=20, gp_samples=30, gp_iters=5)
+                 radii=[0.2, 0.3, 0.2], max_steps=6, admm_max_iter=20, gp_samples=30, gp_iters=5,
+                 admm_coupling=coupling, circle_radius=1.2 if coupling == "planes" else 4.0)
     rollout, report = simulate_distributed(cfg, agents_per_process=2, timeout_s=60)
     ref = simulate(cfg)
     assert report.processes == 2 and not report.lost_agents
     assert rollout.states.shape[-1] == 4 and float(np.abs(rollout.states[:, 1, 2:]).max()) == 0.0
     assert np.abs(rollout.states - ref.states).max() <= 1e-9
     assert np.array_equal(rollout.admm_iterations, ref.admm_iterations)
+    assert rollout.admm_iterations.max() > 5  # the agents meet: the rows bind

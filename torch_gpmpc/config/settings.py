@@ -116,7 +116,7 @@ class ControllerSettings:
         admm_coupling: what neighbours agree on: ``copies`` (the paper: each agent's copy of the
             pair's trajectories) or ``planes`` (one separating-plane offset per edge and horizon step,
             :mod:`~torch_gpmpc.coordination.planes`; in process (tuning and mixed teams too) and
-            across processes (not yet a mixed team), no Anderson, no ``relinearize``).
+            across processes, no Anderson, no ``relinearize``).
         relinearize: re-linearize at every ADMM iterate (Algorithm 1, step 9).
         comm_radius: agents closer than this communicate (``None``: all pairs).
         workspace: a soft box on the positions (:class:`~torch_gpmpc.config.workspace.Workspace`,

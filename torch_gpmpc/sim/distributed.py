@@ -356,10 +356,6 @@ def simulate_distributed(
         raise GpmpcError("config key 'gp_online': online GP updates run in process only so far (each agent "
                          "process would learn from the transitions the world sends it); drop --backend "
                          "distributed or set gp_online=false")
-    if cfg.admm_coupling == "planes" and cfg.models:
-        raise GpmpcError("config key 'admm_coupling': planes across processes are not done yet for a mixed team "
-                         "(config key 'models'; its agents' rows have their own models' sizes); drop --backend "
-                         "distributed or use admm_coupling=copies")
     if agents_per_process < 1:
         raise GpmpcError(f"agents_per_process must be >= 1, got {agents_per_process}")
     if not timeout_s > 0:
