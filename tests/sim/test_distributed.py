@@ -178,6 +178,17 @@ def test_agent_controllers_reproduce_the_plane_admm(admm_max_iter):
     admm = ADMM(cfg, cfg.method, system.nominal, gps=gps)
     agents = [AgentController(k, K, cfg, sc.reference_path()[k], gps[k]) for k in range(K)]
     noise = noise_sequence(cfg, K)
+    kept = []  # the solves each agent made on its kept problem (compiled) rather than through torch
+
+    def counted(solve_kept):
+        def solve(*args):
+            sol = solve_kept(*args)
+            kept.append(sol is not None)
+            return sol
+        return solve
+
+    for a in agents:
+        a._solve_kept = counted(a._solve_kept)
     x, warm, iterations = sc.starts.clone(), None, []
     with torch.no_grad():
         for t in range(cfg.max_steps):
@@ -205,6 +216,7 @@ def test_agent_controllers_reproduce_the_plane_admm(admm_max_iter):
             iterations.append(res.iterations)
             x = system.step(x, clip_norm(u, cfg.u_max), noise=noise[t])
     assert max(iterations) > 10 if admm_max_iter == 40 else set(iterations) == {3}
+    assert len(kept) == K * sum(n - 1 for n in iterations) and all(kept)  # every later solve compiled
 
 
 def test_bad_arguments_raise_before_launching():

@@ -57,7 +57,6 @@ from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.control.problem import LocalProblemData, LocalSolution
-from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
 from torch_gpmpc.coordination.acceleration import AndersonAcceleration
 from torch_gpmpc.coordination.bodies import edge_distances, slot_distances
 from torch_gpmpc.coordination.agent_step import (
@@ -77,7 +76,7 @@ from torch_gpmpc.coordination.penalty import (
     balance_penalty, edge_residuals, should_stop, starting_penalties, unconverged_edges,
 )
 from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult, adapt_state, initial_state
-from torch_gpmpc.coordination.steady import SteadyIterations
+from torch_gpmpc.coordination.steady import SteadyIterations, repeatable
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 
@@ -472,12 +471,7 @@ class ADMM:
                 or not ctx.graph.num_edges or stats.failed_solves:
             return None
         layer = ctx.layer
-        if type(layer) is not InteriorPointMPC or not layer.warm_start:
-            return None
-        if state.z.dtype != torch.float64 or state.z.device.type != "cpu":
-            return None
-        if torch.is_grad_enabled() and any(t is not None and t.requires_grad
-                                           for t in (state.plans, state.z, state.lam, state.rho, ctx.rho)):
+        if not repeatable(layer, (state.z, state.plans, state.lam, state.rho, ctx.rho)):
             return None
         if self.settings.admm_coupling == "planes":
             posed, geometry = ctx.planes_posed

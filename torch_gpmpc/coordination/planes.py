@@ -206,6 +206,33 @@ def balance_plane_penalty(rho: Tensor, residuals: EdgeResiduals) -> Tensor:
     return balance_penalty(rho, residuals, relax_settled=True)
 
 
+class PlaneTerms:
+    """The copies' terms of kept plane problems, written in place for each new set of targets.
+
+    A :class:`~torch_gpmpc.control.solvers.repeated.RepeatedSolve` starts with the posed problems'
+    terms; of them only the active slots' weights and targets change between a step's iterations (the
+    own terms stay 0, the copies' tau = 0 points 0, inactive slots neutral). :meth:`write` writes
+    them as :func:`plane_problem` and :func:`~torch_gpmpc.control.solvers.canonical.canonicalize`
+    would (the same bits).
+
+    Args:
+        geometry: the slots to write: a :class:`PlaneGeometry` whose ``agent`` indexes the kept batch.
+        solve: the kept problems.
+    """
+
+    def __init__(self, geometry: PlaneGeometry, solve: RepeatedSolve) -> None:
+        self.geometry, self.solve = geometry, solve
+        self.along = along_normals(geometry)
+        self.agent, self.slot = geometry.agent.numpy(), geometry.slot.numpy()
+
+    def write(self, rho: Tensor, targets: Tensor) -> None:
+        """Write each slot's weight ``rho`` (E,) and target offsets ``targets`` (E, 2, T)."""
+        g, buf = self.geometry, self.solve.buffers
+        weight = rho[g.edge]
+        buf.rho_y[self.agent, self.slot] = weight.numpy()
+        buf.w_y[self.agent, self.slot] = (weight[:, None, None] * (targets[g.edge, g.side][..., None] * self.along)).numpy()
+
+
 class PlaneIterations:
     """A control step's later plane iterations on the kept problems (the planes' form of
     :class:`~.steady.SteadyIterations`): only the copies' targets and weights change, so each
@@ -229,20 +256,13 @@ class PlaneIterations:
         self.settings, self.graph, self.geometry = settings, graph, geometry
         self.adaptive = settings.rho_update == "adaptive"
         self.rho, self.tol, self.solve = rho, tol, solve
-        # the solve starts with the posed problems' terms; of them only the active copies' weights
-        # and targets change (the own terms stay 0, the copies' tau = 0 points 0, inactive slots neutral)
-        self.along = along_normals(geometry)
-        self.agent, self.slot = geometry.agent.numpy(), geometry.slot.numpy()
+        self.terms = PlaneTerms(geometry, solve)
 
     def iterate(self, state: ADMMState) -> SteadyResult | None:
         """One iteration from ``state`` (the step's previous iterate), or ``None``."""
-        g, s, buf = self.geometry, self.settings, self.solve.buffers
+        g, s = self.geometry, self.settings
         rho = state.rho if self.adaptive else self.rho.expand(self.graph.num_edges)
-        targets = state.planes[:, None] - state.plane_duals / rho[:, None, None]
-        # the active slots' terms as plane_problem and ConsensusTerms.of make them (the same bits)
-        weight = rho[g.edge]
-        buf.rho_y[self.agent, self.slot] = weight.numpy()
-        buf.w_y[self.agent, self.slot] = (weight[:, None, None] * (targets[g.edge, g.side][..., None] * self.along)).numpy()
+        self.terms.write(rho, state.planes[:, None] - state.plane_duals / rho[:, None, None])
         sol = solve_or_hand_back(self.solve, state.solver_point)
         if sol is None:
             return None

@@ -31,6 +31,7 @@ from torch import Tensor
 
 from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.control.numpy_views import as_array
+from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
 from torch_gpmpc.control.solvers.repeated import RepeatedSolution, RepeatedSolve
 from torch_gpmpc.coordination.consensus_kernel import consensus_step, slot_terms
 from torch_gpmpc.coordination.graph import Graph
@@ -59,6 +60,18 @@ class SteadyResult:
     dual_ratio: float
     unconverged_edges: int
     infeasible_solves: int
+
+
+def repeatable(layer, tensors: tuple) -> bool:
+    """Whether ``layer``'s problems can be kept and solved again with new consensus terms (a
+    :class:`~torch_gpmpc.control.solvers.interior_point.InteriorPointMPC` with warm starts), given the
+    iterate's ``tensors`` (``None`` entries skipped): float64 on the CPU, none wanting gradients."""
+    if type(layer) is not InteriorPointMPC or not layer.warm_start:
+        return False
+    present = [t for t in tensors if t is not None]
+    if any(t.dtype != torch.float64 or t.device.type != "cpu" for t in present):
+        return False
+    return not (torch.is_grad_enabled() and any(t.requires_grad for t in present))
 
 
 def solve_or_hand_back(solve: RepeatedSolve, guess) -> RepeatedSolution | None:

@@ -46,10 +46,11 @@ from torch_gpmpc.coordination.controller import make_agent_step
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
 from torch_gpmpc.coordination.graph import graph_from_edges
 from torch_gpmpc.coordination.planes import (
-    agent_rows, balance_plane_penalty, lost_end_offsets, midpoint_planes, plane_consensus, plane_offsets, plane_problem,
+    PlaneTerms, agent_rows, balance_plane_penalty, lost_end_offsets, midpoint_planes, plane_consensus, plane_offsets, plane_problem,
     plane_residuals, rows_geometry,
 )
 from torch_gpmpc.coordination.state import ADMMState, StepResult, adapt_state, initial_state
+from torch_gpmpc.coordination.steady import repeatable, solve_or_hand_back
 from torch_gpmpc.coordination.team_step import TeamStep
 from torch_gpmpc.dynamics.team import team_system_from_config
 
@@ -215,6 +216,7 @@ class AgentController:
         self.slot_e = self.graph.slot_edge[k, m]
         self.slot_a = self.graph.slot_side[k, m]
         self.geometry = self.own_rows = None  # the step's planes (admm_coupling = planes), by take_plane_rows
+        self.plane_terms: PlaneTerms | None = None  # the step's kept plane problem (compiled solves), if any
         self.anderson = None  # this step's share of the Anderson mix (admm_acceleration = anderson)
         self._rho_seen: Tensor | None = None
         if cfg.admm_acceleration == "anderson":
@@ -401,16 +403,49 @@ class AgentController:
 
     def plane_solve(self) -> dict[int, Tensor]:
         """The local solve on this agent's plane halves; returns its offsets ``w_{e,k}`` (T,) per
-        neighbour (:func:`~torch_gpmpc.coordination.planes.plane_offsets`)."""
+        neighbour (:func:`~torch_gpmpc.coordination.planes.plane_offsets`).
+
+        The step's rows are fixed, so after its first solve only the copies' targets and weights
+        change: later solves write them into the kept problem and solve it warm (compiled, as the
+        in-process :class:`~torch_gpmpc.coordination.planes.PlaneIterations` do; the same bits), and
+        anything unusual goes through the torch path."""
         state = self.state
         if not self.graph.num_edges:
             self._solve_local(self._assemble().data)
             return {}
         rho = self._plane_rho()
         targets = state.planes[:, None] - state.plane_duals / rho[:, None, None]
-        raw = self._solve_local(plane_problem(self._assemble().data, self.own_rows, targets, rho))
+        raw = self._solve_kept(rho, targets) if self.plane_terms is not None else None
+        if raw is None:
+            posed = plane_problem(self._assemble().data, self.own_rows, targets, rho)
+            failed = self.result.failed_solves
+            raw = self._solve_local(posed)
+            if self.plane_terms is None and self.result.failed_solves == failed and self.cfg.admm_compiled \
+                    and repeatable(self.layer, (state.plans, state.plane_duals, rho)):
+                kept = self.layer.repeated(posed)
+                self.plane_terms = None if kept is None else PlaneTerms(self.own_rows, kept)
+                self.kept_rows = (posed.halfspace_normals, posed.halfspace_bounds)  # for the plans' state slack
         self.offsets = plane_offsets(raw, self.own_rows, state.planes)
         return {j: self.offsets[self.slot_e[m], self.slot_a[m]] for m, j in enumerate(self.nbrs)}
+
+    def _solve_kept(self, rho: Tensor, targets: Tensor) -> LocalSolution | None:
+        """The kept plane problem solved with new targets (compiled), accounted as :meth:`_solve_local`
+        accounts a solve; ``None`` hands the solve to the torch path."""
+        k, state, kept = self.k, self.state, self.plane_terms.solve
+        t0 = time.perf_counter()
+        self.plane_terms.write(rho, targets)
+        sol = solve_or_hand_back(kept, state.solver_point)
+        self.result.solve_time_s += time.perf_counter() - t0
+        if sol is None:
+            return None
+        raw = LocalSolution(X=sol.X, U=sol.U, Y=sol.Y, slack=sol.slack,
+                            slack_active=torch.tensor([sol.slack_active > 0]), ok=torch.ones(1, dtype=torch.bool),
+                            cost=sol.X.new_full((1,), float("nan")),  # not computed here; nothing reads it
+                            state_slack=self.layer.constraints.state_violation(sol.X, *self.kept_rows),
+                            solver_point=sol.point)
+        self.solution = embed_row(raw, k, state)
+        self.result.infeasible_solves += int(sol.slack_active > 0)
+        return raw
 
     def plane_update(self, received: dict[int, Tensor | None]) -> tuple[float, float, float, float]:
         """Each own edge's plane consensus, duals and penalty from both ends' offsets (a lost
