@@ -69,8 +69,8 @@ from torch_gpmpc.coordination.mission_risk import (
     pair_risk_bounds, row_allotments, slot_risks_from_edges, starting_budgets,
 )
 from torch_gpmpc.coordination.planes import (
-    PlaneIterations, balance_plane_penalty, midpoint_planes, plane_consensus, plane_geometry, plane_offsets, plane_problem,
-    plane_residuals,
+    PlaneIterations, balance_plane_penalty, midpoint_planes, plane_consensus, plane_geometry, plane_offsets,
+    plane_problem, plane_residuals,
 )
 from torch_gpmpc.coordination.penalty import (
     balance_penalty, edge_residuals, should_stop, starting_penalties, unconverged_edges,

@@ -230,7 +230,8 @@ class PlaneTerms:
         g, buf = self.geometry, self.solve.buffers
         weight = rho[g.edge]
         buf.rho_y[self.agent, self.slot] = weight.numpy()
-        buf.w_y[self.agent, self.slot] = (weight[:, None, None] * (targets[g.edge, g.side][..., None] * self.along)).numpy()
+        pull = targets[g.edge, g.side][..., None] * self.along
+        buf.w_y[self.agent, self.slot] = (weight[:, None, None] * pull).numpy()
 
 
 class PlaneIterations:

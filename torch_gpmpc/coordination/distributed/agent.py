@@ -46,8 +46,8 @@ from torch_gpmpc.coordination.controller import make_agent_step
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
 from torch_gpmpc.coordination.graph import graph_from_edges
 from torch_gpmpc.coordination.planes import (
-    PlaneTerms, agent_rows, balance_plane_penalty, lost_end_offsets, midpoint_planes, plane_consensus, plane_offsets, plane_problem,
-    plane_residuals, rows_geometry,
+    PlaneTerms, agent_rows, balance_plane_penalty, lost_end_offsets, midpoint_planes, plane_consensus, plane_offsets,
+    plane_problem, plane_residuals, rows_geometry,
 )
 from torch_gpmpc.coordination.state import ADMMState, StepResult, adapt_state, initial_state
 from torch_gpmpc.coordination.steady import repeatable, solve_or_hand_back
@@ -217,6 +217,7 @@ class AgentController:
         self.slot_a = self.graph.slot_side[k, m]
         self.geometry = self.own_rows = None  # the step's planes (admm_coupling = planes), by take_plane_rows
         self.plane_terms: PlaneTerms | None = None  # the step's kept plane problem (compiled solves), if any
+        self.kept_rows: tuple = (None, None)  # its half-space rows (the plans' state slack)
         self.anderson = None  # this step's share of the Anderson mix (admm_acceleration = anderson)
         self._rho_seen: Tensor | None = None
         if cfg.admm_acceleration == "anderson":
