@@ -156,10 +156,12 @@ def test_solver_fault_in_a_mixed_team_fails_only_that_models_agents(fault, tmp_p
 
 @pytest.mark.parametrize("model, fault, acceleration", [
     ("double-integrator", "exception", "off"), ("crazyflie", "exception", "off"), ("single-integrator", "nan", "off"),
-    ("crazyflie", "inaccurate", "off"), ("crazyflie", "nan", "anderson")])
+    ("crazyflie", "inaccurate", "off"), ("crazyflie", "nan", "anderson"), ("crazyflie", "exception", "planes"),
+    ("single-integrator", "nan", "planes")])
 def test_solver_fault_falls_back_and_the_run_finishes_distributed(model, fault, acceleration, tmp_path, monkeypatch):
     """Each agent process's own solver fails at its third call: each agent falls back once (also
-    with Anderson acceleration, whose sums then carry the fallen-back agent's share)."""
+    with Anderson acceleration, whose sums then carry the fallen-back agent's share, and with plane
+    coupling, where the fallen-back agent's ends vote the current planes)."""
     hook = tmp_path / "hook"
     hook.mkdir()
     load_faults(hook)
@@ -169,7 +171,7 @@ def test_solver_fault_falls_back_and_the_run_finishes_distributed(model, fault, 
     monkeypatch.setenv("GPMPC_TEST_FAILING_CALL", str(FAILING_CALL))
     out = tmp_path / "dist"
     args = ["run", "--backend", "distributed", "--timeout", "120", "--no-figures", "--out", str(out)]
-    keys = {**SHORT, **MODELS[model], "admm_acceleration": acceleration}
+    keys = {**SHORT, **MODELS[model], **ADMM_VARIANTS[acceleration]}
     for key, value in keys.items():
         args += ["--set", f"{key}={value}"]
     assert main(args) == 0
