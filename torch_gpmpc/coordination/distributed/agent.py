@@ -358,15 +358,11 @@ class AgentController:
     def take_step_variances(self, received: dict[int, Tensor | None]) -> None:
         """Every end's variance of this step (``state.pvar``, (E, 2, T)) from :meth:`step_variances`
         and the neighbours' (a lost neighbour keeps its last report)."""
-        own, state = self.assembled.own_variance, self.state
-        pvar = own.new_full((self.graph.num_edges, 2, own.shape[-1]), float("nan")) if state.pvar is None \
-            else state.pvar.clone()
+        pvar = self._own_variances()
         for m, j in enumerate(self.nbrs):
-            e, a = self.slot_e[m], self.slot_a[m]
-            pvar[e, a] = own[0, m]
             if received.get(j) is not None:
-                pvar[e, 1 - a] = received[j]
-        self.state = dataclasses.replace(state, pvar=pvar)
+                pvar[self.slot_e[m], 1 - self.slot_a[m]] = received[j]
+        self.state = dataclasses.replace(self.state, pvar=pvar)
 
     def plane_rows(self) -> dict[int, Tensor]:
         """This step's collision rows (the problem assembled with the step's variances), per
