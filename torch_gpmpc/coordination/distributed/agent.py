@@ -414,7 +414,8 @@ class AgentController:
         targets = state.planes[:, None] - state.plane_duals / rho[:, None, None]
         raw = self._solve_kept(rho, targets) if self.plane_terms is not None else None
         if raw is None:
-            posed = plane_problem(self._assemble().data, self.own_rows, targets, rho)
+            # the step's rows, as plane_rows assembled them (their penalties are plane_problem's own)
+            posed = plane_problem(self.assembled.data, self.own_rows, targets, rho)
             failed = self.result.failed_solves
             raw = self._solve_local(posed)
             if self.plane_terms is None and self.result.failed_solves == failed and self.cfg.admm_compiled \
