@@ -48,3 +48,25 @@ def test_lbfgs_reuses_the_line_searchs_last_evaluation_bit_for_bit(monkeypatch):
         for a, b in zip(plain, memo):
             assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
         assert memo_calls < 0.6 * plain_calls
+
+
+def test_a_runs_gp_fit_does_not_depend_on_torchs_thread_count():
+    """Agent 42 of the 100-agent crowd's noiseless recipe is one whose fit differed in the last bits
+    on two torch threads (and the crowd's closed loop with it); the recipe fits run on one thread
+    and restore the caller's count."""
+    from torch_gpmpc.gp import fit_agent_gp
+
+    cfg = Config(scenario="random", num_agents=100, circle_radius=10.0, comm_radius=2.5, noise_std=0.0)
+    system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
+    x = torch.randn(50, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    threads = torch.get_num_threads()
+    means = []
+    try:
+        for count in (1, 2):
+            torch.set_num_threads(count)
+            gp = fit_agent_gp(cfg, system, 42)
+            assert torch.get_num_threads() == count
+            means.append(gp.predict(x)[0])
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(means[0], means[1])

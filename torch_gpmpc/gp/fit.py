@@ -321,6 +321,20 @@ def load_model_gp(path: str, spec) -> ResidualGP:
     return ResidualGP.load(path, expected_dim=len(spec.residual), expected_input_dim=len(spec.gp_inputs))
 
 
+@contextlib.contextmanager
+def _one_torch_thread():
+    """Run the block on one torch intra-op thread (restored on exit): a run's GPs, like its plans, must
+    not depend on ``--threads``. Parallel reductions round differently (3 of the 100-agent crowd's
+    recipe fits differed in the last bits with two threads, and its closed loop after 25 steps by
+    0.6 m), and these small fits gain nothing from a second thread."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
 def fit_agent_gp(settings: GPFitSettings | Config, system, k: int) -> ResidualGP:
     """Agent k's residual GP by the paper's data recipe, from agent k's data alone.
 
@@ -339,28 +353,33 @@ def fit_agent_gp(settings: GPFitSettings | Config, system, k: int) -> ResidualGP
             team's :class:`~torch_gpmpc.dynamics.team.TeamSystem`: agent k's own model's system, as
             :func:`fit_agent_gps`).
         k: agent id.
+
+    The fit runs on one torch thread whatever the caller's count (``_one_torch_thread``).
     """
     if hasattr(system, "team"):
         system = system.systems[system.team.group_of[k]]
     flights = _flight_settings(settings)
     settings = _fit_settings(settings)
-    if flights is not None:
-        return _fit_rows(settings, system, _flight_data(settings, flights, system, range(k, k + 1)), k)
-    return _fit_rows(settings, system, _recipe_data(settings, system, k + 1), k)
+    with _one_torch_thread():
+        if flights is not None:
+            return _fit_rows(settings, system, _flight_data(settings, flights, system, range(k, k + 1)), k)
+        return _fit_rows(settings, system, _recipe_data(settings, system, k + 1), k)
 
 
 def fit_agent_gps(settings: GPFitSettings | Config, system, agents: int) -> list[ResidualGP]:
     """Every agent's residual GP (:func:`fit_agent_gp` for ``k = 0..agents-1``, one data draw).
 
     A mixed team's system (:class:`~torch_gpmpc.dynamics.team.TeamSystem`): agent k's GP learns
-    from row block k of the recipe's data drawn with its own model's system."""
-    if hasattr(system, "team"):
-        return _fit_team_gps(_fit_settings(settings), system, agents)
-    flights = _flight_settings(settings)
-    settings = _fit_settings(settings)
-    data = _recipe_data(settings, system, agents) if flights is None \
-        else _flight_data(settings, flights, system, range(agents))
-    return [_fit_rows(settings, system, data, k) for k in range(agents)]
+    from row block k of the recipe's data drawn with its own model's system. On one torch thread, as
+    :func:`fit_agent_gp`."""
+    with _one_torch_thread():
+        if hasattr(system, "team"):
+            return _fit_team_gps(_fit_settings(settings), system, agents)
+        flights = _flight_settings(settings)
+        settings = _fit_settings(settings)
+        data = _recipe_data(settings, system, agents) if flights is None \
+            else _flight_data(settings, flights, system, range(agents))
+        return [_fit_rows(settings, system, data, k) for k in range(agents)]
 
 
 def _fit_team_gps(settings: GPFitSettings, system, agents: int) -> list[ResidualGP]:
