@@ -27,8 +27,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     parser.add_argument("--threads", type=int, default=1,
                         help="the threads the compiled solver splits a batch of local problems over, "
-                             "and torch's intra-op threads outside the closed loop (inside it torch runs "
-                             "on one; default 1: parallel commands already use one process per core)")
+                             "and torch's intra-op threads outside the closed loop (inside it, and for a run's "
+                             "GP fits, torch runs on one, so a run's outcome does not depend on it; "
+                             "default 1: parallel commands already use one process per core)")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     p = sub.add_parser("collect", help="log transitions of the true system (paper data recipe)")
