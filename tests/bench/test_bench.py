@@ -69,6 +69,8 @@ def test_bench_cli_scale_short(tmp_path, monkeypatch):
     runs = result["sections"]["scale"]["whole_runs"]
     assert [(r["method"], r["agents"], r["steps"]) for r in runs] == [("gp-chance", 4, 3), ("nonlinear", 4, 3)]
     assert all(0 < r["step_s_median"] <= r["step_s_max"] and r["step_s_mean"] <= r["step_s_max"] for r in runs)
+    assert all(isinstance(r["bars_unmet"], str) for r in runs)
+    assert result["sections"]["scale"]["crowd_bars_met"] is None  # not the 100-agent crowd
     cores = result["sections"]["scale"]["threads"]
     assert cores["cores"] >= 1
     [row] = cores["table"]
@@ -134,3 +136,17 @@ def test_the_transition_benchmarks_model_is_the_example_files():
 
     example = Path(__file__).resolve().parents[2] / "examples" / "transition" / "di3d.toml"
     assert transition_config(4, 0, "copies").model_spec() == Config(model=str(example)).model_spec()
+
+
+def test_unmet_bars_holds_gp_chance_to_every_bar_and_nonlinear_to_the_speed_bar():
+    from torch_gpmpc.bench.scale import unmet_bars
+
+    good = {"method": "gp-chance", "every_agent_arrived": True, "violations": 2, "min_pair_distance": 0.45,
+            "converged_fraction": 0.95, "step_s_mean": 0.1}
+    assert unmet_bars(good) == []
+    bad = dict(good, every_agent_arrived=False, violations=3, min_pair_distance=0.449, converged_fraction=0.9,
+               step_s_mean=0.11)
+    assert unmet_bars(bad) == ["arrival", "violations", "worst_distance", "converged", "step_time"]
+    # the 'nonlinear' run (no margins) is held to the speed bar alone
+    assert unmet_bars(dict(bad, method="nonlinear")) == ["step_time"]
+    assert unmet_bars(dict(good, method="nonlinear", violations=400)) == []
