@@ -51,9 +51,9 @@ def test_lbfgs_reuses_the_line_searchs_last_evaluation_bit_for_bit(monkeypatch):
 
 
 def test_a_runs_gp_fit_does_not_depend_on_torchs_thread_count():
-    """Agent 42 of the 100-agent crowd's noiseless recipe is one whose fit differed in the last bits
-    on two torch threads (and the crowd's closed loop with it); the recipe fits run on one thread
-    and restore the caller's count."""
+    """Agent 42 of the 100-agent crowd's noiseless recipe is one whose fit differed on two torch
+    threads (its predictions by 4e-12, and the crowd's closed loop with it); the recipe fits run on
+    one thread and restore the caller's count."""
     from torch_gpmpc.gp import fit_agent_gp
 
     cfg = Config(scenario="random", num_agents=100, circle_radius=10.0, comm_radius=2.5, noise_std=0.0)

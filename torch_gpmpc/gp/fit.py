@@ -324,9 +324,9 @@ def load_model_gp(path: str, spec) -> ResidualGP:
 @contextlib.contextmanager
 def _one_torch_thread():
     """Run the block on one torch intra-op thread (restored on exit): a run's GPs, like its plans, must
-    not depend on ``--threads``. Parallel reductions round differently (3 of the 100-agent crowd's
-    recipe fits differed in the last bits with two threads, and its closed loop after 25 steps by
-    0.6 m), and these small fits gain nothing from a second thread."""
+    not depend on ``--threads``. Parallel reductions round differently (with two threads 3 of the
+    noiseless 100-agent crowd's recipe fits differed, predictions by up to 3e-11, and its closed loop
+    after 25 steps by 0.6 m), and these small fits gain nothing from a second thread."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
