@@ -150,3 +150,14 @@ def test_unmet_bars_holds_gp_chance_to_every_bar_and_nonlinear_to_the_speed_bar(
     # the issue's 'nonlinear' run (no margins) is held to the speed bar alone
     assert unmet_bars(dict(bad, method="nonlinear")) == ["step_time"]
     assert unmet_bars(dict(good, method="nonlinear", violations=400)) == []
+
+
+def test_bench_prints_a_section_whose_threads_is_a_number(tmp_path, monkeypatch):
+    """The ``gp`` section's ``threads`` is its thread count, ``scale``'s a table: the printing crashed
+    on the number (after the measurements, so that no ``bench.json`` was written)."""
+    import torch_gpmpc.bench.gp as bench_gp
+
+    monkeypatch.setattr(bench_gp, "run", lambda quick, out: {"table": [{"workload": "w", "ours_ms": 1.0}],
+                                                             "threads": 1})
+    assert main(["bench", "--sections", "gp", "--quick", "--out", str(tmp_path)]) == 0
+    assert json.loads((tmp_path / "bench.json").read_text())["sections"]["gp"]["threads"] == 1

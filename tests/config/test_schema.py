@@ -62,11 +62,27 @@ def test_bad_files(tmp_path):
 
 
 def test_retired_gp_noise_in_margin_maps_onto_margin_variance():
-    with pytest.warns(DeprecationWarning, match="margin_variance=predictive"):
+    with pytest.warns(FutureWarning, match="margin_variance=predictive"):
         assert load_config(None, {"gp_noise_in_margin": True}).margin_variance == "predictive"
-    with pytest.warns(DeprecationWarning, match="margin_variance=latent"):
+    with pytest.warns(FutureWarning, match="margin_variance=latent"):
         cfg = load_config(None, {"gp_noise_in_margin": False})
     assert cfg.margin_variance == "latent" and "gp_noise_in_margin" not in cfg.to_dict()
     assert Config().pair_margin == "sum" and Config().margin_variance == "predictive"
     with pytest.raises(GpmpcError, match="pair_margin"):
         Config(pair_margin="max")
+
+
+def test_the_command_line_shows_a_retired_key_as_one_warning_line(tmp_path, capsys):
+    """Python hides DeprecationWarning by default, so the user never saw this one: it is a
+    FutureWarning, and ``gpmpc`` prints it as one line like its errors."""
+    import warnings
+
+    from torch_gpmpc.cli import main
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")  # whatever the test session's filters say
+        code = main(["run", "--set", "gp_noise_in_margin=true", "--no-figures", "--set", "max_steps=1",
+                     "--set", "admm_max_iter=1", "--set", "gp_iters=1", "--out", str(tmp_path / "run")])
+    assert code == 0
+    assert ("gpmpc run: warning: config key 'gp_noise_in_margin' is deprecated; it means "
+            "margin_variance=predictive") in capsys.readouterr().err.splitlines()

@@ -10,10 +10,10 @@ from __future__ import annotations
 import importlib
 import platform
 import time
-from pathlib import Path
 
 import torch
 
+from torch_gpmpc.cli.run import output_dir
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.fileio import write_json
 
@@ -33,6 +33,13 @@ def _print_table(name: str, rows: list[dict]) -> None:
         print("  ".join(_fmt(r.get(k)).ljust(widths[k]) for k in keys))
 
 
+def _sub_table(section: dict, key: str) -> list[dict]:
+    """The rows of a section's sub-table ``key`` (a dict with a ``table``), else none: sections may use
+    the same key for a number (``gp``'s ``threads`` is its thread count, ``scale``'s a table)."""
+    value = section.get(key)
+    return value.get("table", []) if isinstance(value, dict) else []
+
+
 def _fmt(v) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
@@ -45,7 +52,7 @@ def main(args) -> int:
     for name in names:
         if name not in SECTIONS:
             raise GpmpcError(f"--sections: unknown section {name!r}; choose from {', '.join(SECTIONS)}")
-    out = Path(args.out)
+    out = output_dir(args.out)
     result = {
         "machine": {"platform": platform.platform(), "torch": torch.__version__,
                     "threads": torch.get_num_threads()},
@@ -62,9 +69,9 @@ def main(args) -> int:
         _print_table(f"{name}: agent models", section.get("models", []))
         _print_table(f"{name}: default ADMM stopping", section.get("default_stopping", []))
         _print_table(f"{name}: whole runs of a crowd", section.get("whole_runs", []))
-        _print_table(f"{name}: one thread vs every core", section.get("threads", {}).get("table", []))
-        _print_table(f"{name}: random 3D transitions", section.get("transitions", {}).get("table", []))
-        _print_table(f"{name}: constraint families", section.get("families", {}).get("table", []))
+        _print_table(f"{name}: one thread vs every core", _sub_table(section, "threads"))
+        _print_table(f"{name}: random 3D transitions", _sub_table(section, "transitions"))
+        _print_table(f"{name}: constraint families", _sub_table(section, "families"))
         _print_table(f"{name}: warm active-set solves vs cold", section.get("warm_start", []))
     write_json(out / "bench.json", result)
     print(f"\nwrote {out / 'bench.json'}")

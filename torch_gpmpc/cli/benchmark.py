@@ -39,8 +39,8 @@ def main(args) -> int:
         agents, seeds = agents[:QUICK_AGENTS], min(seeds, QUICK_SEEDS)
         cfg = cfg.replace(max_steps=min(cfg.max_steps, QUICK_STEPS))
     out = output_dir(args.out)
-    (out / "cache").mkdir(parents=True, exist_ok=True)
-    tasks = benchmark_tasks(cfg, args.scenario, agents, seeds, str(out / "cache"))
+    tasks = benchmark_tasks(cfg, args.scenario, agents, seeds, str(out / "cache"))  # checks the scenarios
+    (out / "cache").mkdir(parents=True, exist_ok=True)  # only then: a refused command leaves nothing
     run_uncached([task for *_, task in tasks], args.workers or os.cpu_count() or 1)
     dt = cfg.model_spec().dt  # a model file's own dt (cfg.dt shapes the built-in models only)
     rows = [run_outcome(compute_metrics(Rollout.load(task.path)), label, dt) for label, _, task in tasks]

@@ -7,6 +7,7 @@ by the suffix of ``--out``, atomically.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 from torch_gpmpc.data import MAX_COLLECT_ROWS, check_suffix, collect_transitions
 from torch_gpmpc.errors import GpmpcError
@@ -16,6 +17,8 @@ from torch_gpmpc.dynamics.systems import make_system
 
 def _validate(args) -> None:
     """Check every argument before any work (raises GpmpcError)."""
+    if Path(args.out).is_dir():
+        raise GpmpcError(f"--out {args.out!r} is an existing directory; give a file path ending in .npz or .csv")
     check_suffix(args.out)
     if args.dim not in (2, 3):
         raise GpmpcError(f"--dim must be 2 or 3 (the vortex wind is defined for those), got {args.dim}")

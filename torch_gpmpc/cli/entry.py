@@ -9,6 +9,7 @@ import errno
 import importlib
 import logging
 import sys
+import warnings
 
 from torch_gpmpc.cli import collector
 from torch_gpmpc.cli.parser import build_parser
@@ -49,7 +50,10 @@ def main(argv: list[str] | None = None) -> int:
 
             module = importlib.import_module(_COMMANDS[args.command])
         torch.set_num_threads(args.threads)
-        code = module.main(args)
+        with warnings.catch_warnings():  # restores the warning display when main() returns to a caller
+            if not args.debug:
+                warnings.showwarning = _one_line_warning(args.command)
+            code = module.main(args)
     except GpmpcError as exc:
         if args.debug:
             raise
@@ -68,6 +72,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"gpmpc {args.command}: interrupted", file=sys.stderr)
         return 130
     return int(code or 0)
+
+
+def _one_line_warning(command: str):
+    """A ``warnings.showwarning`` that prints ``gpmpc <command>: warning: <message>``, one line like the
+    errors (``--debug`` keeps Python's form, with the file and line that warned)."""
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        print(f"gpmpc {command}: warning: {message}", file=file or sys.stderr)
+    return show
 
 
 def console_main() -> None:

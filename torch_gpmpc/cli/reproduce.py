@@ -22,7 +22,7 @@ from torch_gpmpc.report.tables import table_csv, table_markdown
 from torch_gpmpc.sim.rollout import Rollout
 
 from torch_gpmpc.cli.cached_runs import parse_list, run_uncached
-from torch_gpmpc.cli.run import config_from_args
+from torch_gpmpc.cli.run import config_from_args, output_dir
 
 
 def _tasks(cfg, args, cache: Path) -> tuple[list[Task], list[Task]]:
@@ -62,7 +62,7 @@ def main(args) -> int:
     cfg = config_from_args(args)
     if cfg.dim != 2:
         raise GpmpcError("config key 'dim': the paper's figures are 2D; use dim=2")
-    out = Path(args.out)
+    out = output_dir(args.out)
     runs, sweeps = _tasks(cfg, args, out / "cache")
     workers = args.workers or os.cpu_count() or 1
     run_uncached(runs + sweeps, workers)

@@ -38,6 +38,7 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
+from torch_gpmpc.cli.run import output_dir
 from torch_gpmpc.config import load_settings, parse_overrides
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.errors import GpmpcError
@@ -57,7 +58,7 @@ def main(args) -> int:
     if args.iters < 0:
         raise GpmpcError(f"--iters must be >= 0, got {args.iters}")
     cfg, settings = load_settings(args.config, parse_overrides(args.set))
-    out = Path(args.out)
+    out = output_dir(args.out)
     ckpt = out / "checkpoint.pt"
     if args.resume and not ckpt.is_file():
         raise GpmpcError(f"--resume: no checkpoint at {str(ckpt)!r}; run without --resume to start")

@@ -455,7 +455,8 @@ def _retire_deprecated(data: Mapping[str, Any]) -> dict[str, Any]:
             raise GpmpcError(f"config key 'gp_noise_in_margin': expected bool, got {old!r}; "
                              "better, use margin_variance=predictive|latent")
         new = "predictive" if old else "latent"
+        # FutureWarning, not DeprecationWarning: Python shows it by default, and the reader is the user
         warnings.warn(f"config key 'gp_noise_in_margin' is deprecated; it means margin_variance={new}",
-                      DeprecationWarning, stacklevel=3)
+                      FutureWarning, stacklevel=3)
         data.setdefault("margin_variance", new)
     return data
