@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-CONFIG = "examples/rotorpy/swap.toml"
+CONFIG = str(Path(__file__).resolve().parents[1] / "examples" / "rotorpy" / "swap.toml")  # from any directory
 #: The wind-change runs are longer than the swap's 150 steps: the change comes at the end of the
 #: crossing and both GPs get 50 steps after it and time to settle at the goals.
 CHANGE_MAX_STEPS = 200

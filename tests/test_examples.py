@@ -53,3 +53,19 @@ def test_rotorpy_forest_config_flies_the_swap_vehicles_in_the_same_wind():
     differ = {f.name for f in dataclasses.fields(swap) if getattr(swap, f.name) != getattr(forest, f.name)}
     assert differ == {"scenario", "num_obstacles", "input_rate_weight"}
     assert forest.scenario == "forest" and forest.input_rate_weight > swap.input_rate_weight
+
+
+def test_example_configs_find_their_model_file_from_any_directory(tmp_path, monkeypatch):
+    """A config's relative model file name is looked up beside the config when the working directory
+    has no such file (the examples name ``crazyflie.toml`` beside them); a name that exists from the
+    working directory keeps its value."""
+    from torch_gpmpc.config.load import files_beside
+
+    monkeypatch.chdir(tmp_path)
+    cfg = load_config(ROOT / "examples" / "rotorpy" / "swap.toml")
+    assert Path(cfg.model) == ROOT / "examples" / "rotorpy" / "crazyflie.toml"
+    (tmp_path / "crazyflie.toml").write_text("")
+    assert files_beside(ROOT / "examples" / "rotorpy" / "swap.toml", {"model": "crazyflie.toml"}) == \
+        {"model": "crazyflie.toml"}
+    assert files_beside(tmp_path / "c.toml", {"model": "nowhere.toml", "models": ["crazyflie.toml"]}) == \
+        {"model": "nowhere.toml", "models": ["crazyflie.toml"]}

@@ -260,9 +260,9 @@ def test_cli_distributed_equals_inprocess_and_counts_bytes(tmp_path):
     T, D, K = cfg.horizon, cfg.dim, 3
     copy_bytes = 8 * (2 * (T + 1) * D + T) * (K - 1)  # complete graph: |N_k| = K - 1
     assert m["copy_bytes_per_agent_per_iteration"] == [copy_bytes] * K
-    assert m["reduce_bytes_per_agent_per_iteration"] == [16.0] * K
-    assert m["bytes_sent_per_agent_per_iteration"] == [copy_bytes + 16.0] * K
-    assert m["bytes_sent_per_agent_per_iteration_mean"] == copy_bytes + 16.0
+    assert m["reduce_bytes_per_agent_per_iteration"] == [32.0] * K  # primal, dual and their ratios
+    assert m["bytes_sent_per_agent_per_iteration"] == [copy_bytes + 32.0] * K
+    assert m["bytes_sent_per_agent_per_iteration_mean"] == copy_bytes + 32.0
     assert m["plan_exchange_bytes_per_agent"] == [8 * (T + 1) * D * (K - 1)] * K  # once, at t = 0
     assert np.array_equal(messages, np.full((3, K), (2 * (T + 1) * D + T) * (K - 1)))
     assert m["backend"] == "distributed" and m["processes"] == 3 and m["lost_agents"] == []
@@ -308,7 +308,7 @@ def test_accelerated_distributed_run_equals_inprocess(tmp_path):
     assert np.array_equal(iterations, ref.admm_iterations)
     m = json.loads((out / "metrics.json").read_text())
     mem = cfg.admm_anderson_memory
-    assert m["reduce_bytes_per_agent_per_iteration"] == [8.0 * (2 + 3 + mem * mem + mem)] * 3
+    assert m["reduce_bytes_per_agent_per_iteration"] == [8.0 * (4 + 3 + mem * mem + mem)] * 3
 
 
 @pytest.mark.parametrize("coupling", ["copies", "planes"])

@@ -27,16 +27,19 @@ def main(args) -> int:
     if args.runs < 1:
         raise GpmpcError(f"--runs must be >= 1, got {args.runs}")
     out = output_dir(args.out)
-    (out / "cache").mkdir(parents=True, exist_ok=True)
     workers = args.workers or os.cpu_count() or 1
     if args.mission:
         return _mission(args, cfg, out, workers)
+    if args.budgets:
+        raise GpmpcError("--budgets sets the mission budgets of --mission runs; add --mission (or drop --budgets "
+                         "and give per-pair risks with --eps)")
     from torch_gpmpc.report.figures import plot_calibration
     from torch_gpmpc.sim.calibration import active_outcomes, calibration_rows, calibration_tasks
     from torch_gpmpc.sim.rollout import Rollout
 
     eps_values = _unit_list(args.eps, "eps")
     tasks = calibration_tasks(cfg, eps_values, args.runs, str(out / "cache"), steps=args.steps)
+    (out / "cache").mkdir(parents=True, exist_ok=True)  # only after every argument is checked
     run_uncached([task for *_, task in tasks], workers)
     outcomes: dict = {}
     for name, eps, task in tasks:
@@ -61,6 +64,7 @@ def _mission(args, cfg, out, workers: int) -> int:
         raise GpmpcError(f"--baseline-runs must be >= 0, got {args.baseline_runs}")
     cfg = cfg.replace(risk_mode="mission")  # checks the method and pair margin can carry a budget
     tasks = mission_tasks(cfg, budgets, args.runs, str(out / "cache"), args.baseline_runs)
+    (out / "cache").mkdir(parents=True, exist_ok=True)  # only after every argument is checked
     run_uncached([task for *_, task in tasks], workers)
     groups: dict = {}
     for mode, level, task in tasks:

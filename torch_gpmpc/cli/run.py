@@ -63,6 +63,10 @@ def main(args) -> int:
         if gps is None and needs_gp(cfg.method):
             check_gp_inputs(cfg)
         out = output_dir(args.out)
+        if distributed:
+            from torch_gpmpc.sim.distributed import check_distributed
+
+            check_distributed(cfg, scenario.num_agents, getattr(args, "agents_per_process", 1), args.timeout)
         if not distributed and cfg.solver == "fast":  # agent processes compile and fit their own
             prepare_solver_kernel()
     if not distributed and gps is None and needs_gp(cfg.method):  # before the progress bar: its rate is the loop's

@@ -307,6 +307,28 @@ def send_missions(net: Network, cfg: Config, scenario: Scenario, gp_model: str |
     report.setup_s = time.perf_counter() - t_setup
 
 
+def check_distributed(cfg: Config, num_agents: int, agents_per_process: int, timeout_s: float) -> None:
+    """Refuse what the distributed backend cannot run, before any process or output exists.
+
+    Raises:
+        GpmpcError: naming the setting (config key or command-line flag) and the fix.
+    """
+    if num_agents > MAX_AGENTS:
+        raise GpmpcError(f"distributed run: at most {MAX_AGENTS} agents, got {num_agents}")
+    if cfg.risk_mode == "mission":
+        raise GpmpcError("config key 'risk_mode': the mission budget runs in process only so far (its agents "
+                         "would also exchange their step's risks and applied next states); drop "
+                         "--backend distributed or use risk_mode=pair_step")
+    if cfg.gp_online:
+        raise GpmpcError("config key 'gp_online': online GP updates run in process only so far (each agent "
+                         "process would learn from the transitions the world sends it); drop --backend "
+                         "distributed or set gp_online=false")
+    if agents_per_process < 1:
+        raise GpmpcError(f"--agents-per-process (agents_per_process) must be >= 1, got {agents_per_process}")
+    if not timeout_s > 0:
+        raise GpmpcError(f"--timeout must be > 0 seconds, got {timeout_s}")
+
+
 def simulate_distributed(
     cfg: Config,
     scenario: Scenario | None = None,
@@ -346,20 +368,7 @@ def simulate_distributed(
     scenario = scenario or make_scenario(cfg)
     cfg = with_scenario_world(cfg, scenario)
     K = scenario.num_agents
-    if K > MAX_AGENTS:
-        raise GpmpcError(f"distributed run: at most {MAX_AGENTS} agents, got {K}")
-    if cfg.risk_mode == "mission":
-        raise GpmpcError("config key 'risk_mode': the mission budget runs in process only so far (its agents "
-                         "would also exchange their step's risks and applied next states); drop "
-                         "--backend distributed or use risk_mode=pair_step")
-    if cfg.gp_online:
-        raise GpmpcError("config key 'gp_online': online GP updates run in process only so far (each agent "
-                         "process would learn from the transitions the world sends it); drop --backend "
-                         "distributed or set gp_online=false")
-    if agents_per_process < 1:
-        raise GpmpcError(f"agents_per_process must be >= 1, got {agents_per_process}")
-    if not timeout_s > 0:
-        raise GpmpcError(f"timeout must be > 0 seconds, got {timeout_s}")
+    check_distributed(cfg, K, agents_per_process, timeout_s)
     procs, tmp_logs = {}, None
     if env_rank() is not None:  # torchrun / manual launch: the agent ranks exist already
         world_size, per, report = _join_launched_world(K, setup_timeout_s)

@@ -164,9 +164,8 @@ class AgentHost:
             received = self._exchange_with_neighbours(own, Kind.COPY, None, "copy_bytes")
             resid = {k: self.controllers[k].update(received[k]) for k in self.agents}
             sends = [(self.controllers[k].residual_message(resid[k]), 0, tag(Kind.RESID, k)) for k in self.agents]
-            for k in self.agents:
-                # the residuals (2 numbers, as before) and the Anderson terms when accelerating
-                self.controllers[k].counters["reduce_bytes"] += FLOAT_BYTES * (residual_size(self.cfg) - 2)
+            for k in self.agents:  # the whole message: residuals, their ratios, the Anderson terms
+                self.controllers[k].counters["reduce_bytes"] += FLOAT_BYTES * residual_size(self.cfg)
             decisions = self._receive(decision_size(self.cfg), Kind.DECIDE, max(4 * self.timeout_s, 60.0), sends)
             comm_time += time.perf_counter() - t0
             for k, decision in zip(self.agents, decisions):
