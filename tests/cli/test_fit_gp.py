@@ -49,7 +49,7 @@ def test_fit_gp_writes_model_events_figure(collected, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "NLL" in out and "lengthscale" in out and "held-out (10 rows, blocks split): RMSE" in out and "method: exact GP" in out and "coverage" in out
     gp = ResidualGP.load(model, expected_dim=2)
-    assert gp.num_data == 30 and gp.gp_inputs == "state"
+    assert gp.num_data == 30 and gp.gp_inputs == "state" and gp.residual_rows == "x0,x1"  # checked when a run loads it
     assert fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     scalars = read_scalars(logdir)
     assert [s for s, _ in scalars["gp/loss"]] == list(range(6))

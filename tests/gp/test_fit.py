@@ -70,3 +70,34 @@ def test_a_runs_gp_fit_does_not_depend_on_torchs_thread_count():
     finally:
         torch.set_num_threads(threads)
     assert torch.equal(means[0], means[1])
+
+
+def test_a_model_file_names_the_residual_rows_it_learned_and_a_run_of_another_model_refuses_it(tmp_path):
+    """A GP of a double integrator's velocity residuals (rows x2, x3) has the shape of the single
+    integrator's (rows x0, x1): loading it there ran without a word. Files without the entry (older
+    ones) still load."""
+    import pytest
+
+    from torch_gpmpc.errors import GpmpcError
+    from torch_gpmpc.gp import ResidualGP, load_model_gp
+
+    x = torch.randn(20, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    gp = ResidualGP(x, 0.1 * torch.sin(x), gp_inputs="x0,x1")
+    single, double = Config().model_spec(), Config(model="double-integrator").model_spec()
+    gp.residual_rows = "x2,x3"
+    gp.save(tmp_path / "di.pt")
+    assert load_model_gp(str(tmp_path / "di.pt"), double).residual_rows == "x2,x3"
+    with pytest.raises(GpmpcError, match="learned the residuals of state rows x2,x3 but the run's model has "
+                                         "its residuals in rows x0,x1"):
+        load_model_gp(str(tmp_path / "di.pt"), single)
+    gp.residual_rows = None
+    gp.save(tmp_path / "old.pt")
+    assert load_model_gp(str(tmp_path / "old.pt"), single).residual_rows is None
+
+
+def test_the_recipe_fits_record_their_models_residual_rows():
+    cfg = Config(model="double-integrator", method="gp")
+    from torch_gpmpc.dynamics.team import team_system_from_config
+    from torch_gpmpc.gp import fit_agent_gp
+
+    assert fit_agent_gp(cfg.replace(gp_iters=1), team_system_from_config(cfg), 0).residual_rows == "x2,x3"

@@ -20,7 +20,7 @@ from torch_gpmpc.data.transitions import Transitions
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.config.model_spec import check_model_name, resolve_model
 from torch_gpmpc.fileio import write_json
-from torch_gpmpc.gp import check_training_size, fit_residual_gp, gp_input_label, holdout_metrics
+from torch_gpmpc.gp import check_training_size, fit_residual_gp, gp_input_label, holdout_metrics, residual_label
 from torch_gpmpc.gp.fit import resolve_method
 from torch_gpmpc.gp.sparse import EXACT_MAX_POINTS, HYPERPARAMETER_SUBSET
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
@@ -152,6 +152,7 @@ def main(args) -> int:
             for name in ("rmse", "r2", "coverage95"):
                 for d, value in enumerate(metrics[name]):
                     tb.scalar(f"gp/holdout_{name}/d{d}", value, args.iters)
+    gp.residual_rows = residual_label(nominal.residual)  # checked when a run loads the file
     if args.out is not None:
         gp.save(args.out)
     print(_summary(gp, train, metrics, last["loss"], seconds))

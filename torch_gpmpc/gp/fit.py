@@ -317,8 +317,15 @@ def check_gp_inputs(cfg: Config) -> None:
 
 
 def load_model_gp(path: str, spec) -> ResidualGP:
-    """A ``fit-gp`` model file checked against the run's model (its GP inputs and residual rows)."""
-    return ResidualGP.load(path, expected_dim=len(spec.residual), expected_input_dim=len(spec.gp_inputs))
+    """A ``fit-gp`` model file checked against the run's model (its GP inputs and residual rows: a
+    file that names the rows it learned must name the model's)."""
+    gp = ResidualGP.load(path, expected_dim=len(spec.residual), expected_input_dim=len(spec.gp_inputs))
+    rows = residual_label(spec.residual)
+    if gp.residual_rows is not None and gp.residual_rows != rows:
+        raise GpmpcError(f"GP model file {str(path)!r}: it learned the residuals of state rows {gp.residual_rows} "
+                         f"but the run's model has its residuals in rows {rows}; fit a model file for this "
+                         "model (gpmpc fit-gp --model ...)")
+    return gp
 
 
 @contextlib.contextmanager
@@ -423,8 +430,15 @@ def _recipe_data(settings: GPFitSettings, system, agents: int):
 
 def _fit_rows(settings: GPFitSettings, system, data, k: int) -> ResidualGP:
     inputs, y = data.for_agent(k).residuals(system.nominal)
-    return fit_residual_gp(inputs, y, optimizer=settings.optimizer, iters=settings.iters, seed=settings.seed + k,
-                           gp_inputs=gp_input_label(system.nominal))
+    gp = fit_residual_gp(inputs, y, optimizer=settings.optimizer, iters=settings.iters, seed=settings.seed + k,
+                         gp_inputs=gp_input_label(system.nominal))
+    gp.residual_rows = residual_label(system.nominal.residual)
+    return gp
+
+
+def residual_label(rows) -> str:
+    """The model file's name for the state rows a GP learns the residuals of: ``"x2,x3"``."""
+    return ",".join(f"x{int(i)}" for i in rows)
 
 
 def gp_input_label(nominal) -> str:

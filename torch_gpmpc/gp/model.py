@@ -141,6 +141,10 @@ class ResidualGP(torch.nn.Module):
         #: whether predictions carry gradients to the hyperparameters (opt in with
         #: :meth:`enable_hyperparameter_gradients`)
         self.hyperparameter_gradients = False
+        #: the model state rows the GP's outputs are the residuals of (``"x2,x3"``: a double
+        #: integrator's velocities), set by the fits that know the model; stored in the model file and
+        #: checked when a run loads it (:func:`~torch_gpmpc.gp.fit.load_model_gp`). ``None``: unknown.
+        self.residual_rows: str | None = None
 
     @classmethod
     def from_gpytorch(cls, models: Sequence[Any], likelihoods: Sequence[Any]) -> GPyTorchResidual:
@@ -428,6 +432,8 @@ class ResidualGP(torch.nn.Module):
         }
         if self.inducing_points is not None:
             payload["inducing_points"] = self.inducing_points.detach().clone()
+        if self.residual_rows is not None:  # files without it (older ones) still load
+            payload["residual_rows"] = self.residual_rows
         write_payload(path, payload)
 
     @classmethod
@@ -496,6 +502,11 @@ class ResidualGP(torch.nn.Module):
         gp = cls(X, Y, gp_inputs=kind, normalization=Standardization(
             tensors["x_mean"], tensors["x_std"], tensors["y_mean"], tensors["y_std"]), inducing_points=inducing)
         gp._load_state(payload.get("state_dict"), src)
+        rows = payload.get("residual_rows")
+        if rows is not None and not (_is_column_list(rows) and "u" not in rows and len(rows.split(",")) == Y.shape[1]):
+            raise GpmpcError(f"{src}: entry 'residual_rows' must name {Y.shape[1]} state rows such as 'x2,x3', "
+                             f"got {rows!r} (corrupt file)")
+        gp.residual_rows = rows
         # last: the checks above give more specific messages; this catches what they cannot see
         verify_checksum(payload, src)
         return gp.refresh()
