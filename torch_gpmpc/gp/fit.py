@@ -289,7 +289,9 @@ def fit_from_transitions(transitions, nominal=None, gp_inputs: str = "state", ag
     if agent is not None:
         transitions = transitions.for_agent(agent)
     X, Y = transitions.residuals(nominal, gp_inputs=gp_inputs)
-    return fit_residual_gp(X, Y, gp_inputs=gp_inputs, **fit_kwargs)
+    gp = fit_residual_gp(X, Y, gp_inputs=gp_inputs, **fit_kwargs)
+    gp.residual_rows = residual_label(nominal.residual)  # named in its model file
+    return gp
 
 
 def fit_per_agent(transitions, nominal=None, gp_inputs: str = "state", **fit_kwargs: Any) -> dict[int, ResidualGP]:
