@@ -477,6 +477,8 @@ def _gp_bad_query(a: Assets):
 
 
 API_CASES = [
+    ("api-config-misspelt-keyword", lambda a: Config(admm_acceleraton="anderson"),
+     "unknown config key 'admm_acceleraton'; did you mean 'admm_acceleration'?"),
     ("api-transitions-nan", lambda a: Transitions(*with_value(np.nan).values()), "non-finite"),
     ("api-transitions-shape", lambda a: Transitions(np.zeros((4, 2)), np.zeros((3, 2)), np.zeros((4, 2))),
      "shape mismatch"),

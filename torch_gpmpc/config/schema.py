@@ -14,7 +14,7 @@ import typing
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from torch_gpmpc.config.fields import Rules, build, coerce_lists, validate
+from torch_gpmpc.config.fields import Rules, build, check_keys, coerce_lists, validate
 from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, parse_model, resolve_model
 from torch_gpmpc.config.obstacles import FOREST_GAP_EXTRA, ObstacleField, doorway_extent, forest_extent
 from torch_gpmpc.config.workspace import Workspace
@@ -254,6 +254,12 @@ class Config:
     gp_online_budget: int = 200
     gp_online_refit_every: int = 0
     gp_online_max_input_change: float | None = None
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> "Config":
+        """Refuse a misspelt keyword with the nearest valid key, as config files and ``--set`` do (the
+        dataclass's ``__init__`` would raise a bare ``TypeError``)."""
+        check_keys(kwargs, [f.name for f in dataclasses.fields(cls)], "config key")
+        return super().__new__(cls)
 
     def __post_init__(self) -> None:
         if isinstance(self.model, dict):  # an inline model table (a config file's [model])
