@@ -41,7 +41,7 @@ def test_a_model_file_round_trips_through_toml_and_json(tmp_path):
 
 @pytest.mark.parametrize("change, message", [
     ({"Bx": 1}, "unknown key 'Bx' \\(did you mean 'B'\\?\\)"),
-    ({"A": [[1, 0], [0, 1]]}, "B must have n = 2 rows"),
+    ({"A": [[1, 0], [0, 1]]}, "A is 2 x 2 \\(n = 2 states\\) but B has 4 rows; give A and B one row per state"),
     ({"A": [[1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, 0]]}, "A must be square"),
     ({"position": [0, 4]}, "position index 4 is not a state index in 0..3"),
     ({"residual": [2, 2]}, "lists an index twice"),

@@ -242,7 +242,8 @@ def parse_model(data: dict[str, Any], where: str = "model") -> ModelSpec:
         raise GpmpcError(f"{where}: A must be square (n x n), got {len(A)} rows of lengths "
                          f"{sorted({len(r) for r in A})}")
     if len(B) != n:
-        raise GpmpcError(f"{where}: B must have n = {n} rows (as A), got {len(B)}")
+        raise GpmpcError(f"{where}: A is {n} x {n} (n = {n} states) but B has {len(B)} rows; give A and B one "
+                         "row per state (A n x n, B n x m)")
     dt = _positive(data.get("dt", 0.1), "dt", where)
     position = _indices(data["position"], "position", n, where)
     residual = _indices(data["residual"], "residual", n, where)
