@@ -36,6 +36,7 @@ from torch_gpmpc.gp import ResidualGP, fit_residual_gp
 from torch_gpmpc.gp.normalization import Standardization
 from torch_gpmpc.gp.sparse import NUM_INDUCING, kmeans_centers
 from torch_gpmpc.dynamics.systems import NominalModel, make_system
+from torch_gpmpc.threads import torch_threads
 
 NUM_POINTS = 42
 SIZES = (100, 1000, 5000)
@@ -170,12 +171,8 @@ def run(quick: bool, out=None) -> dict:
         ``{"table": [rows], "threads": int, ...}``; rows have ``workload``, ``ours_ms``,
         ``gpytorch_ms``, ``ratio`` (gpytorch / ours) and ``max_abs_diff``.
     """
-    default_threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with torch_threads(1) as default_threads:
         result = _run(quick, default_threads)
-    finally:
-        torch.set_num_threads(default_threads)
     result["default_threads"] = default_threads
     return result
 

@@ -47,6 +47,7 @@ from torch_gpmpc.control.examples import crossing_instance
 from torch_gpmpc.control.problem import LocalProblemData
 from torch_gpmpc.control.solvers.conic import CvxpyLayerMPC
 from torch_gpmpc.dynamics.systems import NominalModel
+from torch_gpmpc.threads import torch_threads
 
 logger = logging.getLogger(__name__)
 
@@ -155,12 +156,8 @@ def run(quick: bool = False, out: Path | str | None = None) -> dict:
         quick: fewer repeats, and the slow ``reference`` path only at batch 3.
         out: output directory (unused: the caller writes ``bench.json``).
     """
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with torch_threads(1):
         result = _run(quick)
-    finally:
-        torch.set_num_threads(threads)
     result["families"] = run_families(quick)
     result["threads"] = run_threads(quick)
     result["warm_start"] = run_warm_start(quick)

@@ -24,6 +24,7 @@ from torch_gpmpc.control.solvers import ipm_kernel
 from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
 from torch_gpmpc.coordination.agent_step import LocalStep
 from torch_gpmpc.sim.closed_loop import simulate
+from torch_gpmpc.threads import torch_threads
 
 logger = logging.getLogger(__name__)
 
@@ -109,11 +110,7 @@ def measure(name: str, cfg: Config) -> dict:
 
 def run_warm_start(quick: bool = False) -> list[dict]:
     """Every workload of :data:`WORKLOADS` (``quick``: fewer steps), on one thread."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    ipm_kernel.warm_up()  # compile or load both kernels before anything is timed
-    try:
+    with torch_threads(1):
+        ipm_kernel.warm_up()  # compile or load both kernels before anything is timed
         return [measure(name, cfg.replace(max_steps=steps) if quick else cfg)
                 for name, (cfg, steps) in WORKLOADS.items()]
-    finally:
-        torch.set_num_threads(threads)

@@ -21,6 +21,7 @@ from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.gp.model import MAX_CHOLESKY_SIZE, ResidualGP, check_training_data
 from torch_gpmpc.gp.normalization import Standardization
 from torch_gpmpc.gp.sparse import EXACT_MAX_POINTS, HYPERPARAMETER_SUBSET, NUM_INDUCING, kmeans_centers
+from torch_gpmpc.threads import torch_threads
 
 log = logging.getLogger(__name__)
 
@@ -330,18 +331,11 @@ def load_model_gp(path: str, spec) -> ResidualGP:
     return gp
 
 
-@contextlib.contextmanager
-def _one_torch_thread():
-    """Run the block on one torch intra-op thread (restored on exit): a run's GPs, like its plans, must
-    not depend on ``--threads``. Parallel reductions round differently (with two threads 3 of the
-    noiseless 100-agent crowd's recipe fits differed, predictions by up to 3e-11, and its closed loop
-    after 25 steps by 0.6 m), and these small fits gain nothing from a second thread."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
+#: Torch threads of a run's recipe fits: a run's GPs, like its plans, must not depend on ``--threads``.
+#: Parallel reductions round differently (with two threads 3 of the noiseless 100-agent crowd's recipe
+#: fits differed, predictions by up to 3e-11, and its closed loop after 25 steps by 0.6 m), and these
+#: small fits gain nothing from a second thread.
+FIT_THREADS = 1
 
 
 def fit_agent_gp(settings: GPFitSettings | Config, system, k: int) -> ResidualGP:
@@ -363,13 +357,13 @@ def fit_agent_gp(settings: GPFitSettings | Config, system, k: int) -> ResidualGP
             :func:`fit_agent_gps`).
         k: agent id.
 
-    The fit runs on one torch thread whatever the caller's count (``_one_torch_thread``).
+    The fit runs on :data:`FIT_THREADS` torch thread whatever the caller's count.
     """
     if hasattr(system, "team"):
         system = system.systems[system.team.group_of[k]]
     flights = _flight_settings(settings)
     settings = _fit_settings(settings)
-    with _one_torch_thread():
+    with torch_threads(FIT_THREADS):
         if flights is not None:
             return _fit_rows(settings, system, _flight_data(settings, flights, system, range(k, k + 1)), k)
         return _fit_rows(settings, system, _recipe_data(settings, system, k + 1), k)
@@ -381,7 +375,7 @@ def fit_agent_gps(settings: GPFitSettings | Config, system, agents: int) -> list
     A mixed team's system (:class:`~torch_gpmpc.dynamics.team.TeamSystem`): agent k's GP learns
     from row block k of the recipe's data drawn with its own model's system. On one torch thread, as
     :func:`fit_agent_gp`."""
-    with _one_torch_thread():
+    with torch_threads(FIT_THREADS):
         if hasattr(system, "team"):
             return _fit_team_gps(_fit_settings(settings), system, agents)
         flights = _flight_settings(settings)

@@ -18,11 +18,11 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
-import torch
 
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.sim.metrics import compute_metrics
 from torch_gpmpc.sim.rollout import Rollout
+from torch_gpmpc.threads import torch_threads
 
 
 @dataclass(frozen=True)
@@ -105,14 +105,11 @@ def execute(task: Task) -> str:
     if not task.path.exists():
         if task.cfg.solver == "fast":
             kernels.warm_up()
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)  # small problems: extra threads only add overhead
-        try:
+        # small problems: extra threads only add overhead. The caller's count comes back after (workers=1
+        # runs here, and its solver keeps the caller's thread count: run_tasks plans under planning_threads)
+        with torch_threads(1):
             cfg = task.cfg
             simulate(cfg, make_scenario(cfg, task.scenario_file or None)).save(task.path)
-        finally:
-            torch.set_num_threads(threads)  # the caller's setting, unchanged (workers=1 runs here, and
-            # its solver keeps the caller's thread count: run_tasks plans under planning_threads)
     return str(task.path)
 
 
