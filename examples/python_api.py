@@ -14,7 +14,7 @@ from __future__ import annotations
 import gpytorch
 import torch
 
-from torch_gpmpc import Controller, ControllerSettings, ModelSpec, ResidualGP
+from torch_gpmpc import Controller, ControllerSettings, ModelSpec, ResidualGP, compute_metrics
 from torch_gpmpc.dynamics.systems import NominalModel, TrueSystem, VortexWind
 
 
@@ -91,33 +91,34 @@ def run(steps: int = 50, gradient_step: int = 14, agents: int = 4, horizon: int 
 
     x = ctrl.model.states_at(starts)
     saved = None
-    min_distance = float("inf")
+    states = [x]
     for t in range(steps):
         xref = line_references(ctrl.model, starts, targets, t, settings.horizon)
         if t == gradient_step:
             saved = (x.clone(), xref, ctrl.warm)
         step = ctrl.step(x, xref)
         x = plant.step(x, step.inputs[:, 0], generator=gen)
-        p = ctrl.model.positions(x)
-        min_distance = min(min_distance, float(torch.pdist(p).min()))
-    final_error = float((ctrl.model.positions(x) - targets).norm(dim=1).max())
-    print(f"{steps} steps: closest pair {min_distance:.3f} (r_safe {settings.r_safe}), "
-          f"farthest agent from its target {final_error:.3f}")
+        states.append(x)
+    metrics = compute_metrics(states=torch.stack(states), targets=targets, r_safe=settings.r_safe,
+                              goal_tol=0.1, position=model.position)
+    min_distance = metrics["min_pair_distance"]
+    final_error = max(metrics["final_distance_to_target"])
+    print(f"{steps} steps: closest pair {min_distance:.3f} (r_safe {settings.r_safe}, {metrics['violations']} "
+          f"violations), farthest agent from its target {final_error:.3f}")
 
-    # gradients of a plan cost at one step, from the same warm start, with a fixed number of
-    # ADMM iterations (a stopping test met at rho but not at rho + h would make the finite
-    # differences jump) and no safety fallback (its re-planned plans do not depend on rho)
+    # gradients of a plan cost at one step, from the same warm start: differentiable_step runs a fixed
+    # number of ADMM iterations without the safety fallback and leaves the controller's warm start alone
     x_g, xref_g, warm = saved
-    probe = Controller(model, gps=gps, settings=settings.replace(admm_tol=1e-12, admm_dual_tol=1e-12,
-                                                                admm_max_iter=25))
+    probe = Controller(model, gps=gps, settings=settings)
     kernel = gps[0].models[0].covar_module.base_kernel
     for gp in gps:
         gp.enable_hyperparameter_gradients()
         gp.zero_grad(set_to_none=True)  # training left its last gradients on the parameters
 
+    probe.warm = warm
+
     def cost(rho, split):
-        probe.warm = warm
-        return plan_cost(probe.step(x_g, xref_g, rho=rho, risk_split=split, safety_fallback=False), xref_g)
+        return plan_cost(probe.differentiable_step(x_g, xref_g, iterations=25, rho=rho, risk_split=split), xref_g)
 
     rho = torch.tensor(20.0, dtype=torch.float64, requires_grad=True)
     split = torch.tensor(0.5, dtype=torch.float64, requires_grad=True)

@@ -786,7 +786,8 @@ def patched_solver(local_mpc, mode: str, k: int, when: set[int]):
 
 
 # the injector wraps the cvxpylayers layer (and its one-by-one retry); the fast path has its own test
-FAULT_CFG = dict(horizon=4, max_steps=6, admm_max_iter=4, method="nominal", noise_std=0.0, solver="clarabel")
+FAULT_CFG = dict(horizon=4, max_steps=6, admm_max_iter=4, method="nominal", noise_std=0.0, solver="clarabel",
+                 terminal_cost="stage")  # the injector wraps the default-cost layer
 
 
 @pytest.mark.parametrize("mode, kind", [("exception", "exception"), ("nan", "non-finite"),

@@ -32,6 +32,7 @@ _EXPORTS = {
     "make_local_solver": "control.solvers",
     "LocalProblemData": "control.problem",
     "LocalSolution": "control.problem",
+    "QuadraticCost": "control.cost",
     "ADMM": "coordination.admm",
     "ADMMState": "coordination.state",
     "StepResult": "coordination.state",

@@ -55,7 +55,7 @@ def test_quick_benchmark_of_a_built_in_and_a_file_scenario_resumes_from_its_cach
     assert all(r["cause"] in ("", "collision", "obstacle", "solver", "deadlock", "timeout") for r in rows)
     table = (out / "table.md").read_text()
     assert "| random | 3 | 2 |" in table and "| pass_the_disc | 2 | 2 |" in table
-    assert (out / "benchmark.png").stat().st_size > 0
+    assert (out / "benchmark.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     capsys.readouterr()
     assert main(argv) == 0
     assert "4 of 4 runs cached" in capsys.readouterr().out

@@ -114,7 +114,7 @@ def test_steps_reach_the_same_optimum_in_fewer_iterations():
     s = plain.settings
     central = solve_centralized(b.problem, graph, plain.nominal, 2.0, s.alpha, s.slack_penalty)
     for res in (a, b):
-        cost = plan_cost(res.plans, res.inputs, xref, s.alpha)
+        cost = plan_cost(res.plans, res.inputs, xref, s.alpha, problem=res.problem)
         assert abs(cost / central.cost - 1.0) < 0.01
 
 

@@ -224,3 +224,48 @@ def test_admm_state_carries_kept_edges_and_starts_new_ones_from_the_plans():
     shifted = state.shifted()
     torch.testing.assert_close(shifted.plans[:, :-1], state.plans[:, 1:])
     assert not state.detached().lam.requires_grad
+
+
+@pytest.mark.parametrize("solver", ["fast", "clarabel"])
+def test_a_stated_cost_through_admm_reaches_the_centralized_optimum(solver):
+    """Controller(cost=QuadraticCost(...)): the problems carry the cost, ADMM converges to the
+    centralized solve of the same cost (1e-3), and the plan differs from the default cost's."""
+    from torch_gpmpc import QuadraticCost
+
+    model = ModelSpec.double_integrator(dim=2)
+    settings = ControllerSettings(method="nominal", horizon=8, admm_max_iter=300, admm_tol=1e-5,
+                                  admm_rel_tol=0.0, solver=solver)
+    cost = QuadraticCost(Q=torch.tensor([2.0, 1.0, 0.2, 0.1], dtype=F64), R=0.05,
+                         P=torch.diag(torch.tensor([20.0, 20.0, 1.0, 1.0], dtype=F64)),
+                         u_ref=torch.tensor([0.1, 0.0], dtype=F64))
+    x0, xref = swap(model, 8)
+    ctrl = Controller(model, settings=settings, cost=cost)
+    step = ctrl.step(x0, xref)
+    assert step.converged and step.problem.cost_Q is not None
+    torch.testing.assert_close(step.problem.cost_P[0], cost.P)
+    central = solve_centralized(step.problem, communication_graph(x0[:, :2], None), ctrl.model)
+    admm_cost = plan_cost(step.plans, step.inputs, xref, settings.alpha, problem=step.problem)
+    assert admm_cost == pytest.approx(plan_cost(central.plans, central.inputs, xref, settings.alpha,
+                                                problem=step.problem), rel=1e-3)
+    default = Controller(model, settings=settings).step(x0, xref)
+    assert float((default.inputs - step.inputs).abs().max()) > 1e-3
+
+
+def test_per_agent_costs_and_the_default_lqr_terminal_weight():
+    from torch_gpmpc import QuadraticCost
+    from torch_gpmpc.control.cost import lqr_terminal_weight
+
+    model = ModelSpec.double_integrator(dim=2)
+    x0, xref = swap(model, 6)
+    settings = ControllerSettings(method="nominal", horizon=6)
+    ctrl = Controller(model, settings=settings, cost=[QuadraticCost(Q=1.0, R=0.1), QuadraticCost(Q=5.0, R=0.1)])
+    problem = ctrl.step(x0, xref).problem
+    assert problem.cost_Q[0, 0, 0] == 1.0 and problem.cost_Q[1, 0, 0] == 5.0
+    default = Controller(model, settings=settings).step(x0, xref).problem
+    A, B = model_matrix(model, "A"), model_matrix(model, "B")
+    torch.testing.assert_close(default.cost_P[0], lqr_terminal_weight(A, B, torch.eye(4, dtype=F64),
+                                                                      1e-3 * torch.eye(2, dtype=F64)))
+    paper = Controller(model, settings=settings.replace(terminal_cost="stage")).step(x0, xref).problem
+    assert paper.cost_Q is None  # the paper's cost: ||X - Xref||^2 + alpha ||U||^2
+    with pytest.raises(GpmpcError, match="one QuadraticCost for all agents or one per agent|3 costs"):
+        Controller(model, settings=settings, cost=[QuadraticCost(Q=1.0, R=0.1)] * 3).step(x0, xref)

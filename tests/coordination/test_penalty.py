@@ -134,7 +134,7 @@ def test_default_admm_stops_within_one_percent_of_the_centralized_optimum(paper_
     xref, graph, res = results[step]
     assert res.converged and res.iterations < cfg.admm_max_iter
     central = solve_centralized(res.problem, graph, admm.nominal, cfg.u_max, cfg.alpha, cfg.slack_penalty)
-    cost = plan_cost(res.plans, res.inputs, xref, cfg.alpha)
+    cost = plan_cost(res.plans, res.inputs, xref, cfg.alpha, problem=res.problem)
     assert abs(cost / central.cost - 1.0) < 0.01, (cost, central.cost)
     # the consensus plans keep the collision rows up to the primal tolerance
     data, k_idx = res.problem, torch.nonzero(graph.active, as_tuple=True)
@@ -155,7 +155,7 @@ def test_accelerated_admm_stops_within_one_percent_of_the_centralized_optimum(pa
     fast = admm.with_settings(admm_acceleration="anderson").solve_step(x0, xref, graph)
     assert fast.converged and fast.iterations < plain.iterations
     central = solve_centralized(fast.problem, graph, admm.nominal, cfg.u_max, cfg.alpha, cfg.slack_penalty)
-    cost = plan_cost(fast.plans, fast.inputs, xref, cfg.alpha)
+    cost = plan_cost(fast.plans, fast.inputs, xref, cfg.alpha, problem=fast.problem)
     assert abs(cost / central.cost - 1.0) < 0.01, (cost, central.cost)
 
 

@@ -138,7 +138,8 @@ def test_an_acceleration_box_and_a_workspace_run_on_the_fast_solver(tmp_path, di
     assert (np.abs(states[..., 2]) <= 0.4 + 1e-3).all()  # the workspace's floor and ceiling hold
     assert (np.abs(states[..., 3:5]) <= 1.2 + 1e-3).all() and (np.abs(states[..., 5]) <= 0.5 + 1e-3).all()
     assert metrics["state_slack_max"] is not None and metrics["state_slack_max"] < 1e-3
-    assert metrics["min_pair_distance"] >= 0.5 - 1e-3
+    # kept up to ADMM's consensus tolerance (admm_tol 1e-3 + admm_rel_tol 1e-4 x the plans' size ~4)
+    assert metrics["min_pair_distance"] >= 0.5 - 1.5e-3
     if not distributed:  # across in the plane; agents 0 and 1 end on the ceiling and the floor
         assert np.abs(states[-1, :, :2] - np.array([[2, 0], [-2, 0], [0, 2], [0, -2]])).max() < 0.1
         assert states[-1, 0, 2] == pytest.approx(0.4, abs=0.02) and states[-1, 1, 2] == pytest.approx(-0.4, abs=0.02)

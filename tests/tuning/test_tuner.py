@@ -195,7 +195,9 @@ def test_cli_tune_writes_outputs_resumes_and_run_accepts_them(tmp_path, capsys):
     for name in ("default", "tuned"):  # seed 5, noisy (the default 0.1) and noiseless
         assert set(closed[name]) >= {"arrival_step_max_mean", "violations_total", "admm_iterations_mean", "runs"}
         assert closed[name]["runs"] == 2 and closed[name]["admm_iterations_mean"] > 0
-    assert closed["noise_std"] == [0.1, 0.0] and isinstance(closed["not_worse"], bool)
+    assert closed["noise_std"] == [0.1, 0.0]
+    from torch_gpmpc.tuning.closed_loop import not_worse
+    assert closed["not_worse"] is not_worse(closed["default"], closed["tuned"])  # the rule, applied
     assert set(data["risk_split_per_edge"]) == {"0_1", "0_2", "1_2"}
     split_mean = sum(data["risk_split_per_edge"].values()) / 3
     assert data["config"]["risk_split"] == pytest.approx(split_mean)

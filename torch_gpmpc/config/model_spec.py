@@ -137,22 +137,55 @@ class ModelSpec:
         """Validate a mapping with the model file's keys (see :func:`parse_model`)."""
         return parse_model(table, where)
 
+    def __post_init__(self) -> None:
+        # tensors, arrays or lists given to the constructor: validate them as a model table is and keep the
+        # plain tuples (torch would otherwise copy-construct from a tensor and warn)
+        if all(_is_plain(getattr(self, f)) for f in self.__dataclass_fields__):
+            return
+        values = {f: _as_plain(getattr(self, f)) for f in self.__dataclass_fields__}
+        spec = parse_model(_table(values), "ModelSpec")
+        for f in self.__dataclass_fields__:
+            object.__setattr__(self, f, getattr(spec, f))
+
     def to_table(self) -> dict[str, Any]:
         """The model file's table (plain lists and numbers): ``from_table(to_table())`` is equal."""
-        table: dict[str, Any] = {
-            "name": self.name, "dt": self.dt, "A": [list(r) for r in self.A], "B": [list(r) for r in self.B],
-            "position": list(self.position), "residual": list(self.residual), "gp_inputs": list(self.gp_inputs),
-            "input_bound": {**({} if self.input_norm is None else {"norm": self.input_norm}),
-                            **({} if self.input_box is None else {"box": list(self.input_box)})},
-        }
-        if self.state_bound_norm is not None:
-            table["state_bound"] = {"indices": list(self.state_bound_indices), "norm": self.state_bound_norm}
-        if self.state_box_indices is not None:
-            table["state_box"] = {"indices": list(self.state_box_indices), "lower": list(self.state_box_lower),
-                                  "upper": list(self.state_box_upper)}
-        if self.state_rows_G is not None:
-            table["state_rows"] = {"G": [list(r) for r in self.state_rows_G], "h": list(self.state_rows_h)}
-        return table
+        return _table({f: getattr(self, f) for f in self.__dataclass_fields__})
+
+
+def _is_plain(value: Any) -> bool:
+    """Whether a field value is already the validated form: ``None``, a str or number, or (nested) tuples."""
+    if value is None or isinstance(value, (str, int, float)):
+        return True
+    return isinstance(value, tuple) and all(_is_plain(v) for v in value)
+
+
+def _as_plain(value: Any) -> Any:
+    """Tensors and arrays (anything with ``tolist``), tuples and dicts as plain lists, dicts and numbers."""
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    if isinstance(value, (list, tuple)):
+        return [_as_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _as_plain(v) for k, v in value.items()}
+    return value
+
+
+def _table(v: dict[str, Any]) -> dict[str, Any]:
+    """The model file's table of ModelSpec field values ``v`` (by field name)."""
+    table: dict[str, Any] = {
+        "name": v["name"], "dt": v["dt"], "A": [list(r) for r in v["A"]], "B": [list(r) for r in v["B"]],
+        "position": list(v["position"]), "residual": list(v["residual"]), "gp_inputs": list(v["gp_inputs"]),
+        "input_bound": {**({} if v["input_norm"] is None else {"norm": v["input_norm"]}),
+                        **({} if v["input_box"] is None else {"box": list(v["input_box"])})},
+    }
+    if v["state_bound_norm"] is not None:
+        table["state_bound"] = {"indices": list(v["state_bound_indices"]), "norm": v["state_bound_norm"]}
+    if v["state_box_indices"] is not None:
+        table["state_box"] = {"indices": list(v["state_box_indices"]), "lower": list(v["state_box_lower"]),
+                              "upper": list(v["state_box_upper"])}
+    if v["state_rows_G"] is not None:
+        table["state_rows"] = {"G": [list(r) for r in v["state_rows_G"]], "h": list(v["state_rows_h"])}
+    return table
 
 
 def single_integrator(dim: int, u_max: float, b: float = 0.1) -> ModelSpec:
@@ -228,7 +261,8 @@ def load_model_file(path: str | Path) -> ModelSpec:
 
 
 def parse_model(data: dict[str, Any], where: str = "model") -> ModelSpec:
-    """Validate a model mapping (see :func:`load_model_file`)."""
+    """Validate a model mapping (see :func:`load_model_file`); tensors and arrays count as their lists."""
+    data = _as_plain(dict(data))
     for key in data:
         if key not in _KEYS:
             raise GpmpcError(f"{where}: unknown key {key!r} (did you mean {nearest_key(key, _KEYS)!r}?)")

@@ -17,6 +17,7 @@ from typing import Any, Mapping
 from torch_gpmpc.config.fields import Rules, build, check_keys, coerce_lists, validate
 from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, parse_model, resolve_model
 from torch_gpmpc.config.obstacles import FOREST_GAP_EXTRA, ObstacleField, doorway_extent, forest_extent
+from torch_gpmpc.config.cost_table import CostTable
 from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.config.plant import PLANTS, VEHICLES, WINDS
 from torch_gpmpc.config.team import TeamSpec, team_spec
@@ -42,7 +43,13 @@ class Config:
         eps: total collision risk per pair, in (0, 1); split between the two agents.
         risk_split: share of ``eps`` taken by the lower-indexed agent of each pair, in (0, 1).
         u_max: bound on the Euclidean norm of each input.
-        alpha: control-effort weight in the cost.
+        alpha: control-effort weight in the cost (R = alpha I when no ``cost`` is given).
+        cost: a stated tracking cost, a ``[cost]`` table ``{Q, R, P, u_ref}`` (each weight a number times
+            I, a diagonal list or a list of rows; :class:`~torch_gpmpc.control.cost.QuadraticCost`):
+            stage cost ``(x - r)^T Q (x - r) + (u - u_ref)^T R (u - u_ref)``, terminal ``(x_T - r_T)^T P
+            (x_T - r_T)``; null: Q = I, R = alpha I.
+        terminal_cost: the terminal weight P when the cost gives none: ``lqr`` (the model's LQR
+            cost-to-go, the default) or ``stage`` (P = Q, the paper's cost; ``gpmpc reproduce`` uses it).
         input_rate_weight: weight beta of the input changes ``beta sum_t ||U_t - U_{t-1}||^2`` in
             the cost (``U_{-1}``: the input applied at the previous step); smooth plans for
             vehicles whose acceleration cannot jump (quadrotors: tilt and motor lag). 0: off.
@@ -190,6 +197,8 @@ class Config:
     risk_split: float = 0.5
     u_max: float = 2.0
     alpha: float = 1e-3
+    cost: CostTable | None = None
+    terminal_cost: str = "lqr"
     input_rate_weight: float = 0.0
     noise_std: float = 0.1
     admm_tol: float = 1e-3
@@ -361,6 +370,8 @@ class Config:
             out["workspace"] = self.workspace.to_table()
         if self.obstacles is not None:
             out["obstacles"] = self.obstacles.to_table()
+        if self.cost is not None:
+            out["cost"] = self.cost.to_table()
         return out
 
 

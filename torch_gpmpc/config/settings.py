@@ -16,7 +16,8 @@ from __future__ import annotations
 import typing
 from dataclasses import dataclass
 
-from torch_gpmpc.config.fields import Rules, build, coerce_lists, validate
+from torch_gpmpc.config.cost_table import TERMINAL_COSTS, CostTable
+from torch_gpmpc.config.fields import Rules, build, check_keys, coerce_lists, validate
 from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.obstacles import ObstacleField
 from torch_gpmpc.config.workspace import Workspace
@@ -48,6 +49,7 @@ CONTROLLER_CHOICES: dict[str, tuple] = {
     "safety_fallback": SAFETY_FALLBACKS,
     "admm_acceleration": ADMM_ACCELERATIONS,
     "admm_coupling": ADMM_COUPLINGS,
+    "terminal_cost": TERMINAL_COSTS,
 }
 
 CONTROLLER_RANGES: dict[str, tuple[typing.Callable[[typing.Any], bool], str]] = {
@@ -86,7 +88,12 @@ class ControllerSettings:
     Attributes:
         method: the controller method (one of :data:`METHOD_NAMES`).
         horizon: MPC horizon T.
-        alpha: control-effort weight. slack_penalty: exact-penalty weight on slacks.
+        alpha: control-effort weight (the default cost's R = alpha I). slack_penalty: exact-penalty
+            weight on slacks.
+        cost: a stated tracking cost (:class:`~torch_gpmpc.config.cost_table.CostTable`, or its table
+            ``{"Q": ..., "R": ..., "P": ..., "u_ref": ...}``), or ``None``: Q = I, R = alpha I.
+        terminal_cost: the terminal weight P when the cost gives none: ``lqr`` (the model's LQR
+            cost-to-go for Q and R) or ``stage`` (P = Q: the paper's cost).
         input_rate_weight: weight beta of the input changes ``sum_t ||U_t - U_{t-1}||^2`` (with
             ``U_{-1}`` the input applied last; 0: not in the cost).
         solver: ``fast`` (compiled interior point), ``clarabel`` or ``reference`` (cvxpylayers).
@@ -138,6 +145,8 @@ class ControllerSettings:
     method: str = "gp-chance"
     horizon: int = 13
     alpha: float = 1e-3
+    cost: CostTable | None = None
+    terminal_cost: str = "lqr"
     input_rate_weight: float = 0.0
     slack_penalty: float = 1e4
     solver: str = "fast"
@@ -171,6 +180,12 @@ class ControllerSettings:
     radii: tuple[float, ...] | None = None
     pair_buffer: float = 0.0
     safety_fallback: str = "cells"
+
+    def __new__(cls, *args: typing.Any, **kwargs: typing.Any) -> "ControllerSettings":
+        """Refuse a misspelt keyword with the nearest valid key (the dataclass's ``__init__`` would raise a
+        bare ``TypeError``)."""
+        check_keys(kwargs, list(cls.__dataclass_fields__), "controller setting")
+        return super().__new__(cls)
 
     def __post_init__(self) -> None:
         parse_world(self, "controller setting")
@@ -207,9 +222,10 @@ def agent_radii(radii: typing.Sequence[float] | None, r_safe: float, num_agents:
 
 
 def parse_world(obj, what: str) -> None:
-    """Turn the tables of a frozen dataclass's ``workspace`` and ``obstacles`` fields (from a file or
-    ``--set``) into :class:`Workspace` and :class:`ObstacleField`, naming ``<what> '<field>'`` on error."""
-    for name, kind in (("workspace", Workspace), ("obstacles", ObstacleField)):
+    """Turn the tables of a frozen dataclass's ``workspace``, ``obstacles`` and ``cost`` fields (from a
+    file or ``--set``) into :class:`Workspace`, :class:`ObstacleField` and :class:`CostTable`, naming
+    ``<what> '<field>'`` on error."""
+    for name, kind in (("workspace", Workspace), ("obstacles", ObstacleField), ("cost", CostTable)):
         value = getattr(obj, name)
         if value is not None and not isinstance(value, kind):
             object.__setattr__(obj, name, kind.parse(value, f"{what} '{name}'"))

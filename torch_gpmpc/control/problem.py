@@ -19,6 +19,7 @@ from torch import Tensor
 
 from torch_gpmpc.control.acceptance import failure_codes
 from torch_gpmpc.control.constraints import LocalConstraints
+from torch_gpmpc.control.cost import plan_tracking_cost
 from torch_gpmpc.control.numpy_views import as_array
 from torch_gpmpc.errors import GpmpcError
 
@@ -68,6 +69,10 @@ class LocalProblemData:
         u_prev: the input applied at the previous step, ``U_{-1}`` of the input-rate term
             ``beta sum_t ||U_t - U_{t-1}||^2`` (solvers with ``input_rate_weight`` beta > 0),
             shape (B, Du); ``None`` = 0.
+        cost_Q, cost_R, cost_P, u_ref: a stated tracking cost
+            (:class:`~torch_gpmpc.control.cost.QuadraticCost`: stage weights Q (B, D, D) and
+            R (B, Du, Du), terminal weight P (B, D, D), input reference u_ref (B, Du)) that replaces
+            ``||X - Xref||^2 + alpha ||U||^2``; give Q, R and P together; all ``None`` = that default.
 
     Example:
         >>> from torch_gpmpc.control.examples import crossing_instance
@@ -93,6 +98,15 @@ class LocalProblemData:
     halfspace_normals: Tensor | None = None
     halfspace_bounds: Tensor | None = None
     u_prev: Tensor | None = None
+    cost_Q: Tensor | None = None
+    cost_R: Tensor | None = None
+    cost_P: Tensor | None = None
+    u_ref: Tensor | None = None
+
+    @property
+    def has_cost(self) -> bool:
+        """Whether the problems state their own tracking cost (``cost_Q`` and the rest)."""
+        return self.cost_Q is not None
 
     def validate(self, horizon: int, dim: int, num_neighbors: int, input_dim: int | None = None,
                  num_halfspaces: int = 0) -> int:
@@ -111,7 +125,14 @@ class LocalProblemData:
             "dyn_B": (batch, T, D, input_dim if input_dim is not None else -1),
             "halfspace_normals": (batch, num_halfspaces, T, D), "halfspace_bounds": (batch, num_halfspaces, T),
             "u_prev": (batch, input_dim if input_dim is not None else -1),
+            "cost_Q": (batch, D, D), "cost_P": (batch, D, D),
+            "cost_R": (batch, input_dim if input_dim is not None else -1, input_dim if input_dim is not None else -1),
+            "u_ref": (batch, input_dim if input_dim is not None else -1),
         }
+        given = [self.cost_Q is not None, self.cost_R is not None, self.cost_P is not None]
+        if any(given) and not all(given) or (self.u_ref is not None and not all(given)):
+            raise GpmpcError("LocalProblemData: give cost_Q, cost_R and cost_P together (u_ref with them), "
+                             "or none of them for the default cost")
         if (self.halfspace_normals is None) != (self.halfspace_bounds is None):
             raise GpmpcError("LocalProblemData: give halfspace_normals and halfspace_bounds together (or neither)")
         if self.halfspace_normals is None and num_halfspaces:
@@ -119,12 +140,14 @@ class LocalProblemData:
                              f"halfspace_normals {(batch, num_halfspaces, T, D)} and halfspace_bounds")
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name in ("rho_nbr", "dyn_B", "halfspace_normals", "halfspace_bounds", "u_prev") and value is None:
+            if f.name in OPTIONAL_FIELDS and value is None:
                 continue
             if f.name == "dyn_B" and input_dim is None:
                 expected["dyn_B"] = (batch, T, D, value.shape[-1])
-            if f.name == "u_prev" and input_dim is None:
-                expected["u_prev"] = (batch, value.shape[-1])
+            if f.name in ("u_prev", "u_ref") and input_dim is None:
+                expected[f.name] = (batch, value.shape[-1])
+            if f.name == "cost_R" and input_dim is None:
+                expected[f.name] = (batch, value.shape[-1], value.shape[-1])
             if f.name in ("rho", "rho_nbr"):
                 if value.dim() != 0 and tuple(value.shape) != (batch, M):
                     raise GpmpcError(f"LocalProblemData.{f.name} must be a scalar or have shape {(batch, M)}, "
@@ -148,8 +171,9 @@ class LocalSolution:
         slack_active: some collision slack of the agent exceeds 1e-6 (a softened row), shape (B,).
         ok: finite solution, no solver error, constraints met, shape (B,); rows with
             ``ok = False`` are NaN.
-        cost: planned tracking + control cost ``||X - Xref||^2 + alpha ||U||^2`` (+ the input-rate
-            term ``beta sum_t ||U_t - U_{t-1}||^2`` when beta > 0), shape (B,).
+        cost: planned tracking + control cost ``||X - Xref||^2 + alpha ||U||^2``, or the problems'
+            stated cost (:mod:`~torch_gpmpc.control.cost`), plus the input-rate term
+            ``beta sum_t ||U_t - U_{t-1}||^2`` when beta > 0, shape (B,).
         failure: why a row was rejected, int64 shape (B,): 0 if ``ok``, else ``1 + i`` for
             ``FAILURE_KINDS[i]`` (exception, non-finite, inaccurate); ``None`` if unknown.
         failure_detail: the first solver exception message of the batch, if any.
@@ -181,6 +205,10 @@ class LocalSolution:
     state_slack: Tensor | None = None
     solver_point: Any = None
 
+
+#: LocalProblemData fields that may be ``None``
+OPTIONAL_FIELDS = ("rho_nbr", "dyn_B", "halfspace_normals", "halfspace_bounds", "u_prev", "cost_Q", "cost_R",
+                   "cost_P", "u_ref")
 
 #: LocalProblemData fields that may be a scalar shared by the whole batch
 SHARED_SCALARS = ("rho", "rho_nbr")
@@ -218,6 +246,13 @@ def replace_rows(solution: LocalSolution, rows: Tensor, other: LocalSolution) ->
                          ok=put(solution.ok, other.ok), cost=put(solution.cost, other.cost),
                          failure=put(solution.failure, other.failure), failure_detail=solution.failure_detail,
                          state_slack=put(solution.state_slack, other.state_slack), solver_point=solution.solver_point)
+
+
+def planned_cost(data: LocalProblemData, X: Tensor, U: Tensor, xref: Tensor, alpha: float, beta: float) -> Tensor:
+    """The plans' tracking cost (the data's stated cost, else ``||X - Xref||^2 + alpha ||U||^2``) plus
+    the input-rate term, (B,); X (B, T+1, D), U (B, T, Du), xref (B, T+1, D)."""
+    return plan_tracking_cost(X, U, xref, alpha, data.cost_Q, data.cost_R, data.cost_P, data.u_ref) \
+        + input_rate_cost(U, data.u_prev, beta)
 
 
 def input_rate_cost(U: Tensor, u_prev: Tensor | None, beta: float) -> Tensor:

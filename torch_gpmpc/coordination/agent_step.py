@@ -9,6 +9,7 @@ so both compute the same thing.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import Any
@@ -19,6 +20,7 @@ from torch import Tensor, nn
 from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
+from torch_gpmpc.control.cost import QuadraticCost
 from torch_gpmpc.control.linearize import linearize_plan
 from torch_gpmpc.control.obstacle_rows import obstacle_rows
 from torch_gpmpc.control.problem import (
@@ -158,6 +160,27 @@ def as_settings(settings: ControllerSettings | Config) -> ControllerSettings:
     return settings.controller_settings() if isinstance(settings, Config) else settings
 
 
+def cost_weights(cost: QuadraticCost | list[QuadraticCost] | None, settings: ControllerSettings,
+                 nominal: NominalModel) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+    """The tracking cost's weights ``(Q, R, P, u_ref)`` with a leading agent axis (1 row for a cost shared
+    by all, else one per agent id), or ``None`` for the paper's cost (no cost stated, ``terminal_cost =
+    stage``): see :class:`LocalStep`'s ``cost``."""
+    if cost is None:
+        table = settings.cost
+        if table is None and settings.terminal_cost == "stage":
+            return None
+        Q, R = (1.0, settings.alpha) if table is None else (table.Q, table.R)
+        P = None if table is None else table.P
+        cost = QuadraticCost(Q=Q, R=R, P=P, u_ref=None if table is None else table.u_ref)
+        where = "QuadraticCost." if table is None else "config key 'cost', entry "
+        if cost.P is None and settings.terminal_cost == "stage":
+            cost = dataclasses.replace(cost, P=cost.Q)
+        return tuple(w.unsqueeze(0) for w in cost.resolve(nominal, where))  # type: ignore[return-value]
+    if isinstance(cost, QuadraticCost):
+        return tuple(w.unsqueeze(0) for w in cost.resolve(nominal))  # type: ignore[return-value]
+    return tuple(torch.stack(ws) for ws in zip(*(c.resolve(nominal) for c in cost)))  # type: ignore[return-value]
+
+
 def as_nominal(model: NominalModel | ModelSpec) -> NominalModel:
     """The tensor form of an agent model (a :class:`NominalModel` passes through)."""
     return model if isinstance(model, NominalModel) else NominalModel(model)
@@ -211,6 +234,10 @@ class LocalStep:
         wind: the known wind (``nonlinear`` methods), else ``None``.
         gps: residual models indexed by agent id (``gp`` and chance methods), else ``None``;
             a distributed agent holds ``None`` for every agent but itself.
+        cost: the tracking cost: one :class:`~torch_gpmpc.control.cost.QuadraticCost` for every agent,
+            a list indexed by agent id, or ``None``: the settings' ``cost`` table, else Q = I,
+            R = alpha I, with the terminal weight of ``settings.terminal_cost`` (``lqr``: the model's
+            LQR cost-to-go; ``stage``: P = Q, the paper's cost, solved as ``||X - Xref||^2 + alpha ||U||^2``).
 
     Example:
         >>> import torch
@@ -222,12 +249,16 @@ class LocalStep:
 
     def __init__(self, settings: ControllerSettings | Config, model: NominalModel | ModelSpec,
                  method: str | Method | None = None, wind: VortexWind | None = None,
-                 gps: list | None = None) -> None:
+                 gps: list | None = None, cost: QuadraticCost | list[QuadraticCost] | None = None) -> None:
         self.settings = as_settings(settings)
         self.method = Method.parse(method or self.settings.method)
         self.nominal = as_nominal(model)
         self.wind = wind
         self.gps = gps
+        self.cost = cost
+        #: the cost's weights ``(Q, R, P, u_ref)``, one row per agent id (or one row for all), or
+        #: ``None``: the default ``||X - Xref||^2 + alpha ||U||^2``
+        self.cost_weights = cost_weights(cost, self.settings, self.nominal)
         #: the covariance model in use (``settings.uncertainty`` with ``auto`` resolved for the model)
         self.uncertainty = self.settings.uncertainty_for(self.nominal.spec)
         #: input bounds and soft state constraints (the model's, and the settings' workspace)
@@ -247,9 +278,18 @@ class LocalStep:
         #: failure kinds already warned about (one warning per kind per run)
         self._warned: set[str] = set()
 
+    def cost_rows(self, agent_ids: Tensor, like: Tensor) -> dict[str, Tensor]:
+        """The :class:`~torch_gpmpc.control.problem.LocalProblemData` cost fields of agents ``agent_ids``
+        (int64 (B,)) in ``like``'s dtype and device; empty for the default cost."""
+        if self.cost_weights is None:
+            return {}
+        B = agent_ids.shape[0]
+        rows = [w.expand(B, *w.shape[1:]) if w.shape[0] == 1 else w[agent_ids] for w in self.cost_weights]
+        return dict(zip(("cost_Q", "cost_R", "cost_P", "u_ref"), (w.to(like) for w in rows)))
+
     def with_settings(self, settings: ControllerSettings | Config) -> "LocalStep":
         """The same agents (model, method, wind, GPs) under other settings."""
-        return LocalStep(settings, self.nominal, self.method, self.wind, self.gps)
+        return LocalStep(settings, self.nominal, self.method, self.wind, self.gps, self.cost)
 
     def solver(self, num_slots: int) -> nn.Module:
         """This step's batched local solver for ``num_slots`` neighbour slots (built once per size)."""
@@ -328,7 +368,7 @@ class LocalStep:
             lam_own=lam_mine[r, c, side], lam_nbr=lam_mine[r, c, 1 - side],
             halfspace_normals=conv.obstacle_normals,
             halfspace_bounds=conv.obstacle_bounds_with_margins(cfg.obstacle_eps if eps_obstacle is None else eps_obstacle),
-            u_prev=u_prev,
+            u_prev=u_prev, **self.cost_rows(agent_ids, x0),
         )
         max_margin = margins[active].max() if bool(active.any()) else margins.new_zeros(())
         return Assembled(data, max_margin, own_var, conv)

@@ -5,7 +5,7 @@ problem directly, with cvxpy, from the same per-agent data the local solvers get
 (:class:`~torch_gpmpc.control.problem.LocalProblemData`), with every neighbour copy
 ``Y_{k,j}`` replaced by agent j's own plan ``X_j``::
 
-    minimize    sum_k ||X_k - Xref_k||^2 + alpha ||U_k||^2 [+ beta sum_t ||U_k,t - U_k,t-1||^2] + slack_penalty sum(s)
+    minimize    sum_k ||X_k - Xref_k||^2 + alpha ||U_k||^2 (or each agent's stated cost) [+ beta sum_t ||U_k,t - U_k,t-1||^2] + slack_penalty sum(s)
     subject to  X_k,0 = x0_k,  X_k,tau+1 = dyn_A X_k,tau + dyn_B U_k,tau + dyn_c
                 input bounds, soft state constraints (:mod:`torch_gpmpc.control.constraints`)
                 n_{k,m,tau}^T (X_k,tau - X_j,tau) + s_{k,m,tau} >= bound_{k,m,tau},  s >= 0
@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.control.constraints import LocalConstraints
+from torch_gpmpc.control.cost import plan_tracking_cost
 from torch_gpmpc.control.problem import LocalProblemData, input_rate_cost
 from torch_gpmpc.control.solvers.conic import input_changes, state_constraints
 from torch_gpmpc.coordination.admm import ADMM
@@ -51,15 +52,30 @@ class CentralizedSolution:
 
 
 def plan_cost(plans: Tensor, inputs: Tensor, xref: Tensor, alpha: float, input_rate_weight: float = 0.0,
-              u_prev: Tensor | None = None) -> float:
-    """The agents' summed MPC cost ``sum_k ||X_k - Xref_k||^2 + alpha ||U_k||^2`` (no slack), plus
-    ``beta sum_t ||U_k,t - U_k,t-1||^2`` with ``beta = input_rate_weight``.
+              u_prev: Tensor | None = None, problem: LocalProblemData | None = None) -> float:
+    """The agents' summed MPC cost ``sum_k ||X_k - Xref_k||^2 + alpha ||U_k||^2`` (no slack), or the
+    stated cost of ``problem`` (its ``cost_Q``, ...), plus ``beta sum_t ||U_k,t - U_k,t-1||^2`` with
+    ``beta = input_rate_weight``.
 
     Args:
         plans: (K, T+1, n); inputs: (K, T, m); xref: (K, T+1, n); u_prev: (K, m) ``U_{-1}`` (``None``: 0).
     """
     rate = input_rate_cost(inputs, u_prev, input_rate_weight).sum()
-    return float(((plans - xref) ** 2).sum() + alpha * (inputs ** 2).sum() + rate)
+    weights = (None,) * 4 if problem is None else (problem.cost_Q, problem.cost_R, problem.cost_P, problem.u_ref)
+    return float(plan_tracking_cost(plans, inputs, xref, alpha, *weights).sum() + rate)
+
+
+def tracking_cost(X: cp.Variable, U: cp.Variable, xref: np.ndarray, alpha: float, Q: np.ndarray | None = None,
+                  R: np.ndarray | None = None, P: np.ndarray | None = None, u_ref: np.ndarray | None = None):
+    """One agent's tracking cost in cvxpy: ``||X - Xref||^2 + alpha ||U||^2``, or the stated cost
+    (:mod:`~torch_gpmpc.control.cost`) when Q, R, P ((n, n), (m, m), (n, n)) are given."""
+    if Q is None:
+        return cp.sum_squares(X - xref) + alpha * cp.sum_squares(U)
+    T = U.shape[0]
+    du = U if u_ref is None else U - np.ones((T, 1)) @ u_ref[None, :]
+    psd = cp.psd_wrap
+    return sum(cp.quad_form(X[t] - xref[t], psd(Q)) + cp.quad_form(du[t], psd(R)) for t in range(T)) \
+        + cp.quad_form(X[T] - xref[T], psd(P))
 
 
 def solve_centralized(data: LocalProblemData, graph: Graph, nominal: NominalModel, u_max: float | None = None,
@@ -72,7 +88,7 @@ def solve_centralized(data: LocalProblemData, graph: Graph, nominal: NominalMode
         graph: the communication graph the slots refer to.
         nominal: the model (input bound, state bound, B where ``data.dyn_B`` is None).
         u_max: input norm bound (``None``: the model's; ignored if the model has only a box).
-        alpha, slack_penalty: the local problems' weights.
+        alpha, slack_penalty: the local problems' weights (a stated cost in ``data`` replaces alpha's).
         constraints: input bounds and soft state constraints (``None``: the model's with ``u_max``).
         input_rate_weight: beta of the input-rate term (``U_{-1}`` is ``data.u_prev``).
 
@@ -90,7 +106,8 @@ def solve_centralized(data: LocalProblemData, graph: Graph, nominal: NominalMode
     cost, cons = 0, []
     u_prev = np.zeros((K, m)) if data.u_prev is None else npy(data.u_prev)
     for k in range(K):
-        cost += cp.sum_squares(X[k] - xref[k]) + alpha * cp.sum_squares(U[k])
+        cost += tracking_cost(X[k], U[k], xref[k], alpha, *[None if w is None else npy(w[k]) for w in
+                                                            (data.cost_Q, data.cost_R, data.cost_P, data.u_ref)])
         if input_rate_weight:
             cost += input_rate_weight * input_changes(U[k], u_prev[k])
         cons.append(X[k][0] == x0[k])

@@ -17,6 +17,8 @@ from torch_gpmpc.config.team import team_spec
 from torch_gpmpc.coordination.admm import ADMM
 from torch_gpmpc.coordination.agent_step import LocalStep, as_nominal
 from torch_gpmpc.coordination.graph import Graph, communication_graph
+from torch_gpmpc.control.cost import QuadraticCost
+from torch_gpmpc.control.solvers.ipm_threads import planning_threads
 from torch_gpmpc.coordination.state import ADMMState, StepResult
 from torch_gpmpc.coordination.team_step import TeamStep
 from torch_gpmpc.dynamics.methods import Method
@@ -45,6 +47,8 @@ class Controller:
             by :meth:`ResidualGP.from_gpytorch`); needed by the ``gp*`` and ``*-chance`` methods.
         settings: the controller settings (default :class:`ControllerSettings`: the paper's).
         wind: the known wind, for the ``nonlinear`` baselines only.
+        cost: the tracking cost (:class:`~torch_gpmpc.control.cost.QuadraticCost`), one for all agents or a
+            list of K; ``None``: the settings' (Q = I, R = alpha I, the LQR terminal weight). One model only.
 
     Attributes:
         agent_step: the per-agent step (:class:`~torch_gpmpc.coordination.agent_step.LocalStep`).
@@ -65,7 +69,8 @@ class Controller:
     """
 
     def __init__(self, model: ModelSpec | NominalModel | str | Path | Sequence, gps: Sequence | None = None,
-                 settings: ControllerSettings | None = None, wind: VortexWind | None = None) -> None:
+                 settings: ControllerSettings | None = None, wind: VortexWind | None = None,
+                 cost: QuadraticCost | Sequence[QuadraticCost] | None = None) -> None:
         models = list(model) if isinstance(model, (list, tuple)) else [model]
         models = [ModelSpec.load(m) if isinstance(m, (str, Path)) else m for m in models]
         for m in models:
@@ -79,12 +84,19 @@ class Controller:
                              "use settings.method='nominal' for none")
         gps = None if gps is None else list(gps)
         team = team_spec([as_nominal(m).spec for m in models]) if len(models) > 1 else None
+        if cost is not None and not isinstance(cost, QuadraticCost):
+            cost = list(cost)
         if team is not None and team.is_mixed:
+            if cost is not None:
+                raise GpmpcError("Controller: cost= takes one model's sizes; a mixed team uses the settings' cost "
+                                 "(Q = I, R = alpha I) for now")
             self.agent_step = TeamStep(settings, team, method, wind, gps)
         else:
-            self.agent_step = LocalStep(settings, as_nominal(models[0]), method, wind, gps)
+            check_residual_models(gps, as_nominal(models[0]).spec)
+            self.agent_step = LocalStep(settings, as_nominal(models[0]), method, wind, gps, cost)
         self.admm = ADMM(self.agent_step)
         self.warm: ADMMState | None = None
+        self._probes: dict[int, Controller] = {}  # differentiable_step's controllers, by iteration count
 
     @property
     def settings(self) -> ControllerSettings:
@@ -151,14 +163,90 @@ class Controller:
                              f"got {tuple(xref.shape)}")
         if self.agent_step.gps is not None and len(self.agent_step.gps) != K:
             raise GpmpcError(f"Controller.step: {K} agents but {len(self.agent_step.gps)} residual models")
+        weights = getattr(self.agent_step, "cost_weights", None)
+        if weights is not None and weights[0].shape[0] not in (1, K):
+            raise GpmpcError(f"Controller.step: {weights[0].shape[0]} costs for {K} agents; give one QuadraticCost "
+                             "for all agents or one per agent")
+        refuse_non_finite(x, "x")
+        refuse_non_finite(xref, "xref")
         graph = self.graph(x) if graph is None else graph
         warm = None if self.warm is None or self.warm.plans.shape[0] != K else self.warm.shifted()
         if warm is not None and rho is not None:
             warm = dataclasses.replace(warm, rho=None)  # the given rho starts every edge
-        result = self.admm.solve_step(x, xref, graph, warm=warm, rho=rho, risk_split=risk_split,
-                                      safety_fallback=safety_fallback)
+        # torch on one thread, the compiled solver on the caller's count (as simulate plans): torch's
+        # small-tensor ops only lose to thread hand-offs, most of all on a loaded machine
+        with planning_threads():
+            result = self.admm.solve_step(x, xref, graph, warm=warm, rho=rho, risk_split=risk_split,
+                                          safety_fallback=safety_fallback)
         self.warm = result.state.detached()
         return result
+
+
+    def differentiable_step(self, x: Tensor, xref: Tensor, iterations: int = 25, graph: Graph | None = None,
+                            rho: float | Tensor | None = None, risk_split: float | Tensor | None = None) -> StepResult:
+        """One step set up for gradients: exactly ``iterations`` ADMM iterations (no stopping test: a test
+        met at rho but not at rho + h would make the map jump), no safety fallback (its re-planned plans
+        do not depend on rho), cold local solves, from this controller's warm start, which it neither
+        uses up nor advances: call it again to probe the same step.
+
+        Args:
+            x, xref, graph, rho, risk_split: as :meth:`step` (give ``rho`` / ``risk_split`` as tensors
+                with ``requires_grad`` to get their gradients; a stated cost's tensors get theirs too).
+            iterations: the fixed ADMM iteration count.
+
+        Returns:
+            The :class:`~torch_gpmpc.coordination.state.StepResult`; differentiate its ``plans`` or ``inputs``.
+
+        Example:
+            >>> import torch
+            >>> from torch_gpmpc import Controller, ControllerSettings, ModelSpec
+            >>> ctrl = Controller(ModelSpec.double_integrator(2), settings=ControllerSettings(method="nominal",
+            ...                                                                              horizon=6))
+            >>> x0 = torch.tensor([[-1.0, 0.1, 0, 0], [1.0, -0.1, 0, 0]], dtype=torch.float64)
+            >>> rho = torch.tensor(20.0, dtype=torch.float64, requires_grad=True)
+            >>> step = ctrl.differentiable_step(x0, x0.flip(0)[:, None].expand(2, 7, 4), iterations=5, rho=rho)
+            >>> step.iterations, step.inputs.pow(2).sum().backward(), rho.grad is not None
+            (5, None, True)
+        """
+        if iterations < 1:
+            raise GpmpcError(f"Controller.differentiable_step: iterations must be >= 1, got {iterations}")
+        probe = self._probes.get(iterations)
+        if probe is None:
+            settings = self.settings.replace(admm_tol=1e-300, admm_dual_tol=None, admm_rel_tol=0.0,
+                                             admm_max_iter=int(iterations), solver_warm=False)
+            probe = Controller.__new__(Controller)
+            probe.agent_step = self.agent_step.with_settings(settings)
+            probe.admm, probe.warm, probe._probes = ADMM(probe.agent_step), None, {}
+            self._probes[iterations] = probe
+        probe.warm = self.warm
+        return probe.step(x, xref, graph, rho=rho, risk_split=risk_split, safety_fallback=False)
+
+
+def check_residual_models(gps: list | None, spec: ModelSpec) -> None:
+    """Refuse residual models whose sizes do not fit the model: each reads ``len(spec.gp_inputs)`` inputs
+    (the model's ``gp_inputs``) and predicts ``len(spec.residual)`` rows (its ``residual``)."""
+    for k, gp in enumerate(gps or []):
+        if gp is None:
+            continue
+        din, dout = int(gp.input_dim), int(gp.output_dim)
+        if din != len(spec.gp_inputs):
+            raise GpmpcError(
+                f"Controller: the residual model of agent {k} reads {din} inputs, but model {spec.name!r} feeds its GPs "
+                f"gp_inputs = {list(spec.gp_inputs)} ({len(spec.gp_inputs)}); train the GP on exactly those "
+                f"columns, or set the model's gp_inputs to the {din} columns it was trained on")
+        if dout != len(spec.residual):
+            raise GpmpcError(
+                f"Controller: the residual model of agent {k} predicts {dout} rows, but model {spec.name!r} learns "
+                f"residual = {list(spec.residual)} ({len(spec.residual)}); give one GP output per residual row")
+
+
+def refuse_non_finite(values: Tensor, name: str) -> None:
+    """Raise :class:`GpmpcError` naming the first agent whose ``values`` (K, ...) hold a NaN or inf."""
+    bad = ~torch.isfinite(values.detach()).reshape(values.shape[0], -1).all(dim=1)
+    if bool(bad.any()):
+        k = int(torch.nonzero(bad)[0])
+        raise GpmpcError(f"Controller.step: {name} of agent {k} is not finite ({int(bad.sum())} agent(s) in all); "
+                         f"pass measured states and references without NaN or inf")
 
 
 def make_agent_step(cfg: Config, system: TrueSystem | TeamSystem, gps: list | None = None,

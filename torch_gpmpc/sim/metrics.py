@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -157,8 +157,15 @@ def path_lengths(states: Any) -> np.ndarray:
     return np.linalg.norm(np.diff(x, axis=0), axis=-1).sum(axis=0)
 
 
-def compute_metrics(rollout: Rollout) -> dict[str, Any]:
+def compute_metrics(rollout: Rollout | None = None, *, states: Any = None, targets: Any = None,
+                    r_safe: float = 0.5, goal_tol: float = 0.1, position: Sequence[int] | None = None,
+                    radii: Sequence[float] | None = None) -> dict[str, Any]:
     """The ``metrics.json`` dict of one run; every value is a plain Python type.
+
+    From any loop: ``compute_metrics(states=..., targets=..., r_safe=..., goal_tol=...)`` with
+    ``states`` (S+1, K, n) (give ``position``, the state indices of the position) or positions
+    (S+1, K, P), and ``targets`` (K, P) (tensors or arrays) returns the keys that depend on the
+    trajectories alone: :func:`trajectory_metrics`.
 
     Beyond the contract keys (:data:`CONTRACT_KEYS`) it adds ``noise_std``, ``r_safe``,
     ``goal_tol`` (from ``rollout.config``, defaults from :class:`Config` when absent),
@@ -193,6 +200,12 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
     Raises:
         GpmpcError: inconsistent array shapes in the rollout.
     """
+    if rollout is None:
+        if states is None or targets is None:
+            raise GpmpcError("compute_metrics: give a Rollout, or states=(S+1, K, n) and targets=(K, P)")
+        return trajectory_metrics(states, targets, r_safe, goal_tol, position, radii)
+    if states is not None or targets is not None:
+        raise GpmpcError("compute_metrics: give a Rollout or states= and targets=, not both")
     states, targets = _checked_states(rollout)
     cfg = rollout.config or {}
     r_safe, goal_tol, noise_std = (run_setting(cfg, key) for key in ("r_safe", "goal_tol", "noise_std"))
@@ -241,6 +254,65 @@ def compute_metrics(rollout: Rollout) -> dict[str, Any]:
         "deadlock_steps": deadlock_steps(states, targets, goal_tol, r_safe),
         "plan_tracking_rmse": plan_tracking_rmse(rollout),
         **prediction_metrics(rollout, cfg.get("wind_change_step")),
+    }
+
+
+def trajectory_metrics(states: Any, targets: Any, r_safe: float = 0.5, goal_tol: float = 0.1,
+                       position: Sequence[int] | None = None, radii: Sequence[float] | None = None) -> dict[str, Any]:
+    """The metrics of trajectories from any closed loop, with the keys and meanings of ``metrics.json``:
+    ``num_agents, steps, reached, time_to_target, min_pair_distance, violations, min_pair_clearance,
+    path_length, straight_line_length, r_safe, goal_tol, final_distance_to_target, at_target_final,
+    arrival_steps, arrival_step_max, deadlock_steps``.
+
+    Args:
+        states: (S+1, K, n) states (``position`` picks the position entries) or (S+1, K, P) positions.
+        targets: (K, P) target positions.
+        r_safe: the pair distance a violation falls below (with ``radii``: ``r_k + r_j`` per pair).
+        goal_tol: an agent has arrived within this distance of its target.
+        position: the position's state indices (``None``: ``states`` are positions).
+        radii: per-agent body radii (K,), or ``None``: ``r_safe / 2`` each.
+
+    Raises:
+        GpmpcError: shapes that do not fit, or non-finite values, naming the argument.
+
+    Example:
+        >>> import torch
+        >>> s = torch.tensor([[[0.0, 0.0], [1.0, 0.0]], [[0.5, 0.0], [0.6, 0.0]]], dtype=torch.float64)
+        >>> m = trajectory_metrics(s, targets=s[-1], r_safe=0.5, goal_tol=0.1)
+        >>> m["violations"], m["time_to_target"], round(m["min_pair_distance"], 3)
+        (1, 1, 0.1)
+    """
+    pos = np.asarray(states.detach().cpu() if hasattr(states, "detach") else states, dtype=np.float64)
+    goal = np.asarray(targets.detach().cpu() if hasattr(targets, "detach") else targets, dtype=np.float64)
+    if pos.ndim != 3 or pos.shape[0] < 1:
+        raise GpmpcError(f"compute_metrics: states must have shape (S+1, K, n), got {pos.shape}")
+    if position is not None:
+        pos = pos[..., list(position)]
+    if goal.shape != pos.shape[1:]:
+        raise GpmpcError(f"compute_metrics: targets must have shape (K, P) = {pos.shape[1:]}, got {goal.shape}; "
+                         "pass position=[state indices] when states hold more than the position")
+    for name, arr in (("states", pos), ("targets", goal)):
+        if not np.isfinite(arr).all():
+            raise GpmpcError(f"compute_metrics: {name} hold NaN or inf")
+    K = pos.shape[1]
+    radii_k = np.asarray(agent_radii(radii, r_safe, K), dtype=np.float64)
+    i, j = np.triu_indices(K, k=1)
+    pairs = pair_summary(pos, radii_k[i] + radii_k[j])
+    arrivals = arrival_steps(pos, goal, goal_tol)
+    final = np.linalg.norm(pos[-1] - goal, axis=-1)
+    return {
+        "num_agents": int(K), "steps": int(pos.shape[0] - 1),
+        "reached": time_to_target(pos, goal, goal_tol) is not None,
+        "time_to_target": time_to_target(pos, goal, goal_tol),
+        "min_pair_distance": _scalar(pairs["closest"].min()) if i.size else None,
+        "violations": pairs["violations"], "min_pair_clearance": pairs["min_clearance"],
+        "path_length": [float(v) for v in path_lengths(pos)],
+        "straight_line_length": [float(v) for v in np.linalg.norm(goal - pos[0], axis=-1)],
+        "r_safe": float(r_safe), "goal_tol": float(goal_tol),
+        "final_distance_to_target": [float(v) for v in final], "at_target_final": bool(np.all(final <= goal_tol)),
+        "arrival_steps": arrivals,
+        "arrival_step_max": None if any(a is None for a in arrivals) else max(arrivals, default=0),
+        "deadlock_steps": deadlock_steps(pos, goal, goal_tol, r_safe),
     }
 
 

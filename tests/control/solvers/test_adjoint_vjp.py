@@ -14,7 +14,7 @@ def _mv(mat: Tensor, vec: Tensor) -> Tensor:
     return torch.bmm(mat, vec.unsqueeze(-1)).squeeze(-1)
 
 
-def pairing(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, u, y, zc, a_u, a_y, xi, norm_idx, zv, xi_v):
+def pairing(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, H_cost, u, y, zc, a_u, a_y, xi, norm_idx, zv, xi_v):
     """``a^T grad_v L + xi^T g`` summed over the batch, its data-dependent terms (the reference)."""
     B, M, T, D = normals.shape
     x1 = _mv(G, u) + h
@@ -24,7 +24,7 @@ def pairing(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, u, y, zc, a_u, a_y
         extra = (zv * (xs * dxs).sum(-1)).sum() - 0.5 * (xi_v * (xs * xs).sum(-1)).sum()
     else:
         extra = x1.new_zeros(())
-    obj = ((2.0 * c_x[:, None] * x1 - l_x) * dx1).sum() + (g_u * a_u).sum()
+    obj = ((2.0 * c_x[:, None] * x1 - l_x) * dx1).sum() + (g_u * a_u).sum() + (a_u * _mv(H_cost, u)).sum()
     rho = rho_y[:, :, None].expand(B, M, T).reshape(B, -1, 1)
     obj = obj + ((rho * y - w_y.reshape(B, -1, D)) * a_y).sum()
     N = normals.reshape(B, -1, D)
@@ -44,7 +44,7 @@ def test_closed_form_matches_autograd(norm_idx):
         return g.standard_normal(shape)
 
     arrays = [rand(B, nx, n), rand(B, nx), 1.0 + g.random(B), rand(B, nx), 1.0 + g.random((B, M)), rand(B, M, T, D),
-              rand(B, M, T, D), rand(B, M, T), rand(B, n)]
+              rand(B, M, T, D), rand(B, M, T), rand(B, n), rand(B, n, n)]
     point = [rand(B, n), rand(B, R, D), rand(B, R), rand(B, n), rand(B, R, D), rand(B, R)]
     zv, xi_v = rand(B, Ts), rand(B, Ts)
     got = _stationarity_vjp(arrays, *point, np.asarray(norm_idx, dtype=np.int64), zv, xi_v)

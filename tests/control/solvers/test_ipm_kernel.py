@@ -23,14 +23,15 @@ def _random_problem(seed: int, T: int = 5, D: int = 2, M: int = 2):
     return (G, h, 1.7, l_x, rho_y, w_y, normals, bounds), u, w, z
 
 
-def _setup(canonical, alpha: float, beta: float = 0.0, g_u=None):
+def _setup(canonical, alpha: float, beta: float = 0.0, g_u=None, H_cost=None):
     G, h, _, _, _, _, normals, _ = canonical
     M, T, D = normals.shape
     n, K = h.shape[0], M * T
     H, g0, A = np.empty((n, n)), np.empty(n), np.empty((K, n))
     bt, rho, N, wy = np.empty(K), np.empty(K), np.empty((K, D)), np.empty((K, D))
     g_u = np.zeros(n) if g_u is None else g_u
-    ipm_residuals.setup(*canonical, g_u, np.ones(M), alpha, beta, H, g0, A, bt, rho, N, wy)
+    H_cost = np.zeros((n, n)) if H_cost is None else H_cost
+    ipm_residuals.setup(*canonical, g_u, H_cost, np.ones(M), alpha, beta, H, g0, A, bt, rho, N, wy)
     return H, g0, A, bt, rho, N, wy
 
 
@@ -64,6 +65,18 @@ def test_setup_adds_the_input_rate_weight_as_first_differences():
     np.testing.assert_allclose(g0, G.T @ (2 * c_x * h - l_x) + g_u, atol=1e-12)
 
 
+def test_setup_adds_a_stated_costs_hessian():
+    """A stated cost's Hessian beyond the default (H_cost) is added to H as it is."""
+    canonical, *_ = _random_problem(2)
+    G, h, c_x, l_x, _, _, normals, _ = canonical
+    M, T, D = normals.shape
+    n = T * D
+    root = np.random.default_rng(4).standard_normal((n, n))
+    H_cost = root @ root.T
+    H, g0, *_ = _setup(canonical, alpha=0.3, H_cost=H_cost)
+    np.testing.assert_allclose(H, 2 * c_x * G.T @ G + 0.6 * np.eye(n) + H_cost, atol=1e-12)
+
+
 @pytest.mark.parametrize("heavy_row", [False, True])
 @pytest.mark.parametrize("seed", range(5))
 def test_schur_cholesky_solve_matches_dense_augmented_solve(seed, heavy_row):
@@ -77,7 +90,7 @@ def test_schur_cholesky_solve_matches_dense_augmented_solve(seed, heavy_row):
     couple = np.array([1.0, 1.0, 0.0 if heavy_row else 1.0])
     H, g0, A = np.empty((n, n)), np.empty(n), np.empty((K, n))
     bt, rho, N, wy = np.empty(K), np.empty(K), np.empty((K, D)), np.empty((K, D))
-    ipm_residuals.setup(*canonical, np.zeros(n), couple, 0.1, 0.0, H, g0, A, bt, rho, N, wy)
+    ipm_residuals.setup(*canonical, np.zeros(n), np.zeros((n, n)), couple, 0.1, 0.0, H, g0, A, bt, rho, N, wy)
     Rc = ipm_residuals.coupled_rows(couple, T)
     heavy = 2 * T
     if heavy_row:

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torch_gpmpc.control.cost import horizon_weights
 from torch_gpmpc.control.problem import ConsensusTerms, LocalProblemData
 
 
@@ -54,11 +55,13 @@ class CanonicalData:
 
     Objective (up to constants) over ``u = vec(U)``, ``Y_{j,1..T}`` and ``s``::
 
-        c_X ||G u + h||^2 - l_X . (G u + h) + alpha ||u||^2 + beta ||D u||^2 + g_u . u
+        c_X ||G u + h||^2 - l_X . (G u + h) + alpha ||u||^2 + beta ||D u||^2 + g_u . u + 1/2 u^T H_cost u
         + sum_j (rho_y_j / 2 ||Y_j||^2 - w_y_j . Y_j) + slack_penalty * sum(s)
 
     (``beta ||D u||^2 + g_u . u`` is the input-rate term ``beta sum_t ||U_t - U_{t-1}||^2`` up to a
-    constant; D takes first differences, ``g_u = -2 beta U_{-1}`` on U_0.)
+    constant; D takes first differences, ``g_u = -2 beta U_{-1}`` on U_0. A stated cost
+    (:mod:`~torch_gpmpc.control.cost`) adds what differs from ``||X - Xref||^2 + alpha ||U||^2``:
+    its Hessian in ``H_cost`` and its linear part in ``g_u``; see :func:`stated_cost_terms`.)
 
     Attributes:
         G: condensed input-to-state map, shape (B, T*D, T*Du).
@@ -73,7 +76,8 @@ class CanonicalData:
         normals: collision normals (0 inactive), shape (B, M, T, D); after
             :func:`with_state_rows` also the soft state rows, (B, M + L, T, D).
         bounds: collision bounds (-1 inactive), shape (B, M, T) (then (B, M + L, T)).
-        g_u: linear input weight of the input-rate term, shape (B, T*Du).
+        g_u: linear input weight (the input-rate term's and a stated cost's), shape (B, T*Du).
+        H_cost: a stated cost's Hessian beyond ``2 G^T G + 2 alpha I`` (0 without one), (B, T*Du, T*Du).
     """
 
     G: Tensor
@@ -86,6 +90,40 @@ class CanonicalData:
     normals: Tensor
     bounds: Tensor
     g_u: Tensor
+    H_cost: Tensor
+
+
+def stated_cost_terms(data: LocalProblemData, G: Tensor, h: Tensor, alpha: float) -> tuple[Tensor, Tensor]:
+    """What a stated cost adds to the default one, in the condensed variables (differentiable).
+
+    With ``X_{1..T} = G u + h``, the state weight ``W = blockdiag(Q, .., Q, P)`` of X_1..X_T and
+    ``Rbar = blockdiag(R, .., R)``, the stated cost minus ``||X - Xref||^2 + alpha ||u||^2`` is, up to
+    a constant, ``1/2 u^T H u + g . u`` with::
+
+        H = 2 G^T (W - I) G + 2 (Rbar - alpha I),   g = 2 G^T (W - I) (h - Xref) - 2 Rbar u_ref
+
+    Returns:
+        ``(H (B, n, n), g (B, n))``, n = T Du; zeros when ``data`` states no cost.
+    """
+    batch, n = G.shape[0], G.shape[2]
+    if not data.has_cost:
+        return G.new_zeros(batch, n, n), G.new_zeros(batch, n)
+    T, D = data.xref.shape[1] - 1, data.xref.shape[2]
+    Du = n // T
+    eye_x, eye_u = torch.eye(D, dtype=G.dtype, device=G.device), torch.eye(Du, dtype=G.dtype, device=G.device)
+    W = horizon_weights(data.cost_Q.to(G), data.cost_P.to(G), T) - eye_x  # (B, T, D, D)
+    Gt = G.view(batch, T, D, n)
+    WG = torch.einsum("btde,bten->btdn", W, Gt).reshape(batch, T * D, n)
+    err = (h - data.xref[:, 1:].reshape(batch, T * D)).view(batch, T, D)
+    Werr = torch.einsum("btde,bte->btd", W, err).reshape(batch, T * D)
+    dR = data.cost_R.to(G) - alpha * eye_u  # (B, Du, Du)
+    blocks = torch.block_diag(*[torch.ones(Du, Du, dtype=G.dtype, device=G.device)] * T)  # (n, n) 0/1
+    Rbar = dR.repeat(1, T, T) * blocks
+    H = 2.0 * G.mT @ WG + 2.0 * Rbar
+    g = 2.0 * (G.mT @ Werr[..., None])[..., 0]
+    if data.u_ref is not None:
+        g = g - 2.0 * (data.cost_R.to(G) @ data.u_ref.to(G)[..., None])[..., 0].repeat(1, T)
+    return 0.5 * (H + H.mT), g
 
 
 def input_rate_linear(data: LocalProblemData, beta: float, horizon: int, input_dim: int) -> Tensor:
@@ -121,13 +159,15 @@ class CondensedCache:
         return self._value
 
 
-def canonicalize(data: LocalProblemData, B: Tensor, condense=condense_dynamics, beta: float = 0.0) -> CanonicalData:
+def canonicalize(data: LocalProblemData, B: Tensor, condense=condense_dynamics, beta: float = 0.0,
+                 alpha: float = 0.0) -> CanonicalData:
     """Map :class:`LocalProblemData` to :class:`CanonicalData` (differentiable).
 
     Inactive slots get ``rho = 1``, ``w = 0`` (so ``Y_j = 0``), normal 0 and bound -1,
     and contribute nothing to the state cost (as in :class:`~torch_gpmpc.control.solvers.conic.CvxpyLayerMPC`).
     ``B`` (D, Du) is the nominal input matrix, used when ``data.dyn_B`` is ``None``; ``condense``
-    is :func:`condense_dynamics` or a :class:`CondensedCache`; ``beta`` is the input-rate weight.
+    is :func:`condense_dynamics` or a :class:`CondensedCache`; ``beta`` is the input-rate weight and
+    ``alpha`` the solver's effort weight (what a stated cost replaces; :func:`stated_cost_terms`).
     """
     terms = ConsensusTerms.of(data)
     l_x = (2.0 * data.xref[:, 1:] + terms.w_own[:, :, 1:].sum(dim=1)).flatten(1)
@@ -135,8 +175,11 @@ def canonicalize(data: LocalProblemData, B: Tensor, condense=condense_dynamics, 
     y0 = terms.w_nbr[:, :, 0] / terms.rho_y[:, :, None]
     T = data.xref.shape[1] - 1
     g_u = input_rate_linear(data, beta, T, G.shape[2] // T)
+    H_cost, g_cost = stated_cost_terms(data, G, h, alpha)
+    if data.has_cost:
+        g_u = g_u + g_cost
     return CanonicalData(G=G, h=h, c_x=terms.c_x, l_x=l_x, rho_y=terms.rho_y, w_y=terms.w_nbr[:, :, 1:], y0=y0,
-                         normals=terms.normals, bounds=terms.bounds, g_u=g_u)
+                         normals=terms.normals, bounds=terms.bounds, g_u=g_u, H_cost=H_cost)
 
 
 def with_state_rows(canon: CanonicalData, rows: list[tuple[Tensor, Tensor]]) -> CanonicalData:
@@ -156,4 +199,4 @@ def with_state_rows(canon: CanonicalData, rows: list[tuple[Tensor, Tensor]]) -> 
         rho_y=torch.cat([canon.rho_y, canon.rho_y.new_ones(B, L)], dim=1),
         w_y=torch.cat([canon.w_y, canon.w_y.new_zeros(B, L, T, D)], dim=1), y0=canon.y0,
         normals=torch.cat([canon.normals, *[n for n, _ in rows]], dim=1),
-        bounds=torch.cat([canon.bounds, *[b for _, b in rows]], dim=1), g_u=canon.g_u)
+        bounds=torch.cat([canon.bounds, *[b for _, b in rows]], dim=1), g_u=canon.g_u, H_cost=canon.H_cost)

@@ -23,8 +23,9 @@ from torch_gpmpc.dynamics.systems import NominalModel
 
 from torch_gpmpc.control.problem import (
     ConsensusTerms, FAIL_EXCEPTION, FAIL_NONE, SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures,
-    input_rate_cost,
+    planned_cost,
 )
+from torch_gpmpc.control.cost import horizon_weights
 
 logger = logging.getLogger(__name__)
 
@@ -152,10 +153,22 @@ class CvxpyLayerMPC(nn.Module):
         self.cvxpy_parameters = parameters
         self._variable_shapes = [tuple(v.shape) for v in variables]
         self.layer = CvxpyLayer(self.problem, parameters=parameters, variables=variables)
+        self._stated_cost_layer: CvxpyLayer | None = None  # built when data first states a cost
+
+    def _layer_for(self, data: LocalProblemData) -> CvxpyLayer:
+        """The layer of the default cost, or (built once, on first use) that of a stated cost."""
+        if not data.has_cost:
+            return self.layer
+        if self._stated_cost_layer is None:
+            problem, parameters, variables = self._build_problem(stated_cost=True)
+            self._stated_cost_layer = CvxpyLayer(problem, parameters=parameters, variables=variables)
+        return self._stated_cost_layer
 
     # ------------------------------------------------------------------ build
-    def _build_problem(self) -> tuple[cp.Problem, list[cp.Parameter], list[cp.Variable]]:
-        """The DPP problem, its parameters (layer order) and returned variables."""
+    def _build_problem(self, stated_cost: bool = False) -> tuple[cp.Problem, list[cp.Parameter], list[cp.Variable]]:
+        """The DPP problem, its parameters (layer order) and returned variables; ``stated_cost``: the
+        tracking cost is the data's :class:`~torch_gpmpc.control.cost.QuadraticCost` (see
+        :meth:`layer_parameters`), else ``||X - Xref||^2 + alpha ||U||^2``."""
         T, D, M = self.horizon, self.dim, self.num_neighbors
         Du = self.nominal.input_dim
         X, U = cp.Variable((T + 1, D), name="X"), cp.Variable((T, Du), name="U")
@@ -170,9 +183,22 @@ class CvxpyLayerMPC(nn.Module):
                     for e in range(D))
         drive = sum(cp.multiply(b_cols[j], cp.reshape(U[:, j], (T, 1), order="F") @ ones_row)
                     for j in range(Du))
-        objective = cp.sum_squares(scale_x * X - shift_x) + self.alpha * cp.sum_squares(U)
+        if stated_cost:
+            # ||F_t X_t - f_t||^2 per step (F_t^T F_t = W_t, the state weight with the own copies' rho)
+            # and ||U_t L - f_u,t||^2 (L L^T = R): parameters times variables, so DPP
+            f_cols = [cp.Parameter((T, D), name=f"F_col{e}") for e in range(D)]
+            f_x = cp.Parameter((T, D), name="f_X")
+            weighted = sum(cp.multiply(f_cols[e], cp.reshape(X[1:, e], (T, 1), order="F") @ ones_row)
+                           for e in range(D))
+            r_root = cp.Parameter((Du, Du), name="R_root")
+            f_u = cp.Parameter((T, Du), name="f_U")
+            objective = cp.sum_squares(weighted - f_x) + cp.sum_squares(U @ r_root - f_u)
+            cost_parameters = [*f_cols, f_x, r_root, f_u]
+        else:
+            objective = cp.sum_squares(scale_x * X - shift_x) + self.alpha * cp.sum_squares(U)
+            cost_parameters = [scale_x, shift_x]
         constraints = [X[0] == x0, X[1:] == drift + drive + dyn_c]
-        parameters = [x0, scale_x, shift_x, *a_cols, *b_cols, dyn_c]
+        parameters = [x0, *cost_parameters, *a_cols, *b_cols, dyn_c]
         if self.input_rate_weight:
             u_prev = cp.Parameter(Du, name="u_prev")
             objective += self.input_rate_weight * input_changes(U, u_prev)
@@ -213,18 +239,19 @@ class CvxpyLayerMPC(nn.Module):
             data: the problem inputs (validated by the caller).
 
         Returns:
-            Tensors ``[x0, scale_X, shift_X, A_col_0..A_col_{D-1}, B_col_0..B_col_{Du-1}, dyn_c]``, if beta > 0
+            Tensors ``[x0, scale_X, shift_X, A_col_0..A_col_{D-1}, B_col_0..B_col_{Du-1}, dyn_c]`` (with a
+            stated cost ``F_col_0..F_col_{D-1}, f_X, R_root, f_U`` in place of ``scale_X, shift_X``:
+            :func:`stated_cost_parameters`), if beta > 0
             ``[u_prev]`` (0 when the data has none), if L > 0
             ``[halfspace_0.., halfspace_bounds]`` and, if M > 0, ``[scale_Y, shift_Y_0.., normal_0.., bounds]``
             (see the class docstring).
         """
         M = self.num_neighbors
         terms = ConsensusTerms.of(data)
-        scale_x = torch.sqrt(terms.c_x)
-        shift_x = (data.xref + 0.5 * terms.w_own.sum(dim=1)) / scale_x[:, None, None]
+        cost_params = stated_cost_parameters(data, terms) if data.has_cost else self._default_cost_parameters(data, terms)
         dyn_B = data.dyn_B if data.dyn_B is not None else \
             self.nominal.B(data.x0.dtype, data.x0.device).expand(data.x0.shape[0], self.horizon, -1, -1)
-        params = [data.x0, scale_x, shift_x, *[data.dyn_A[..., e] for e in range(self.dim)],
+        params = [data.x0, *cost_params, *[data.dyn_A[..., e] for e in range(self.dim)],
                   *[dyn_B[..., j] for j in range(self.nominal.input_dim)], data.dyn_c]
         if self.input_rate_weight:
             params.append(data.x0.new_zeros(data.x0.shape[0], self.nominal.input_dim) if data.u_prev is None
@@ -237,6 +264,12 @@ class CvxpyLayerMPC(nn.Module):
             params += [scale_y, *[shift_y[:, j] for j in range(M)],
                        *[terms.normals[:, j] for j in range(M)], terms.bounds]
         return params
+
+    @staticmethod
+    def _default_cost_parameters(data: LocalProblemData, terms: ConsensusTerms) -> list[Tensor]:
+        """``[scale_X (B,), shift_X (B, T+1, D)]`` of ``||X - Xref||^2`` with the own copies' terms."""
+        scale_x = torch.sqrt(terms.c_x)
+        return [scale_x, (data.xref + 0.5 * terms.w_own.sum(dim=1)) / scale_x[:, None, None]]
 
     def forward(self, data: LocalProblemData, solver_args: dict[str, Any] | None = None,
                 guess: Any = None) -> LocalSolution:
@@ -263,15 +296,15 @@ class CvxpyLayerMPC(nn.Module):
             args = {k: v for k, v in args.items() if k not in _BACKWARD_ONLY_KEYS}
         detail = None
         try:
-            outputs = self.layer(*params, solver_args=args)
+            outputs = self._layer_for(data)(*params, solver_args=args)
             failed = torch.zeros(batch, dtype=torch.bool)
         except Exception as exc:  # noqa: BLE001 - any solver failure is reported, not raised
             logger.debug("CvxpyLayerMPC: batched solve of %d problems failed (%s); retrying one by one",
                          batch, exc)
-            outputs, failed, detail = self._solve_one_by_one(params, args)
+            outputs, failed, detail = self._solve_one_by_one(self._layer_for(data), params, args)
         return self._solution(data, outputs, failed, detail)
 
-    def _solve_one_by_one(self, params: list[Tensor], args: dict[str, Any]
+    def _solve_one_by_one(self, layer: CvxpyLayer, params: list[Tensor], args: dict[str, Any]
                           ) -> tuple[list[Tensor], Tensor, str | None]:
         """Solve each problem alone; failures become NaN rows.
 
@@ -282,7 +315,7 @@ class CvxpyLayerMPC(nn.Module):
         rows, failed, detail = [], torch.zeros(batch, dtype=torch.bool), None
         for b in range(batch):
             try:
-                rows.append(self.layer(*[p[b:b + 1] for p in params], solver_args=args))
+                rows.append(layer(*[p[b:b + 1] for p in params], solver_args=args))
             except Exception as exc:  # noqa: BLE001
                 logger.debug("CvxpyLayerMPC: problem %d of %d failed: %s", b, batch, exc)
                 detail = detail or f"{type(exc).__name__}: {exc}"
@@ -319,8 +352,7 @@ class CvxpyLayerMPC(nn.Module):
         if not bool(ok.all()):
             logger.debug("CvxpyLayerMPC: %d of %d local problems returned no valid solution (kinds %s)",
                          int((~ok).sum()), batch, failure.tolist())
-        cost = ((X - data.xref) ** 2).sum(dim=(1, 2)) + self.alpha * (U ** 2).sum(dim=(1, 2)) \
-            + input_rate_cost(U, data.u_prev, self.input_rate_weight)
+        cost = planned_cost(data, X, U, data.xref, self.alpha, self.input_rate_weight)
         state_slack = self.constraints.state_violation(X, data.halfspace_normals, data.halfspace_bounds)
         return LocalSolution(X=X, U=U, Y=Y, slack=slack, slack_active=slack_active & ok, ok=ok, cost=cost,
                              failure=failure, failure_detail=detail, state_slack=state_slack)
@@ -328,6 +360,33 @@ class CvxpyLayerMPC(nn.Module):
     def _check(self, data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor) -> Tensor:
         """Failure code per problem, (B,): see :func:`acceptance_failures`."""
         return acceptance_failures(data, X, U, Y, slack, self.nominal.B(X.dtype, X.device), self.constraints)
+
+
+def stated_cost_parameters(data: LocalProblemData, terms: ConsensusTerms) -> list[Tensor]:
+    """The stated-cost layer's cost parameters ``[F_col_0..F_col_{D-1} (B, T, D), f_X (B, T, D),
+    R_root (B, Du, Du), f_U (B, T, Du)]``.
+
+    Per step t = 1..T the state terms are ``X_t^T W_t X_t - X_t . (2 Q_t r_t + w_t)`` with
+    ``Q_t = Q`` (``P`` at T), ``W_t = Q_t + sum_j rho_j / 2 I`` and ``w_t`` the own copies'
+    ``sum_j w_own_j``; with ``W_t = L L^T`` (Cholesky, a 1e-12 relative jitter for a singular Q without
+    neighbours), ``F_t = L^T`` and ``f_t = L^{-1} (Q_t r_t + w_t / 2)`` give ``||F_t X_t - f_t||^2`` up
+    to a constant.
+    The inputs: ``R = L_R L_R^T``, ``R_root = L_R``, ``f_U = u_ref^T L_R`` on every step.
+    """
+    B, T, D = data.xref.shape[0], data.xref.shape[1] - 1, data.xref.shape[2]
+    Q, R, P = data.cost_Q.to(data.xref), data.cost_R.to(data.xref), data.cost_P.to(data.xref)
+    eye = torch.eye(D, dtype=Q.dtype, device=Q.device)
+    W = horizon_weights(Q, P, T) + (terms.c_x - 1.0)[:, None, None, None] * eye
+    jitter = 1e-12 * (1.0 + W.detach().abs().amax(dim=(-2, -1), keepdim=True))
+    L = torch.linalg.cholesky(W + jitter * eye)  # (B, T, D, D)
+    w_own = terms.w_own.sum(dim=1)[:, 1:]  # (B, T, D)
+    linear = (horizon_weights(Q, P, T) @ data.xref[:, 1:, :, None])[..., 0] + 0.5 * w_own  # Q_t r_t + w_t / 2
+    f_x = torch.linalg.solve_triangular(L, linear[..., None], upper=False)[..., 0]
+    F = L.mT  # F_t = L^T; column e of F_t for every t
+    L_R = torch.linalg.cholesky(R)
+    u_ref = torch.zeros(B, R.shape[-1], dtype=R.dtype, device=R.device) if data.u_ref is None else data.u_ref.to(R)
+    f_u = (u_ref[:, None, :] @ L_R)[:, 0]  # (B, Du)
+    return [*[F[..., :, e] for e in range(D)], f_x, L_R, f_u[:, None, :].expand(B, T, -1)]
 
 
 def input_changes(U: cp.Expression, u_prev: Any) -> cp.Expression:

@@ -33,7 +33,7 @@ from torch_gpmpc.control.solvers.canonical import (  # noqa: F401 (condense_dyna
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.control.problem import (
     FAIL_INACCURATE, FAIL_NONFINITE, SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures,
-    input_rate_cost,
+    planned_cost,
 )
 from torch_gpmpc.dynamics.systems import NominalModel
 
@@ -44,14 +44,14 @@ logger = logging.getLogger(__name__)
 def _stationarity_vjp(arrays: list[np.ndarray], u: np.ndarray, y: np.ndarray, zc: np.ndarray, a_u: np.ndarray,
                       a_y: np.ndarray, xi: np.ndarray, norm_idx: np.ndarray, zv: np.ndarray,
                       xi_v: np.ndarray) -> list[np.ndarray]:
-    """Gradients, with respect to the nine canonical arrays, of the pairing
+    """Gradients, with respect to the ten canonical arrays, of the pairing
     ``a^T grad_v L(v, z; theta) + xi^T g(v; theta)`` summed over the batch, negated: the
     implicit-function-theorem vector-Jacobian product (in closed form, NumPy).
 
     Only the terms of the pairing that depend on the problem data theta matter. With
     ``x = G u + h``, ``dx = G a_u`` (per step ``x_t``, ``dx_t``; rows ``k = j T + t``)::
 
-        (2 c_x x - l_x) . dx + g_u . a_u + sum_k (rho_j y_k - w_k) . a_y_k
+        (2 c_x x - l_x) . dx + g_u . a_u + a_u^T H_cost u + sum_k (rho_j y_k - w_k) . a_y_k
         - sum_k zc_k n_k . (dx_t - a_y_k) + sum_k xi_k (n_k . (x_t - y_k) - b_k)
         + sum_t zv_t (P x_t) . (P dx_t) - 1/2 sum_t xi_v_t ||P x_t||^2
 
@@ -60,13 +60,13 @@ def _stationarity_vjp(arrays: list[np.ndarray], u: np.ndarray, y: np.ndarray, zc
 
     Args:
         arrays: G (B, nx, n), h (B, nx), c_x (B,), l_x (B, nx), rho_y (B, M), w_y (B, M, T, D),
-            normals (B, M, T, D), bounds (B, M, T), g_u (B, n) (nx = T D, M slots).
+            normals (B, M, T, D), bounds (B, M, T), g_u (B, n), H_cost (B, n, n) (nx = T D, M slots).
         u, a_u (B, n); y, a_y (B, R, D); zc, xi (B, R) (R = M T); zv, xi_v (B, Ts), Ts = T or 0.
 
     Returns:
         The nine gradients, shaped like ``arrays``.
     """
-    G, h, c_x, _, _, _, normals, _, _ = arrays
+    G, h, c_x, _, _, _, normals, _, _, _ = arrays
     B, M, T, D = normals.shape
     x = (G @ u[..., None])[..., 0] + h
     dx = (G @ a_u[..., None])[..., 0]
@@ -82,7 +82,8 @@ def _stationarity_vjp(arrays: list[np.ndarray], u: np.ndarray, y: np.ndarray, zc
         g_dx[:, :, norm_idx] += zv[:, :, None] * xs
     g_x, g_dx = g_x.reshape(B, -1), g_dx.reshape(B, -1)
     grads = [g_x[:, :, None] * u[:, None, :] + g_dx[:, :, None] * a_u[:, None, :], g_x, 2.0 * (x * dx).sum(1), -dx,
-             (Y * AY).sum((2, 3)), -AY, -ZC * (dX[:, None] - AY) + XI * (X[:, None] - Y), -XI[..., 0], a_u]
+             (Y * AY).sum((2, 3)), -AY, -ZC * (dX[:, None] - AY) + XI * (X[:, None] - Y), -XI[..., 0], a_u,
+             a_u[:, :, None] * u[:, None, :]]
     return [-g for g in grads]
 
 
@@ -90,7 +91,7 @@ class _LocalQpFunction(torch.autograd.Function):
     """Batched interior-point solve with implicit differentiation of its KKT conditions.
 
     Inputs are the :class:`CanonicalData` tensors (G, h, c_x, l_x, rho_y, w_y, normals,
-    bounds, g_u; M' = M + L slots) and a settings tuple ``((alpha, beta), limits, penalty, tol,
+    bounds, g_u, H_cost; M' = M + L slots) and a settings tuple ``((alpha, beta), limits, penalty, tol,
     max_iter, stats, guess, arrays)`` (``arrays``: those tensors as :func:`kernel_arrays`, made once
     by the caller, then their :class:`StructureCache` pair ``GtG, A``; ``guess``: a previous solve's
     points, which start the warm active-set solves, or ``None``: every problem cold; never pass one
@@ -100,12 +101,12 @@ class _LocalQpFunction(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, settings):  # noqa: D102
+    def forward(ctx, G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, H_cost, settings):  # noqa: D102
         weights, limits = settings[0], settings[1]
         point, at, converged = solve_points(settings, keep_at=True)
         ctx.at = at
         ctx.weights, ctx.limits = weights, limits
-        ctx.save_for_backward(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u)
+        ctx.save_for_backward(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, H_cost)
         outputs = point_outputs(point, converged, normals.shape, h)
         ctx.mark_non_differentiable(outputs[3])
         return outputs
@@ -137,7 +138,7 @@ class _LocalQpFunction(torch.autograd.Function):
         a_u, a_y, xi, xi_v = (np.nan_to_num(a) for a in (a_u, a_y, xi, xi_v))
         grads = _stationarity_vjp(arrays, at.u, at.y, at.z[:, :R], a_u, a_y, xi, limits.norm_idx,
                                   at.z[:, ov:ov + Ts], xi_v)
-        out = [ten(g) if n else None for g, n in zip(grads, ctx.needs_input_grad[:9])]
+        out = [ten(g) if n else None for g, n in zip(grads, ctx.needs_input_grad[:10])]
         return (*out, None)
 
 
@@ -289,16 +290,16 @@ class InteriorPointMPC(nn.Module):
         batch = data.validate(self.horizon, self.dim, self.num_neighbors, self.input_dim, self.num_halfspaces)
         T, D, M = self.horizon, self.dim, self.num_neighbors
         beta = self.input_rate_weight
-        canon = with_state_rows(canonicalize(data, self._input_matrix(data), self._condensed, beta),
+        canon = with_state_rows(canonicalize(data, self._input_matrix(data), self._condensed, beta, self.alpha),
                                 self._state_rows(data, batch))
         inputs = (canon.G, canon.h, canon.c_x, canon.l_x, canon.rho_y, canon.w_y, canon.normals, canon.bounds,
-                  canon.g_u)
+                  canon.g_u, canon.H_cost)
         arrays = kernel_arrays(inputs)
         valid = _valid_rows(arrays, canon.y0)
         if not valid.all():
             canon = _benign_rows(canon, torch.from_numpy(valid).to(data.x0.device))
             inputs = (canon.G, canon.h, canon.c_x, canon.l_x, canon.rho_y, canon.w_y, canon.normals, canon.bounds,
-                      canon.g_u)
+                      canon.g_u, canon.H_cost)
             arrays = kernel_arrays(inputs)
         arrays = arrays + list(self._structure(arrays[0], arrays[6]))
         stats: dict = {}
@@ -322,8 +323,7 @@ class InteriorPointMPC(nn.Module):
         U = u.view(batch, T, self.input_dim)
         Y = torch.cat([canon.y0[:, :, None], y1], dim=2)
         failure, ok, slack_active = self._verdicts(data, X, U, Y, slack, valid, converged)
-        cost = ((X - xref) ** 2).sum(dim=(1, 2)) + self.alpha * (U ** 2).sum(dim=(1, 2)) \
-            + input_rate_cost(U, data.u_prev, beta)
+        cost = planned_cost(data, X, U, xref, self.alpha, beta)
         state_slack = self.constraints.state_violation(X, data.halfspace_normals, data.halfspace_bounds)
         return LocalSolution(X=X, U=U, Y=Y, slack=slack, slack_active=slack_active, ok=ok, cost=cost,
                              failure=failure, state_slack=state_slack, solver_point=stats["point"])
@@ -339,7 +339,7 @@ class InteriorPointMPC(nn.Module):
         """
         batch = data.validate(self.horizon, self.dim, self.num_neighbors, self.input_dim, self.num_halfspaces)
         B = self._input_matrix(data)
-        canon = with_state_rows(canonicalize(data, B, self._condensed, self.input_rate_weight),
+        canon = with_state_rows(canonicalize(data, B, self._condensed, self.input_rate_weight, self.alpha),
                                 self._state_rows(data, batch))
         G, normals = kernel_arrays((canon.G, canon.normals))
         kernel = KernelSettings((self.alpha, self.input_rate_weight), self._limits, self.slack_penalty, self.tol,
@@ -412,7 +412,8 @@ def _benign_rows(canon: CanonicalData, valid: Tensor) -> CanonicalData:
     return CanonicalData(G=keep(canon.G, 0.0), h=keep(canon.h, 0.0), c_x=keep(canon.c_x, 1.0),
                          l_x=keep(canon.l_x, 0.0), rho_y=keep(canon.rho_y, 1.0), w_y=keep(canon.w_y, 0.0),
                          y0=keep(canon.y0, 0.0), normals=keep(canon.normals, 0.0),
-                         bounds=keep(canon.bounds, -1.0), g_u=keep(canon.g_u, 0.0))
+                         bounds=keep(canon.bounds, -1.0), g_u=keep(canon.g_u, 0.0),
+                         H_cost=keep(canon.H_cost, 0.0))
 
 
 #: The name this backend had before; kept for existing code.

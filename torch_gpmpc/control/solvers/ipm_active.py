@@ -332,7 +332,7 @@ def _solve_one(H, g0, A, width, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v
 
 
 @_jit
-def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A_all, couple, alpha, beta, u_max, box, sbi,
+def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, H_cost, GtG, A_all, couple, alpha, beta, u_max, box, sbi,
                 v_max, penalty, tol, max_rounds, u, y, w, z, unused, converged, iterations, kkt_error) -> None:
     """Solve B problems from the guesses ``(u, w, z)`` (kernel layout, e.g. the previous solve's
     points; ``y`` is output only), one after another.
@@ -362,7 +362,8 @@ def solve_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A_all, co
     xs = np.empty((Ts, sbi.shape[0]))
     r_u, r_y, r_s, r_p = np.empty(n), np.empty((R, D)), np.empty(R + Ts), np.empty(m)
     for b in range(B):
-        weights(GtG[b], G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u[b], couple, alpha,
+        weights(GtG[b], G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u[b], H_cost[b], couple,
+                alpha,
                 beta, H, g0, bt, rho, N, wy)
         A = A_all[b]
         row_widths(A, width)

@@ -12,8 +12,9 @@ after condensing the dynamics, in the variables ``u = vec(U)`` (n = T Du), the c
                 g_v = (v^2 + 2 v sigma_t - ||P x_t||^2) / 2 >= 0   (Ts = T or 0: state norm, x = G u + h)
                 sigma >= 0                                         (Ts)
 
-with ``H = 2 c_x G^T G + 2 alpha I + 2 beta D^T D`` (D: first differences of the U_t, the input-rate
-weight), ``g0 = G^T (2 c_x h - l_x) + g_u`` (``g_u = -2 beta U_{-1}`` on U_0), ``A_k = G_t^T n_k`` and
+with ``H = 2 c_x G^T G + 2 alpha I + 2 beta D^T D + H_cost`` (D: first differences of the U_t, the
+input-rate weight; ``H_cost``: a user cost's Hessian beyond the default one), ``g0 = G^T (2 c_x h - l_x) + g_u``
+(``g_u = -2 beta U_{-1}`` on U_0, plus a user cost's linear part), ``A_k = G_t^T n_k`` and
 ``bt_k = bound_k - n_k . h_t`` for row ``k = j T + t`` (built by
 :func:`~torch_gpmpc.control.solvers.ipm_residuals.setup`). The first Rc rows are collision rows
 (slot flag ``couple = 1``: ``N = n``); the rest are soft state rows (``N = 0``, ``y = 0``).
@@ -381,7 +382,7 @@ def structure_batch(G, normals, GtG, A) -> None:
 
 
 @_jit
-def solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A, couple, alpha, beta, u_max, box,
+def solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, H_cost, GtG, A, couple, alpha, beta, u_max, box,
                        sbi, v_max, penalty, tol, max_iter, u, y, w, z, warm, converged, iterations, kkt_error,
                        polish_tol, polish_iter, pu, py, pw, pz, p_conv, p_iter, p_err) -> None:
     """Solve B problems one after another, then continue each from its point to ``polish_tol`` (the
@@ -390,8 +391,8 @@ def solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A,
 
     Args:
         G (B, nx, n), h (B, nx), c_x (B,), l_x (B, nx), rho_y (B, M), w_y (B, M, T, D),
-        normals (B, M, T, D), bounds (B, M, T), g_u (B, n): the canonical data (float64,
-            C-contiguous);
+        normals (B, M, T, D), bounds (B, M, T), g_u (B, n), H_cost (B, n, n): the canonical data
+            (float64, C-contiguous);
         GtG (B, n, n), A (B, R, n): their :func:`structure_batch`;
         couple (M,): 1 for a neighbour slot (the row has a copy), 0 for a state row; the
             neighbour slots come first.
@@ -421,7 +422,8 @@ def solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A,
     width = np.empty(R, dtype=np.int64)
     xs = np.empty((off[6], sbi.shape[0]))
     for b in range(B):
-        weights(GtG[b], G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u[b], couple, alpha,
+        weights(GtG[b], G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u[b], H_cost[b], couple,
+                alpha,
                 beta, H, g0, bt, rho, N, wy)
         Ab = A[b]
         row_widths(Ab, width)
@@ -441,7 +443,7 @@ def solve_polish_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, GtG, A,
 
 
 @_jit
-def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u_data, couple, alpha, beta, u_max, box, sbi,
+def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u_data, H_cost, couple, alpha, beta, u_max, box, sbi,
                   v_max, u, w, z, g_u, g_y, g_s, a_u, a_y, xi, xi_v, failed) -> None:
     """Solve the reduced KKT system at each primal-dual point for the right-hand side
     ``(g_u, g_y, g_s)`` (the implicit-function adjoint; the system is symmetric).
@@ -468,7 +470,8 @@ def adjoint_batch(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u_data, couple,
     aug, width = np.empty(R, dtype=np.int64), np.empty(R, dtype=np.int64)
     for b in range(B):
         failed[b] = False
-        setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u_data[b], couple, alpha, beta,
+        setup(G[b], h[b], c_x[b], l_x[b], rho_y[b], w_y[b], normals[b], bounds[b], g_u_data[b], H_cost[b], couple,
+              alpha, beta,
                H, g0, A, bt, rho, N, wy)
         row_widths(A, width)
         fill(a_u[b], 0.0)
@@ -523,16 +526,17 @@ def warm_up() -> None:
     B, M, T, D = 1, 1, 1, 1
     R, n, m = M * T, T * D, 2 * M * T + 4 * T
     canonical = (np.eye(n)[None], np.zeros((B, n)), np.ones(B), np.zeros((B, n)), np.ones((B, M)),
-                 np.zeros((B, M, T, D)), np.ones((B, M, T, D)), -np.ones((B, M, T)), np.zeros((B, n)), np.ones(M))
+                 np.zeros((B, M, T, D)), np.ones((B, M, T, D)), -np.ones((B, M, T)), np.zeros((B, n)),
+                 np.zeros((B, n, n)), np.ones(M))
     limits = (1.0, np.ones(D), np.zeros(1, dtype=np.int64), 1.0)
     u, y, w, z = np.empty((B, n)), np.empty((B, R, D)), np.empty((B, m)), np.empty((B, m))
     flags, counts, errors = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.int64), np.empty(B)
     built = (np.empty((B, n, n)), np.empty((B, R, n)))
     structure_batch(canonical[0], canonical[6], *built)
-    solve_polish_batch(*canonical[:9], *built, canonical[9], 1e-3, 0.0, *limits, 1e4, 1e-8, 30, u, y, w, z, False,
+    solve_polish_batch(*canonical[:10], *built, canonical[10], 1e-3, 0.0, *limits, 1e4, 1e-8, 30, u, y, w, z, False,
                        flags, counts, errors, 1e-10, 6, u.copy(), y.copy(), w.copy(), z.copy(), flags.copy(),
                        counts.copy(), errors.copy())
-    ipm_active.solve_batch(*canonical[:9], *built, canonical[9], 1e-3, 0.0, *limits, 1e4, 1e-8, 3, u, y, w, z, False,
+    ipm_active.solve_batch(*canonical[:10], *built, canonical[10], 1e-3, 0.0, *limits, 1e4, 1e-8, 3, u, y, w, z, False,
                            flags, counts, errors)
     adjoint_batch(*canonical, 1e-3, 0.0, *limits, u, w, z, np.ones((B, n)), np.ones((B, R, D)), np.ones((B, R)),
                   np.empty((B, n)), np.empty((B, R, D)), np.empty((B, R)), np.empty((B, T)), flags)

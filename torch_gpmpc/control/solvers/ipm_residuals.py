@@ -86,16 +86,17 @@ def row_widths(A, width) -> None:
 
 
 @_jit
-def weights(GtG, G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, H, g0, bt, rho, N,
+def weights(GtG, G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, H_cost, couple, alpha, beta, H, g0, bt, rho, N,
             wy) -> None:
-    """The rest of :func:`setup`, given ``GtG`` (n, n) from :func:`structure`: H, g0, bt, rho, N, wy."""
+    """The rest of :func:`setup`, given ``GtG`` (n, n) from :func:`structure`: H, g0, bt, rho, N, wy.
+    ``H_cost`` (n, n) is the user cost's Hessian beyond ``2 G^T G + 2 alpha I`` (0 for the default cost)."""
     nx, n = G.shape
     M, T, D = normals.shape
     c2 = 2.0 * c_x
     for i in range(n):
         for j in range(i + 1):
-            H[i, j] = c2 * GtG[i, j]
-            H[j, i] = c2 * GtG[i, j]
+            H[i, j] = c2 * GtG[i, j] + H_cost[i, j]
+            H[j, i] = c2 * GtG[i, j] + H_cost[j, i]
         H[i, i] += 2.0 * alpha
     if beta != 0.0:
         Du = n // normals.shape[1]
@@ -122,12 +123,12 @@ def weights(GtG, G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha
 
 
 @_jit
-def setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, H, g0, A, bt, rho, N,
+def setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, H_cost, couple, alpha, beta, H, g0, A, bt, rho, N,
           wy) -> None:
     """Fill the problem arrays of one problem from its canonical data (see module docstring).
 
     Shapes: G (nx, n), h (nx,), l_x (nx,), rho_y (M,), w_y (M, T, D), normals (M, T, D),
-    bounds (M, T), g_u (n,), couple (M,) with nx = T D states and n = T Du inputs; outputs
+    bounds (M, T), g_u (n,), H_cost (n, n), couple (M,) with nx = T D states and n = T Du inputs; outputs
     H (n, n), g0 (n,), A (R, n), bt (R,), rho (R,), N (R, D) (the copy's coefficient,
     ``couple_j n_k``), wy (R, D). ``beta`` weighs the input changes ``sum_t ||U_t - U_{t-1}||^2``
     (its ``U_{-1}`` part is in ``g_u``): ``H += 2 beta D^T D`` with D the first difference.
@@ -136,7 +137,7 @@ def setup(G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta,
     n = G.shape[1]
     GtG = np.empty((n, n))
     structure(G, normals, GtG, A)
-    weights(GtG, G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, couple, alpha, beta, H, g0, bt, rho, N, wy)
+    weights(GtG, G, h, c_x, l_x, rho_y, w_y, normals, bounds, g_u, H_cost, couple, alpha, beta, H, g0, bt, rho, N, wy)
 
 
 @_jit

@@ -31,15 +31,15 @@ from torch_gpmpc.control.solvers import ipm_kernel as ipm
 
 #: Argument positions of :func:`~.ipm_kernel.solve_polish_batch` (and of
 #: :func:`~.ipm_active.solve_batch`, up to its ``kkt_error``) that are per-problem arrays (first
-#: axis B): the nine canonical arrays and their structure ``GtG, A``, the iterate ``u, y, w, z``
+#: axis B): the ten canonical arrays and their structure ``GtG, A``, the iterate ``u, y, w, z``
 #: and the outputs ``converged, iterations, kkt_error``; the rest (``couple``, weights, limits,
 #: tolerances, ``warm``) are shared by every problem.
-SOLVE_ROWS = frozenset(range(11)) | {21, 22, 23, 24, 26, 27, 28}
+SOLVE_ROWS = frozenset(range(12)) | {22, 23, 24, 25, 27, 28, 29}
 #: The same for :func:`~.ipm_kernel.solve_polish_batch` with its polished point and its outputs.
-POLISH_ROWS = SOLVE_ROWS | frozenset(range(31, 38))
+POLISH_ROWS = SOLVE_ROWS | frozenset(range(32, 39))
 #: The same for :func:`~.ipm_kernel.adjoint_batch`: the canonical arrays, the point
 #: ``u, w, z``, the right-hand side ``g_u, g_y, g_s`` and the outputs.
-ADJOINT_ROWS = frozenset(range(9)) | frozenset(range(16, 27))
+ADJOINT_ROWS = frozenset(range(10)) | frozenset(range(17, 28))
 #: The same for :func:`~.ipm_kernel.structure_batch`: all four.
 STRUCTURE_ROWS = frozenset(range(4))
 #: Fewest problems worth a thread of their own (a problem takes ~0.3-1 ms; a hand-off ~20 us).

@@ -96,8 +96,9 @@ class RepeatedSolve:
         self.x0, self.kernel = data.x0, kernel
         self.acceptance = AcceptanceCheck(data, nominal_B, constraints)
         self.G, self.h = canon.G.detach(), canon.h.detach()
-        G, h, normals, bounds, g_u = kernel_arrays((canon.G, canon.h, canon.normals, canon.bounds, canon.g_u))
-        self._fixed = (G, h, normals, bounds, g_u)
+        G, h, normals, bounds, g_u, H_cost = kernel_arrays((canon.G, canon.h, canon.normals, canon.bounds, canon.g_u,
+                                                            canon.H_cost))
+        self._fixed = (G, h, normals, bounds, g_u, H_cost)
         self._structure = structure
         B, slots, T, D = normals.shape
         self.batch, self.horizon, self.dim = B, T, D
@@ -124,8 +125,8 @@ class RepeatedSolve:
         terms = (buf.c_x, buf.l_x, buf.rho_y, buf.w_y, buf.y0)
         if not (np.isfinite(sum(float(a.sum()) for a in terms)) and (buf.rho_y > 0).all()):
             return None
-        G, h, normals, bounds, g_u = self._fixed
-        arrays = [G, h, buf.c_x, buf.l_x, buf.rho_y, buf.w_y, normals, bounds, g_u, *self._structure]
+        G, h, normals, bounds, g_u, H_cost = self._fixed
+        arrays = [G, h, buf.c_x, buf.l_x, buf.rho_y, buf.w_y, normals, bounds, g_u, H_cost, *self._structure]
         stats: dict = {}
         point, _, done = solve_points((k.weights, k.limits, k.penalty, k.tol, k.max_iter, stats, guess, arrays),
                                       keep_at=False)
