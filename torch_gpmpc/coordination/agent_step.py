@@ -259,6 +259,7 @@ class LocalStep:
         #: the cost's weights ``(Q, R, P, u_ref)``, one row per agent id (or one row for all), or
         #: ``None``: the default ``||X - Xref||^2 + alpha ||U||^2``
         self.cost_weights = cost_weights(cost, self.settings, self.nominal)
+        self._cost_rows: dict = {}  # cost_rows' tensors of the last agents asked for
         #: the covariance model in use (``settings.uncertainty`` with ``auto`` resolved for the model)
         self.uncertainty = self.settings.uncertainty_for(self.nominal.spec)
         #: input bounds and soft state constraints (the model's, and the settings' workspace)
@@ -283,9 +284,13 @@ class LocalStep:
         (int64 (B,)) in ``like``'s dtype and device; empty for the default cost."""
         if self.cost_weights is None:
             return {}
-        B = agent_ids.shape[0]
-        rows = [w.expand(B, *w.shape[1:]) if w.shape[0] == 1 else w[agent_ids] for w in self.cost_weights]
-        return dict(zip(("cost_Q", "cost_R", "cost_P", "u_ref"), (w.to(like) for w in rows)))
+        # the same tensor objects for the same agents: the solver's caches key on them
+        key = (tuple(agent_ids.tolist()), like.dtype, like.device)
+        if key not in self._cost_rows or any(w.requires_grad for w in self.cost_weights):
+            B = agent_ids.shape[0]
+            rows = [w.expand(B, *w.shape[1:]) if w.shape[0] == 1 else w[agent_ids] for w in self.cost_weights]
+            self._cost_rows = {key: dict(zip(("cost_Q", "cost_R", "cost_P", "u_ref"), (w.to(like) for w in rows)))}
+        return self._cost_rows[key]
 
     def with_settings(self, settings: ControllerSettings | Config) -> "LocalStep":
         """The same agents (model, method, wind, GPs) under other settings."""

@@ -159,15 +159,37 @@ class CondensedCache:
         return self._value
 
 
+class CostTermsCache:
+    """The last :func:`stated_cost_terms` result, reused while its inputs are the same tensor objects,
+    unmodified, under the same autograd mode (as :class:`CondensedCache`): within a control step ADMM
+    poses the same dynamics, reference and cost at every iteration."""
+
+    def __init__(self) -> None:
+        self._key: tuple | None = None
+        self._value: tuple[Tensor, Tensor] | None = None
+
+    def __call__(self, data: LocalProblemData, G: Tensor, h: Tensor, alpha: float) -> tuple[Tensor, Tensor]:
+        """``stated_cost_terms(data, G, h, alpha)``, from the cache when it is the same input."""
+        inputs = (G, h, data.xref, data.cost_Q, data.cost_R, data.cost_P, data.u_ref)
+        key = (torch.is_grad_enabled(), alpha,
+               tuple(None if t is None or t.is_inference() else t._version for t in inputs))
+        if self._key is not None and self._key[0] == key and all(a is b for a, b in zip(self._key[1], inputs)):
+            return self._value
+        self._value = stated_cost_terms(data, G, h, alpha)
+        self._key = (key, inputs)
+        return self._value
+
+
 def canonicalize(data: LocalProblemData, B: Tensor, condense=condense_dynamics, beta: float = 0.0,
-                 alpha: float = 0.0) -> CanonicalData:
+                 alpha: float = 0.0, cost_terms=stated_cost_terms) -> CanonicalData:
     """Map :class:`LocalProblemData` to :class:`CanonicalData` (differentiable).
 
     Inactive slots get ``rho = 1``, ``w = 0`` (so ``Y_j = 0``), normal 0 and bound -1,
     and contribute nothing to the state cost (as in :class:`~torch_gpmpc.control.solvers.conic.CvxpyLayerMPC`).
     ``B`` (D, Du) is the nominal input matrix, used when ``data.dyn_B`` is ``None``; ``condense``
     is :func:`condense_dynamics` or a :class:`CondensedCache`; ``beta`` is the input-rate weight and
-    ``alpha`` the solver's effort weight (what a stated cost replaces; :func:`stated_cost_terms`).
+    ``alpha`` the solver's effort weight (what a stated cost replaces); ``cost_terms`` is
+    :func:`stated_cost_terms` or a :class:`CostTermsCache`.
     """
     terms = ConsensusTerms.of(data)
     l_x = (2.0 * data.xref[:, 1:] + terms.w_own[:, :, 1:].sum(dim=1)).flatten(1)
@@ -175,7 +197,7 @@ def canonicalize(data: LocalProblemData, B: Tensor, condense=condense_dynamics, 
     y0 = terms.w_nbr[:, :, 0] / terms.rho_y[:, :, None]
     T = data.xref.shape[1] - 1
     g_u = input_rate_linear(data, beta, T, G.shape[2] // T)
-    H_cost, g_cost = stated_cost_terms(data, G, h, alpha)
+    H_cost, g_cost = cost_terms(data, G, h, alpha)
     if data.has_cost:
         g_u = g_u + g_cost
     return CanonicalData(G=G, h=h, c_x=terms.c_x, l_x=l_x, rho_y=terms.rho_y, w_y=terms.w_nbr[:, :, 1:], y0=y0,

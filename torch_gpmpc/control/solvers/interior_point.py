@@ -28,7 +28,7 @@ from torch_gpmpc.control.solvers.ipm_batch import (
 )
 from torch_gpmpc.control.solvers.repeated import KernelSettings, RepeatedSolve
 from torch_gpmpc.control.solvers.canonical import (  # noqa: F401 (condense_dynamics: re-exported)
-    CanonicalData, CondensedCache, canonicalize, condense_dynamics, with_state_rows,
+    CanonicalData, CondensedCache, CostTermsCache, canonicalize, condense_dynamics, with_state_rows,
 )
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.control.problem import (
@@ -261,6 +261,7 @@ class InteriorPointMPC(nn.Module):
         self.last_warm_rows = 0
         self.warm_start = bool(warm_start)
         self._condensed = CondensedCache()
+        self._cost_terms = CostTermsCache()
         self._structure = StructureCache()
         self._B: Tensor | None = None
 
@@ -290,7 +291,8 @@ class InteriorPointMPC(nn.Module):
         batch = data.validate(self.horizon, self.dim, self.num_neighbors, self.input_dim, self.num_halfspaces)
         T, D, M = self.horizon, self.dim, self.num_neighbors
         beta = self.input_rate_weight
-        canon = with_state_rows(canonicalize(data, self._input_matrix(data), self._condensed, beta, self.alpha),
+        canon = with_state_rows(canonicalize(data, self._input_matrix(data), self._condensed, beta, self.alpha,
+                                             self._cost_terms),
                                 self._state_rows(data, batch))
         inputs = (canon.G, canon.h, canon.c_x, canon.l_x, canon.rho_y, canon.w_y, canon.normals, canon.bounds,
                   canon.g_u, canon.H_cost)
@@ -339,7 +341,8 @@ class InteriorPointMPC(nn.Module):
         """
         batch = data.validate(self.horizon, self.dim, self.num_neighbors, self.input_dim, self.num_halfspaces)
         B = self._input_matrix(data)
-        canon = with_state_rows(canonicalize(data, B, self._condensed, self.input_rate_weight, self.alpha),
+        canon = with_state_rows(canonicalize(data, B, self._condensed, self.input_rate_weight, self.alpha,
+                                             self._cost_terms),
                                 self._state_rows(data, batch))
         G, normals = kernel_arrays((canon.G, canon.normals))
         kernel = KernelSettings((self.alpha, self.input_rate_weight), self._limits, self.slack_penalty, self.tol,
