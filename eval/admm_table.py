@@ -23,7 +23,7 @@ from pathlib import Path
 
 from torch_gpmpc.config import load_config
 from torch_gpmpc.coordination.centralized import CentralizedPlanner
-from torch_gpmpc.coordination.controller import make_controller
+from torch_gpmpc.coordination.controller import Controller
 from torch_gpmpc.dynamics.systems import system_from_config
 from torch_gpmpc.fileio import write_json, write_text
 from torch_gpmpc.gp import fit_agent_gps
@@ -49,8 +49,8 @@ def run_case(scenario: dict, variant: dict | None) -> dict:
     """One noiseless closed-loop run; its metrics."""
     cfg = load_config(None, {**scenario, **(variant or {}), "noise_std": 0.0})
     system = system_from_config(cfg)
-    admm = make_controller(cfg, system, fit_agent_gps(cfg, system, cfg.num_agents))
-    planner = CentralizedPlanner(admm) if variant is None else ADMMPlanner(admm)
+    controller = Controller.for_run(cfg, system, fit_agent_gps(cfg, system, cfg.num_agents))
+    planner = CentralizedPlanner(controller.agent_step) if variant is None else ADMMPlanner(controller)
     return compute_metrics(run_closed_loop(cfg, make_scenario(cfg), system, planner))
 
 

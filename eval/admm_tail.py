@@ -24,7 +24,7 @@ import torch
 
 from torch_gpmpc.config import load_config
 from torch_gpmpc.config.reader import parse_overrides
-from torch_gpmpc.coordination.controller import make_controller
+from torch_gpmpc.coordination.controller import Controller
 from torch_gpmpc.dynamics.systems import system_from_config
 from torch_gpmpc.fileio import write_json, write_text
 from torch_gpmpc.gp import fit_agent_gps
@@ -41,8 +41,8 @@ CHECKPOINTS = (10, 25, 50, 100)
 class RecordingPlanner(ADMMPlanner):
     """The in-process planner, keeping every step's per-iteration count of unconverged edges."""
 
-    def __init__(self, admm) -> None:
-        super().__init__(admm)
+    def __init__(self, controller) -> None:
+        super().__init__(controller)
         self.rows: list[dict] = []
 
     def plan(self, t, x, xref, graph):  # noqa: D102 (ADMMPlanner.plan)
@@ -63,7 +63,7 @@ def run(overrides: dict, steps: int | None) -> tuple[list[dict], dict]:
     cfg = with_scenario_world(cfg, scenario)
     system = system_from_config(cfg)
     gps = fit_agent_gps(cfg, system, scenario.num_agents) if needs_gp(cfg.method) else None
-    planner = RecordingPlanner(make_controller(cfg, system, gps))
+    planner = RecordingPlanner(Controller.for_run(cfg, system, gps))
     return planner.rows, compute_metrics(run_closed_loop(cfg, scenario, system, planner))
 
 

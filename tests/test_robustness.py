@@ -30,6 +30,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from torch_gpmpc.coordination.agent_step import LocalStep
 from torch_gpmpc.cli import main
 from torch_gpmpc.config import Config, load_config
 from torch_gpmpc.data import Transitions, collect_transitions
@@ -551,7 +552,7 @@ U_MAX = 2.0
 
 
 def _residuals(data: LocalProblemData, sol) -> dict[str, float]:
-    """Constraint violations of a returned solution (independent of LocalMPC's own check)."""
+    """Constraint violations of a returned solution (independent of CvxpyLayerMPC's own check)."""
     B = NominalModel(PD).B(dtype=F64)
     X, U, Y, s = sol.X, sol.U, sol.Y, sol.slack
     pred = (data.dyn_A @ X[:, :-1, :, None]).squeeze(-1) + U @ B.T + data.dyn_c
@@ -837,7 +838,7 @@ def test_failed_agent_keeps_its_previous_shifted_plan():
 
     cfg = Config(**{**FAULT_CFG, "admm_max_iter": 1})
     scen = make_scenario(cfg)
-    admm = ADMM(cfg)
+    admm = ADMM(LocalStep(cfg, cfg.model_spec()))
     x0 = scen.starts
     graph = communication_graph(x0, cfg.comm_radius)
     first = admm.solve_step(x0, scen.reference_window(0, cfg.horizon), graph)
@@ -975,10 +976,10 @@ def test_interrupt_while_writing_leaves_no_partial_file(tmp_path, monkeypatch, c
 def test_fast_solver_rejects_bad_problem_and_run_falls_back(monkeypatch, caplog):
     """The default fast path: agent 1's problem data turns non-finite on some calls. The
     solver flags that row (never raises), ADMM falls back, counts it and warns once."""
-    from torch_gpmpc.control.solvers.interior_point import FastLocalMPC
+    from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
     from torch_gpmpc.sim.closed_loop import simulate
 
-    real_forward = FastLocalMPC.forward
+    real_forward = InteriorPointMPC.forward
     calls = {"n": 0, "injected": 0}
 
     def corrupting_forward(self, data, guess=None):
@@ -990,7 +991,7 @@ def test_fast_solver_rejects_bad_problem_and_run_falls_back(monkeypatch, caplog)
             calls["injected"] += 1
         return real_forward(self, data, guess)
 
-    monkeypatch.setattr(FastLocalMPC, "forward", corrupting_forward)
+    monkeypatch.setattr(InteriorPointMPC, "forward", corrupting_forward)
     cfg = Config(**{**FAULT_CFG, "solver": "fast"})
     with caplog.at_level(logging.WARNING):
         rollout = simulate(cfg)

@@ -5,9 +5,9 @@ Public API. Build a controller from tensors: ``ModelSpec`` (the agent model),
 the ``ResidualModel`` protocol), ``ControllerSettings``, ``Controller`` (``step``). Its parts:
 ``LocalStep`` (the per-agent step), ``ADMM`` (``prepare``/``iterate``/``solve_step``),
 ``make_local_solver`` with the ``LocalProblemData`` -> ``LocalSolution`` contract and the
-backends ``InteriorPointMPC`` (default, compiled) and ``CvxpyLayerMPC`` (reference; also
-``LocalMPC``). Runs: ``Config``, ``simulate``, ``Rollout``, ``compute_metrics``; data:
-``Transitions``.
+backends ``InteriorPointMPC`` (default, compiled) and ``CvxpyLayerMPC`` (reference; ``LocalMPC`` is
+its name in the design's API contract), the problem's cost ``QuadraticCost``. Runs: ``Config``,
+``simulate``, ``Rollout``, ``compute_metrics``; data: ``Transitions``.
 Imports are lazy so that ``gpmpc --help`` and light modules stay fast. Importing the
 package changes no global state: every tensor the package creates is float64 explicitly.
 """
@@ -26,7 +26,6 @@ _EXPORTS = {
     "Transitions": "data.transitions",
     "ResidualGP": "gp.model",
     "fit_residual_gp": "gp.fit",
-    "LocalMPC": "control.solvers.conic",
     "CvxpyLayerMPC": "control.solvers.conic",
     "InteriorPointMPC": "control.solvers.interior_point",
     "make_local_solver": "control.solvers",
@@ -50,10 +49,14 @@ _EXPORTS = {
     "TrueSystem": "dynamics.systems",
 }
 
-__all__ = sorted(_EXPORTS)
+#: Names of the design's API contract that name an export above.
+_CONTRACT_NAMES = {"LocalMPC": "CvxpyLayerMPC"}
+
+__all__ = sorted([*_EXPORTS, *_CONTRACT_NAMES])
 
 
 def __getattr__(name: str) -> Any:
+    name = _CONTRACT_NAMES.get(name, name)
     if name in _EXPORTS:
         module = importlib.import_module(f".{_EXPORTS[name]}", __name__)
         return getattr(module, name)

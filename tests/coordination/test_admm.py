@@ -106,7 +106,7 @@ def test_admm_matches_centralized_solution(method, pair_margin):
     wind = VortexWind(0.1)
     var = 0.04
     gps = [ConstantVarianceGP(var)] * 3 if method.endswith("chance") else None
-    admm = ADMM(cfg, method, NominalModel(2), wind if method == "nonlinear" else None, gps)
+    admm = ADMM(LocalStep(cfg, NominalModel(2), method, wind if method == "nonlinear" else None, gps))
     graph = communication_graph(x0, None)
     res = admm.solve_step(x0, xref, graph)
     assert res.converged, res.primal_residuals[-5:]
@@ -149,7 +149,7 @@ def test_one_agent_admm_equals_direct_mpc_solve():
     x0 = torch.tensor([[1.0, -2.0]], dtype=torch.float64)
     xref = torch.linspace(0, 1, 9, dtype=torch.float64)[None, :, None] * torch.tensor([[3.0, 3.0]], dtype=torch.float64)[:, None, :] + x0[:, None, :]
     wind = VortexWind(0.1)
-    admm = ADMM(cfg.replace(relinearize=False), "nonlinear", NominalModel(2), wind, None)
+    admm = ADMM(LocalStep(cfg.replace(relinearize=False), NominalModel(2), "nonlinear", wind, None))
     res = admm.solve_step(x0, xref, communication_graph(x0, None))
     assert res.iterations == 1 and res.converged
     # direct cvxpy solve with the same (closed-form) linearization at x0
@@ -170,7 +170,7 @@ def test_messages_per_iteration_formula():
     cfg = Config(horizon=13, admm_max_iter=1)
     x0 = torch.tensor([[-1.0, 0.0], [1.0, 0.0], [0.0, 1.5]], dtype=torch.float64)
     graph = graph_from_edges(3, [(0, 1), (1, 2)])
-    res = ADMM(cfg, "nominal").solve_step(x0, x0[:, None].expand(-1, 14, -1), graph)
+    res = ADMM(LocalStep(cfg, cfg.model_spec(), "nominal")).solve_step(x0, x0[:, None].expand(-1, 14, -1), graph)
     # each agent sends its copy y_{kj,k} (2 (T+1) D numbers) to each neighbour
     assert res.messages.tolist() == [2 * 14 * 2 * 1, 2 * 14 * 2 * 2, 2 * 14 * 2 * 1]
 

@@ -44,7 +44,7 @@ def test_double_integrator_from_a_model_spec_reports_its_own_message_size_and_un
     assert Controller(ModelSpec.single_integrator(2), settings=ControllerSettings(
         method="nominal", horizon=5)).uncertainty == "pointwise"
     # the same model through a default Config: the model decides, not the config's model string
-    admm = ADMM(Config(horizon=5, method="nominal"), nominal=model)
+    admm = ADMM(LocalStep(Config(horizon=5, method="nominal"), model))
     assert admm.agent_step.message_size == 48 and admm.agent_step.uncertainty == "propagated"
 
 

@@ -11,7 +11,7 @@ import torch
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.coordination.admm import consensus_update
 from torch_gpmpc.coordination.centralized import plan_cost, solve_centralized
-from torch_gpmpc.coordination.controller import make_controller
+from torch_gpmpc.coordination.controller import Controller
 from torch_gpmpc.coordination.penalty import (
     RHO_BOUNDS, balance_penalty, edge_residuals, should_stop, starting_penalties, checks_dual, unconverged_edges,
 )
@@ -116,8 +116,8 @@ def paper_crossing():
     """The paper scenario, noiseless, default settings, through the crossing: the step results."""
     cfg = Config(noise_std=0.0, max_steps=34)
     system = system_from_config(cfg)
-    admm = make_controller(cfg, system, fit_agent_gps(cfg, system, cfg.num_agents))
-    planner = ADMMPlanner(admm)
+    controller = Controller.for_run(cfg, system, fit_agent_gps(cfg, system, cfg.num_agents))
+    admm, planner = controller.admm, ADMMPlanner(controller)
     results = []
     plan = planner.plan
     planner.plan = lambda t, x, xref, graph: results.append((xref, graph, plan(t, x, xref, graph))) or results[-1][2]

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from torch_gpmpc.coordination.agent_step import LocalStep
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.control.examples import crossing_instance
@@ -46,8 +47,8 @@ def test_planes_reach_the_centralized_optimum_and_the_copies_plans(method):
     cfg = Config(horizon=8, rho=5.0, noise_std=0.0, **TIGHT)
     gps = [ConstantVarianceGP(0.01)] * 4 if method.endswith("chance") else None
     x0, xref, graph = _crossing()
-    planes = ADMM(cfg.replace(admm_coupling="planes"), method, NominalModel(2), None, gps).solve_step(x0, xref, graph)
-    copies = ADMM(cfg, method, NominalModel(2), None, gps).solve_step(x0, xref, graph)
+    planes = ADMM(LocalStep(cfg.replace(admm_coupling="planes"), NominalModel(2), method, None, gps)).solve_step(x0, xref, graph)
+    copies = ADMM(LocalStep(cfg, NominalModel(2), method, None, gps)).solve_step(x0, xref, graph)
     assert planes.converged and copies.converged
     central = solve_centralized(planes.problem, graph, NominalModel(2), cfg.u_max, cfg.alpha, cfg.slack_penalty)
     np.testing.assert_allclose(planes.plans.numpy(), central.plans.numpy(), atol=1e-4)
@@ -65,7 +66,7 @@ def test_a_converged_step_keeps_every_row_less_the_tolerance():
     the two halves of a pair overlap by at most admm_tol: every row holds to admm_tol."""
     cfg = Config(horizon=8, noise_std=0.0, admm_coupling="planes")
     x0, xref, graph = _crossing(6)
-    res = ADMM(cfg, "nominal", NominalModel(2)).solve_step(x0, xref, graph)
+    res = ADMM(LocalStep(cfg, NominalModel(2), "nominal")).solve_step(x0, xref, graph)
     assert res.converged
     data, (k, m) = res.problem, torch.nonzero(graph.active, as_tuple=True)
     gap = (data.normals[k, m] * (res.plans[k, 1:] - res.plans[graph.slot_nbr[k, m], 1:])).sum(-1) - data.bounds[k, m]

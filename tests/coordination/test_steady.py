@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from torch_gpmpc.coordination.agent_step import LocalStep
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.control.problem import LocalProblemData
 from torch_gpmpc.control.solvers.canonical import canonicalize
@@ -139,7 +140,7 @@ def test_consensus_step_gives_the_torch_update_residuals_and_penalties(adaptive)
 def _quadrotor_step(num_agents: int = 4):
     """A crossing of the demo's model: ``(admm, x0, xref, graph)``."""
     cfg = Config(model=QUADROTOR, scenario="circle", num_agents=num_agents, method="nominal", noise_std=0.0)
-    admm = ADMM(cfg)
+    admm = ADMM(LocalStep(cfg, cfg.model_spec()))
     angles = torch.arange(num_agents, dtype=F64) * (2 * torch.pi / num_agents)
     pos = torch.stack([torch.cos(angles), torch.sin(angles), torch.zeros_like(angles)], dim=1) * 1.2
     x0 = torch.cat([pos, -0.5 * pos], dim=1)

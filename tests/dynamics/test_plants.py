@@ -10,7 +10,7 @@ import torch
 
 from torch_gpmpc import Config, compute_metrics, simulate
 from torch_gpmpc.config import load_config
-from torch_gpmpc.coordination.controller import make_controller
+from torch_gpmpc.coordination.controller import Controller
 from torch_gpmpc.dynamics.plants import ModelPlant, Plant, plant_from_config
 from torch_gpmpc.dynamics.systems import make_system, system_from_config
 from torch_gpmpc.errors import GpmpcError
@@ -41,7 +41,7 @@ class DriftPlant:
 
 def _run(cfg, plant):
     system = system_from_config(cfg)
-    return run_closed_loop(cfg, make_scenario(cfg), plant, ADMMPlanner(make_controller(cfg, system, None)))
+    return run_closed_loop(cfg, make_scenario(cfg), plant, ADMMPlanner(Controller.for_run(cfg, system, None)))
 
 
 def test_model_plant_is_the_true_system():

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from torch_gpmpc.coordination.agent_step import LocalStep
 from torch_gpmpc.coordination.admm import ADMM
 from torch_gpmpc.cli import main
 from torch_gpmpc.config import Config, load_config
@@ -38,7 +39,7 @@ def hand_driven(cfg: Config) -> tuple:
     sc = make_scenario(cfg)
     K = sc.num_agents
     system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
-    admm = ADMM(cfg, cfg.method, system.nominal)
+    admm = ADMM(LocalStep(cfg, system.nominal, cfg.method))
     agents = [AgentController(k, K, cfg, sc.reference_path()[k]) for k in range(K)]
     return sc, system, admm, agents, noise_sequence(cfg, K)
 
@@ -102,7 +103,7 @@ def test_agent_controllers_reproduce_the_buffered_voronoi_fallback():
     sc = make_scenario(cfg)
     K = sc.num_agents
     system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
-    admm = ADMM(cfg, cfg.method, system.nominal)
+    admm = ADMM(LocalStep(cfg, system.nominal, cfg.method))
     agents = [AgentController(k, K, cfg, sc.reference_path()[k]) for k in range(K)]
     x, warm, fallbacks = sc.starts.clone(), None, 0
     with torch.no_grad():
@@ -175,7 +176,7 @@ def test_agent_controllers_reproduce_the_plane_admm(admm_max_iter):
     K = sc.num_agents
     system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
     gps = fit_agent_gps(cfg, system, K)
-    admm = ADMM(cfg, cfg.method, system.nominal, gps=gps)
+    admm = ADMM(LocalStep(cfg, system.nominal, cfg.method, None, gps))
     agents = [AgentController(k, K, cfg, sc.reference_path()[k], gps[k]) for k in range(K)]
     noise = noise_sequence(cfg, K)
     kept = []  # the solves each agent made on its kept problem (compiled) rather than through torch

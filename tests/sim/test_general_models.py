@@ -75,7 +75,7 @@ def test_model_file_chain_arrives_keeping_r_safe(tmp_path):
 
 
 def test_tuning_objective_on_a_double_integrator_has_finite_gradients():
-    from torch_gpmpc.coordination.controller import make_controller
+    from torch_gpmpc.coordination.controller import Controller
     from torch_gpmpc.dynamics.systems import system_from_config
     from torch_gpmpc.gp import fit_agent_gps
     from torch_gpmpc.tuning import TuningObjective, make_instances
@@ -83,11 +83,11 @@ def test_tuning_objective_on_a_double_integrator_has_finite_gradients():
 
     cfg = load_config(None, {"model": "double-integrator", "gp_iters": 5})
     system = system_from_config(cfg)
-    admm = make_controller(cfg, system, fit_agent_gps(cfg, system, 3))
+    admm = Controller.for_run(cfg, system, fit_agent_gps(cfg, system, 3)).admm
     instances = make_instances(cfg, [0])
     assert instances[0].x0.shape == (3, 4) and instances[0].noise.shape[-1] == 2
     rho = torch.tensor(20.0, dtype=torch.float64, requires_grad=True)
-    value = TuningObjective(admm, instances, admm_iters=3, mpc_steps=2)(rho=rho)
+    value = TuningObjective(admm, instances, admm_iters=3, mpc_steps=2, system=system)(rho=rho)
     value.loss.backward()
     assert torch.isfinite(value.loss) and torch.isfinite(rho.grad) and rho.grad != 0
 

@@ -13,6 +13,8 @@ import math
 import pytest
 import torch
 
+from torch_gpmpc.coordination.agent_step import LocalStep
+from torch_gpmpc.dynamics.team import team_system_from_config
 import torch_gpmpc  # noqa: F401  (float64 default)
 from torch_gpmpc.coordination.admm import ADMM
 from torch_gpmpc.cli import main
@@ -42,9 +44,10 @@ SMALL = dict(horizon=6, method="nominal-chance", circle_radius=2.0, ref_points=2
 
 def _small_objective(seeds, settings: TuneSettings, variances=(0.01, 0.02, 0.04), **overrides) -> TuningObjective:
     cfg = Config(**{**SMALL, **overrides})
-    admm = ADMM(cfg, cfg.method, NominalModel(2), None, [ConstantVarianceGP(v) for v in variances])
+    admm = ADMM(LocalStep(cfg, NominalModel(2), cfg.method, None, [ConstantVarianceGP(v) for v in variances]))
     instances = with_warm_starts(admm, make_instances(cfg, seeds, settings))
-    return TuningObjective(admm, instances, ObjectiveWeights.from_settings(settings), settings.admm_iters, settings.mpc_steps)
+    return TuningObjective(admm, instances, ObjectiveWeights.from_settings(settings), settings.admm_iters, settings.mpc_steps,
+                           system=team_system_from_config(cfg))
 
 
 def _gradient_and_differences(objective: TuningObjective, params: TuningParameters) -> tuple[list, list]:
@@ -123,10 +126,10 @@ def test_split_moves_risk_to_the_uncertain_agent_and_equalizes_margins():
     sigma = (0.1, 0.2)
     cfg = Config(horizon=8, method="nominal-chance", num_agents=2, scenario="circle", noise_std=0.0, rho=5.0,
                  pair_margin="own")  # the paper's margins: the larger one binds
-    admm = ADMM(cfg, cfg.method, NominalModel(2), None, [ConstantVarianceGP(s ** 2) for s in sigma])
+    admm = ADMM(LocalStep(cfg, NominalModel(2), cfg.method, None, [ConstantVarianceGP(s ** 2) for s in sigma]))
     instance = head_on_instance(distance=1.2, offset=0.1, ref_points=13)
     objective = TuningObjective(admm, [instance], ObjectiveWeights(primal=0, dual=0, cost=1.0, distance=0.0),
-                                admm_iters=3, warmup_iters=30)
+                                admm_iters=3, warmup_iters=30, system=team_system_from_config(cfg))
     params = TuningParameters(2, rho=5.0, split=0.5)
     tuner = Tuner(objective, params, TuneSettings(tune_rho=False, lr=0.5, lr_decay=0.88))
     tuner.run(20)
@@ -290,11 +293,13 @@ def test_paper_scenario_tuning_beats_defaults_and_grid():
     """The paper scenario (T = 13) near the crossing: Adam vs defaults vs 8-point rho grid."""
     cfg = Config(method="nominal-chance")
     settings = TuneSettings(admm_iters=6, lr=0.3)
-    admm = ADMM(cfg, cfg.method, NominalModel(2), None, [ConstantVarianceGP(0.01)] * 3)
+    admm = ADMM(LocalStep(cfg, NominalModel(2), cfg.method, None, [ConstantVarianceGP(0.01)] * 3))
     train = TuningObjective(admm, with_warm_starts(admm, make_instances(cfg, [0, 1], settings)),
-                            ObjectiveWeights.from_settings(settings), settings.admm_iters)
+                            ObjectiveWeights.from_settings(settings), settings.admm_iters,
+                            system=team_system_from_config(cfg))
     heldout = TuningObjective(admm, with_warm_starts(admm, make_instances(cfg, [100, 101], settings)),
-                              ObjectiveWeights.from_settings(settings), settings.admm_iters)
+                              ObjectiveWeights.from_settings(settings), settings.admm_iters,
+                              system=team_system_from_config(cfg))
     params = TuningParameters(3)
     Tuner(train, params, settings).run(20)
     grid = grid_search_rho(train, [math.exp(i * math.log(200) / 7) for i in range(8)], split=0.5)

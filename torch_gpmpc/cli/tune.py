@@ -49,7 +49,7 @@ log = logging.getLogger(__name__)
 def main(args) -> int:
     """Run ``gpmpc tune`` (see the module docstring)."""
     from torch_gpmpc import tuning
-    from torch_gpmpc.coordination.controller import make_controller
+    from torch_gpmpc.coordination.controller import Controller
     from torch_gpmpc.gp import fit_agent_gps
     from torch_gpmpc.sim.scenarios import make_scenario
     from torch_gpmpc.dynamics.team import team_system_from_config
@@ -76,7 +76,7 @@ def main(args) -> int:
     num_agents = scenario.num_agents
     system = team_system_from_config(cfg)
     gps = fit_agent_gps(cfg, system, num_agents) if Method.parse(cfg.method).needs_gp else None
-    admm = make_controller(cfg, system, gps)
+    admm = Controller.for_run(cfg, system, gps).admm
 
     def build_objective(seeds) -> tuning.TuningObjective:
         instances = tuning.make_instances(cfg, seeds, settings, scenario)

@@ -53,8 +53,6 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torch_gpmpc.config.model_spec import ModelSpec
-from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.control.problem import LocalProblemData, LocalSolution
 from torch_gpmpc.coordination.acceleration import AndersonAcceleration
@@ -77,8 +75,8 @@ from torch_gpmpc.coordination.penalty import (
 )
 from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult, adapt_state, initial_state
 from torch_gpmpc.coordination.steady import SteadyIterations, repeatable
-from torch_gpmpc.dynamics.methods import Method
-from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
+from torch_gpmpc.dynamics.systems import NominalModel
+from torch_gpmpc.errors import GpmpcError
 
 __all__ = ["ADMM", "ADMMState", "IterationStats", "StepContext", "StepResult", "adapt_state", "consensus_update",
            "initial_state"]
@@ -175,14 +173,9 @@ class ADMM:
     iteration with ``relinearize`` (Algorithm 1, step 9).
 
     Args:
-        step: the per-agent step (:class:`~.agent_step.LocalStep`), which knows the model, the
-            method, the GPs and the settings. For existing code a run
-            :class:`~torch_gpmpc.config.schema.Config` (or :class:`ControllerSettings`) may be
-            passed instead, with ``method``, ``nominal``, ``wind`` and ``gps`` as below.
-        method: the method (default the settings').
-        nominal: the known model f (default the Config's model).
-        wind: the known wind (needed by the ``nonlinear`` methods).
-        gps: one residual model per agent (needed by ``gp*`` and ``*-chance`` methods).
+        step: the per-agent step (:class:`~.agent_step.LocalStep`, or a mixed team's
+            :class:`~.team_step.TeamStep`), which knows the model, the method, the GPs, the cost and
+            the settings.
 
     Example:
         >>> import torch
@@ -198,22 +191,10 @@ class ADMM:
         ((2, 6, 2), 0)
     """
 
-    def __init__(
-        self,
-        step: LocalStep | Config | ControllerSettings,
-        method: str | Method | None = None,
-        nominal: NominalModel | ModelSpec | None = None,
-        wind: VortexWind | None = None,
-        gps: list | None = None,
-    ) -> None:
-        #: the run configuration this ADMM was built from, if any (tuning reads it)
-        self.cfg = step if isinstance(step, Config) else None
-        if isinstance(step, (Config, ControllerSettings)):
-            if nominal is None:
-                if self.cfg is None:
-                    raise TypeError("ADMM(settings, ...) needs the agent model: pass nominal=ModelSpec/NominalModel")
-                nominal = self.cfg.model_spec()
-            step = LocalStep(step, nominal, method, wind, gps)
+    def __init__(self, step: LocalStep) -> None:
+        if not hasattr(step, "assemble"):
+            raise GpmpcError(f"ADMM takes the per-agent step (LocalStep(settings, model, method, wind, gps)), got "
+                             f"{type(step).__name__}")
         #: the per-agent step every iteration runs (its settings, model, method and GPs)
         self.agent_step = step
         self.settings = step.settings
@@ -228,17 +209,9 @@ class ADMM:
         """The agents' residual models (indexed by agent id), or ``None``."""
         return self.agent_step.gps
 
-    def with_config(self, cfg: Config) -> "ADMM":
-        """The same agents' models (method, nominal models, wind, GPs) under another configuration."""
-        admm = ADMM(self.agent_step.with_settings(cfg))
-        admm.cfg = cfg
-        return admm
-
     def with_settings(self, **changes: Any) -> "ADMM":
         """The same agents under settings with ``changes`` applied (keys of :class:`ControllerSettings`)."""
-        admm = ADMM(self.agent_step.with_settings(self.settings.replace(**changes)))
-        admm.cfg = None if self.cfg is None else self.cfg.replace(**changes)
-        return admm
+        return ADMM(self.agent_step.with_settings(self.settings.replace(**changes)))
 
     def prepare(self, x0: Tensor, xref: Tensor, graph: Graph, warm: ADMMState | None = None,
                 rho: float | Tensor | None = None, risk_split: float | Tensor | None = None,

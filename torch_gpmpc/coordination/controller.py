@@ -98,6 +98,21 @@ class Controller:
         self.warm: ADMMState | None = None
         self._probes: dict[int, Controller] = {}  # differentiable_step's controllers, by iteration count
 
+    @classmethod
+    def for_run(cls, cfg: Config, system: TrueSystem | TeamSystem, gps: list | None = None,
+                method: str | Method | None = None) -> "Controller":
+        """The controller of a run configuration (what ``simulate``, ``gpmpc run`` and ``gpmpc tune``
+        plan with): its per-agent step from :func:`make_agent_step` (the method decides what the agents
+        know of ``system``: its wind, their GPs), the cost from the configuration's ``cost`` table."""
+        return cls._of(make_agent_step(cfg, system, gps, method))
+
+    @classmethod
+    def _of(cls, agent_step: LocalStep | TeamStep) -> "Controller":
+        """A controller around a built per-agent step."""
+        ctrl = cls.__new__(cls)
+        ctrl.agent_step, ctrl.admm, ctrl.warm, ctrl._probes = agent_step, ADMM(agent_step), None, {}
+        return ctrl
+
     @property
     def settings(self) -> ControllerSettings:
         """The controller settings."""
@@ -214,9 +229,7 @@ class Controller:
         if probe is None:
             settings = self.settings.replace(admm_tol=1e-300, admm_dual_tol=None, admm_rel_tol=0.0,
                                              admm_max_iter=int(iterations), solver_warm=False)
-            probe = Controller.__new__(Controller)
-            probe.agent_step = self.agent_step.with_settings(settings)
-            probe.admm, probe.warm, probe._probes = ADMM(probe.agent_step), None, {}
+            probe = Controller._of(self.agent_step.with_settings(settings))
             self._probes[iterations] = probe
         probe.warm = self.warm
         return probe.step(x, xref, graph, rho=rho, risk_split=risk_split, safety_fallback=False)
@@ -272,9 +285,3 @@ def make_agent_step(cfg: Config, system: TrueSystem | TeamSystem, gps: list | No
     return LocalStep(cfg, system.nominal, method, wind, gps)
 
 
-def make_controller(cfg: Config, system: TrueSystem, gps: list | None = None,
-                    method: str | Method | None = None) -> ADMM:
-    """The consensus-ADMM controller of a run configuration (see :func:`make_agent_step`)."""
-    admm = ADMM(make_agent_step(cfg, system, gps, method))
-    admm.cfg = cfg
-    return admm

@@ -26,7 +26,7 @@ from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import agent_radii
 from torch_gpmpc.control.risk import chance_quantile
 from torch_gpmpc.coordination.admm import ADMM
-from torch_gpmpc.coordination.controller import make_controller
+from torch_gpmpc.coordination.controller import Controller
 from torch_gpmpc.coordination.graph import Graph, communication_graph
 from torch_gpmpc.coordination.state import ADMMState, StepResult
 from torch_gpmpc.dynamics.methods import Method
@@ -55,26 +55,30 @@ class Planner(Protocol):
 
 
 class ADMMPlanner:
-    """The in-process planner: consensus ADMM over all agents, warm-started step to step.
+    """The in-process planner: a :class:`~torch_gpmpc.coordination.controller.Controller` (consensus
+    ADMM over all agents, warm-started step to step) stepped by the closed loop.
 
     Args:
-        admm: the controller (from :func:`~torch_gpmpc.coordination.controller.make_controller`).
+        controller: the run's controller (:meth:`Controller.for_run
+            <torch_gpmpc.coordination.controller.Controller.for_run>`).
     """
 
-    def __init__(self, admm: ADMM) -> None:
-        self.admm = admm
-        self.warm: ADMMState | None = None
+    def __init__(self, controller: Controller) -> None:
+        self.controller = controller
+
+    @property
+    def admm(self) -> ADMM:
+        """The controller's consensus ADMM."""
+        return self.controller.admm
 
     def plan(self, t: int, x: Tensor, xref: Tensor, graph: Graph) -> StepResult:
-        """One step of ADMM; keeps the shifted iterate as the next step's warm start.
+        """One controller step (it keeps the iterate as the next step's warm start).
 
         The step runs under ``torch.inference_mode`` (nothing in a closed loop is differentiated):
         the same arithmetic as under ``no_grad``, with less of torch's per-operation bookkeeping
         (10-20 % of a small team's ADMM iteration)."""
         with torch.inference_mode():
-            res = self.admm.solve_step(x, xref, graph, warm=self.warm)
-        self.warm = res.state.shifted()
-        return res
+            return self.controller.step(x, xref, graph)
 
 
 def needs_gp(method: str | Method) -> bool:
@@ -157,7 +161,7 @@ def simulate(
         if cfg.gp_online:
             gps = online_gps(gps, cfg.gp_online_budget, cfg.gp_online_refit_every)
         learning = OnlineLearning(gps, system.nominal, cfg.gp_online, cfg.gp_online_max_input_change)
-    planner = ADMMPlanner(make_controller(cfg, system, gps))
+    planner = ADMMPlanner(Controller.for_run(cfg, system, gps))
     return run_closed_loop(cfg, scenario, system, planner, on_step, tb, learning)
 
 

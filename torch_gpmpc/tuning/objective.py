@@ -11,7 +11,6 @@ from torch_gpmpc.coordination.admm import ADMM
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.coordination.graph import communication_graph
 from torch_gpmpc.dynamics.systems import TrueSystem
-from torch_gpmpc.dynamics.team import team_system_from_config
 from torch_gpmpc.tuning.instances import TuneInstance
 from torch_gpmpc.tuning.parameters import ObjectiveWeights, TuningParameters
 from torch_gpmpc.tuning.unroll import distance_penalty, unroll_admm
@@ -49,7 +48,7 @@ class TuningObjective:
         admm_iters: unrolled ADMM iterations per MPC step (fixed count).
         mpc_steps: closed-loop MPC steps per instance (at most the instance's noise length).
         warmup_iters: gradient-free iterations before the unrolled ones.
-        system: the true system stepped between MPC steps (default from the config).
+        system: the true system stepped between MPC steps (required).
 
     Attributes:
         evaluations: number of objective evaluations so far.
@@ -71,8 +70,9 @@ class TuningObjective:
             if inst.noise.shape[0] < mpc_steps - 1:
                 raise GpmpcError(f"instance {inst.name}: noise for {inst.noise.shape[0]} steps, "
                                  f"mpc_steps={mpc_steps} needs {mpc_steps - 1}")
-        if system is None and admm.cfg is None:
-            raise GpmpcError("TuningObjective: pass the true system (system=...) for an ADMM built from settings")
+        if system is None:
+            raise GpmpcError("TuningObjective: pass the true system stepped between MPC steps (system=..., e.g. "
+                             "team_system_from_config(cfg))")
         self.admm = admm
         self.cfg = admm.settings
         self.instances = list(instances)
@@ -80,7 +80,7 @@ class TuningObjective:
         self.admm_iters = int(admm_iters)
         self.mpc_steps = int(mpc_steps)
         self.warmup_iters = int(warmup_iters)
-        self.system = system or team_system_from_config(admm.cfg)
+        self.system = system
         self.evaluations = 0
 
     def __call__(self, params: TuningParameters | None = None, rho: Tensor | None = None,

@@ -148,10 +148,6 @@ class Tuner:
                 callback(record)
         return self.history
 
-    def best(self) -> TuneRecord | None:
-        """The record with the lowest loss (``None`` before the first iteration)."""
-        return min(self.history, key=lambda r: r.loss) if self.history else None
-
     # ---------------------------------------------------------------- checkpoints
     def state_dict(self) -> dict[str, Any]:
         """Tensors (and plain containers of tensors/numbers) only: loads with ``weights_only=True``."""

@@ -1,4 +1,4 @@
-"""Tests of torch_gpmpc.control.solvers.conic.LocalMPC against independent cvxpy solves and finite differences."""
+"""Tests of torch_gpmpc.control.solvers.conic.CvxpyLayerMPC against independent cvxpy solves and finite differences."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.control import examples
 from torch_gpmpc.control.problem import LocalProblemData
 from torch_gpmpc.control.solvers import make_local_solver
-from torch_gpmpc.control.solvers.conic import LocalMPC
+from torch_gpmpc.control.solvers.conic import CvxpyLayerMPC
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
 
 
@@ -193,7 +193,7 @@ def test_solver_exception_is_isolated(layers, caplog, monkeypatch):
 
 def test_reference_solver_agrees_with_clarabel(layers):
     data = problem_data(crossing_instance(1, 1, seed=8))
-    ref = LocalMPC(T, D, 1, NOMINAL, U_MAX, ALPHA, PENALTY, solver="reference")(data)
+    ref = CvxpyLayerMPC(T, D, 1, NOMINAL, U_MAX, ALPHA, PENALTY, solver="reference")(data)
     sol = layers[1](data)
     assert ref.ok.all()
     torch.testing.assert_close(ref.X, sol.X, atol=1e-5, rtol=0)
@@ -207,5 +207,5 @@ def test_cache_and_input_errors(layers):
     with pytest.raises(GpmpcError, match="normals"):
         layers[3](data)
     with pytest.raises(GpmpcError, match="solver"):
-        LocalMPC(T, D, 1, NOMINAL, U_MAX, ALPHA, solver="scs")
-    assert LocalMPC(T, D, 0, NOMINAL, U_MAX, ALPHA).problem.is_dpp()
+        CvxpyLayerMPC(T, D, 1, NOMINAL, U_MAX, ALPHA, solver="scs")
+    assert CvxpyLayerMPC(T, D, 0, NOMINAL, U_MAX, ALPHA).problem.is_dpp()

@@ -1,5 +1,5 @@
-"""FastLocalMPC against independent answers: cvxpy + Clarabel solves of the problem written
-naturally, central finite differences, the cvxpylayers LocalMPC, and itself one by one."""
+"""InteriorPointMPC against independent answers: cvxpy + Clarabel solves of the problem written
+naturally, central finite differences, the cvxpylayers CvxpyLayerMPC, and itself one by one."""
 
 from __future__ import annotations
 
@@ -11,11 +11,11 @@ import pytest
 import torch
 
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.control.solvers.interior_point import FastLocalMPC
+from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
 from torch_gpmpc.config.schema import METHODS
 from torch_gpmpc.control.problem import LocalProblemData
 from torch_gpmpc.control.solvers import make_local_solver
-from torch_gpmpc.control.solvers.conic import LocalMPC
+from torch_gpmpc.control.solvers.conic import CvxpyLayerMPC
 from torch_gpmpc.dynamics.systems import NominalModel
 
 T, D, U_MAX, ALPHA, B_GAIN = 8, 2, 2.0, 1e-3, 0.1
@@ -145,7 +145,7 @@ CASES = {
 def test_solution_matches_cvxpy(case):
     M, kwargs, penalty, regime = CASES[case]
     data = make_data(4, M, seed=len(case), **kwargs)
-    sol = FastLocalMPC(T, D, M, NOMINAL, U_MAX, ALPHA, slack_penalty=penalty)(data)
+    sol = InteriorPointMPC(T, D, M, NOMINAL, U_MAX, ALPHA, slack_penalty=penalty)(data)
     ref = cvxpy_reference(data, penalty)
     assert bool(sol.ok.all())
     matched = 0
@@ -174,7 +174,7 @@ def test_solution_matches_cvxpy(case):
         assert bool(sol.slack_active.any()) and np.stack([r["slack"] for r in ref]).max() > 1e-3
 
 
-def _loss(layer: FastLocalMPC | LocalMPC, data: LocalProblemData, weights: list[torch.Tensor]) -> torch.Tensor:
+def _loss(layer: InteriorPointMPC | CvxpyLayerMPC, data: LocalProblemData, weights: list[torch.Tensor]) -> torch.Tensor:
     sol = layer(data)
     return sum((w * t).sum() for w, t in zip(weights, (sol.X, sol.U, sol.Y, sol.slack)))
 
@@ -195,7 +195,7 @@ def _analytic_grads(layer, data, weights, fields):
 def test_gradients_match_finite_differences(case):
     M, kwargs, penalty, _ = CASES[case]
     data = make_data(2, M, seed=11, **kwargs)
-    layer = FastLocalMPC(T, D, M, NOMINAL, U_MAX, ALPHA, slack_penalty=penalty, tol=1e-13, max_iter=80)
+    layer = InteriorPointMPC(T, D, M, NOMINAL, U_MAX, ALPHA, slack_penalty=penalty, tol=1e-13, max_iter=80)
     weights = _weights(2, M, seed=1)
     grads = _analytic_grads(layer, data, weights, FIELDS)
     g = torch.Generator().manual_seed(2)
@@ -217,8 +217,8 @@ def test_gradients_match_local_mpc():
     M = 2
     data = make_data(3, M, seed=5, push=0.6)
     weights = _weights(3, M, seed=4)
-    fast = _analytic_grads(FastLocalMPC(T, D, M, NOMINAL, U_MAX, ALPHA), data, weights, FIELDS)
-    ref = _analytic_grads(LocalMPC(T, D, M, NOMINAL, U_MAX, ALPHA, solver="clarabel"), data, weights, FIELDS)
+    fast = _analytic_grads(InteriorPointMPC(T, D, M, NOMINAL, U_MAX, ALPHA), data, weights, FIELDS)
+    ref = _analytic_grads(CvxpyLayerMPC(T, D, M, NOMINAL, U_MAX, ALPHA, solver="clarabel"), data, weights, FIELDS)
     for name in FIELDS:
         rel = float((fast[name] - ref[name]).norm() / ref[name].norm())
         # diffcp's rho gradient (small: 1e-2, from cancelling terms) is itself off by up
@@ -229,7 +229,7 @@ def test_gradients_match_local_mpc():
 def test_batched_equals_one_by_one():
     M, kwargs, penalty, _ = CASES["three_slots_mixed"]
     data = make_data(5, M, seed=9, **kwargs)
-    layer = FastLocalMPC(T, D, M, NOMINAL, U_MAX, ALPHA)
+    layer = InteriorPointMPC(T, D, M, NOMINAL, U_MAX, ALPHA)
     batched = layer(data)
     for b in range(5):
         one = layer(LocalProblemData(**{f.name: (getattr(data, f.name)[b:b + 1]
@@ -243,26 +243,26 @@ def test_batched_equals_one_by_one():
 def test_never_raises_and_flags_failures(caplog):
     M = 2
     data = make_data(3, M, seed=1)
-    truncated = FastLocalMPC(T, D, M, NOMINAL, U_MAX, ALPHA, max_iter=2)(data)
+    truncated = InteriorPointMPC(T, D, M, NOMINAL, U_MAX, ALPHA, max_iter=2)(data)
     assert not bool(truncated.ok.any())
     assert all(torch.isfinite(t).all() for t in (truncated.X, truncated.U, truncated.Y, truncated.slack))
     bad = dataclasses.replace(data, x0=data.x0.clone())
     bad.x0[1, 0] = float("nan")
-    sol = FastLocalMPC(T, D, M, NOMINAL, U_MAX, ALPHA)(bad)
+    sol = InteriorPointMPC(T, D, M, NOMINAL, U_MAX, ALPHA)(bad)
     assert sol.ok.tolist() == [True, False, True]
     assert all(torch.isfinite(t).all() for t in (sol.X, sol.U, sol.Y, sol.slack, sol.cost))
-    good = FastLocalMPC(T, D, M, NOMINAL, U_MAX, ALPHA)(data)
+    good = InteriorPointMPC(T, D, M, NOMINAL, U_MAX, ALPHA)(data)
     torch.testing.assert_close(sol.U[[0, 2]], good.U[[0, 2]])
 
 
 def test_input_errors():
     with pytest.raises(GpmpcError):
-        FastLocalMPC(T, 3, 1, NOMINAL, U_MAX, ALPHA)
+        InteriorPointMPC(T, 3, 1, NOMINAL, U_MAX, ALPHA)
     with pytest.raises(GpmpcError):
-        FastLocalMPC(T, D, 1, NOMINAL, -1.0, ALPHA)
+        InteriorPointMPC(T, D, 1, NOMINAL, -1.0, ALPHA)
     data = make_data(2, 1, seed=0)
     with pytest.raises(GpmpcError, match="normals"):
-        FastLocalMPC(T, D, 1, NOMINAL, U_MAX, ALPHA)(dataclasses.replace(data, normals=data.normals[:, :, :-1]))
+        InteriorPointMPC(T, D, 1, NOMINAL, U_MAX, ALPHA)(dataclasses.replace(data, normals=data.normals[:, :, :-1]))
 
 
 @pytest.mark.parametrize("mode", ["pointwise", "propagated"])
@@ -333,7 +333,7 @@ def test_solving_on_several_threads_gives_the_same_bits_forward_and_backward(fam
     from torch_gpmpc.bench.local import ALPHA, HORIZON, NEIGHBORS, family_problem
 
     nominal, constraints, data = family_problem(family, 13, seed=4)
-    layer = FastLocalMPC(HORIZON, 6, NEIGHBORS, nominal, None, ALPHA, constraints=constraints, num_halfspaces=2)
+    layer = InteriorPointMPC(HORIZON, 6, NEIGHBORS, nominal, None, ALPHA, constraints=constraints, num_halfspaces=2)
     threads = torch.get_num_threads()
     results = []
     try:

@@ -435,6 +435,3 @@ def state_constraints(X: cp.Expression, U: cp.Expression, constraints: LocalCons
         penalty = penalty + slack_penalty * cp.sum(sigma)
     return cons, penalty
 
-
-#: The name this backend had before; kept for existing code.
-LocalMPC = CvxpyLayerMPC

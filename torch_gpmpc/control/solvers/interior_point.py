@@ -418,6 +418,3 @@ def _benign_rows(canon: CanonicalData, valid: Tensor) -> CanonicalData:
                          bounds=keep(canon.bounds, -1.0), g_u=keep(canon.g_u, 0.0),
                          H_cost=keep(canon.H_cost, 0.0))
 
-
-#: The name this backend had before; kept for existing code.
-FastLocalMPC = InteriorPointMPC
