@@ -8,6 +8,7 @@ from __future__ import annotations
 import difflib
 import math
 import typing
+import warnings
 from dataclasses import dataclass, field, fields
 from typing import Any, Callable, Iterable, Mapping
 
@@ -143,3 +144,28 @@ def _check_type(what: str, name: str, value: Any, typ: Any) -> None:
     if not any(_is(base, value) for base in bases):
         expected = " or ".join(base.__name__ for base in bases)
         raise GpmpcError(f"{what} '{name}': expected {expected}, got {type(value).__name__} {value!r}")
+
+
+@dataclass(frozen=True)
+class Applies:
+    """When a key takes effect: while ``when(settings)`` holds; else it is ignored under the key ``by``
+    (``why`` says why). Every key whose effect depends on another key's value declares one."""
+
+    by: str
+    when: Callable[[Any], bool]
+    why: str
+
+
+def warn_ignored(obj: Any, conditions: Mapping[str, tuple[Applies, ...]], what: str) -> None:
+    """Warn, naming the key that overrides it, about every key of the frozen dataclass ``obj`` that is
+    set to a non-default value its ``conditions`` say does not apply: ``<what> '<key>' is ignored under
+    <by>=<value>: <why>``."""
+    defaults = {f.name: f.default for f in fields(obj)}
+    for key, rules in conditions.items():
+        if getattr(obj, key) == defaults[key]:
+            continue
+        rule = next((r for r in rules if not r.when(obj)), None)
+        if rule is not None:
+            by = getattr(obj, rule.by)
+            warnings.warn(f"{what} '{key}' is ignored under {rule.by}={getattr(by, 'name', by)}: {rule.why}",
+                          UserWarning, stacklevel=5)

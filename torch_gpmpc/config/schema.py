@@ -14,15 +14,17 @@ import typing
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from torch_gpmpc.config.fields import Rules, build, check_keys, coerce_lists, validate
-from torch_gpmpc.config.model_spec import ModelSpec, check_model_name, parse_model, resolve_model
+from torch_gpmpc.config.fields import Applies, Rules, build, check_keys, coerce_lists, validate, warn_ignored
+from torch_gpmpc.config.model_spec import (
+    BUILTIN_MODELS, ModelSpec, check_model_name, parse_model, resolve_model,
+)
 from torch_gpmpc.config.obstacles import FOREST_GAP_EXTRA, ObstacleField, doorway_extent, forest_extent
 from torch_gpmpc.config.cost_table import CostTable
 from torch_gpmpc.config.workspace import Workspace
 from torch_gpmpc.config.plant import PLANTS, VEHICLES, WINDS
 from torch_gpmpc.config.team import TeamSpec, team_spec
 from torch_gpmpc.config.settings import (
-    CONTROLLER_CHOICES, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings, check_coupling,
+    CONTROLLER_CHOICES, CONTROLLER_CONDITIONS, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings, check_coupling,
     check_risk_mode, controller_keys, parse_world, resolve_uncertainty,
 )
 from torch_gpmpc.errors import GpmpcError
@@ -33,75 +35,21 @@ SCENARIOS = ("paper", "circle", "random", "forest", "doorway")
 
 
 @dataclass(frozen=True)
-class Config:
-    """All tunable settings of a run. Defaults are the paper scenario.
+class Config(ControllerSettings):
+    """All tunable settings of a run: the controller's (:class:`ControllerSettings`) and the run's own.
+    Defaults are the paper scenario.
 
     Attributes:
-        horizon: MPC horizon T (plans have T+1 states, T inputs).
-        rho: ADMM penalty rho > 0.
-        r_safe: minimum allowed distance between two agents.
-        eps: total collision risk per pair, in (0, 1); split between the two agents.
-        risk_split: share of ``eps`` taken by the lower-indexed agent of each pair, in (0, 1).
+        (the controller's keys, from ``horizon`` to ``safety_fallback``: :class:`ControllerSettings`,
+        which this class extends)
         u_max: bound on the Euclidean norm of each input.
-        alpha: control-effort weight in the cost (R = alpha I when no ``cost`` is given).
-        cost: a stated tracking cost, a ``[cost]`` table ``{Q, R, P, u_ref}`` (each weight a number times
-            I, a diagonal list or a list of rows; :class:`~torch_gpmpc.control.cost.QuadraticCost`):
-            stage cost ``(x - r)^T Q (x - r) + (u - u_ref)^T R (u - u_ref)``, terminal ``(x_T - r_T)^T P
-            (x_T - r_T)``; null: Q = I, R = alpha I.
-        terminal_cost: the terminal weight P when the cost gives none: ``lqr`` (the model's LQR
-            cost-to-go, the default) or ``stage`` (P = Q, the paper's cost; ``gpmpc reproduce`` uses it).
-        input_rate_weight: weight beta of the input changes ``beta sum_t ||U_t - U_{t-1}||^2`` in
-            the cost (``U_{-1}``: the input applied at the previous step); smooth plans for
-            vehicles whose acceleration cannot jump (quadrotors: tilt and motor lag). 0: off.
         noise_std: standard deviation s of the process noise w ~ N(0, s^2 I).
-        admm_tol: absolute tolerance of the per-edge primal residual ||y - z||.
-        admm_dual_tol: absolute tolerance of the per-edge dual residual rho ||z - z_prev||
-            (``null``: 10 ``admm_tol``; the paper's ``primal`` rule tests it only when set).
-        admm_rel_tol: relative tolerance (Boyd et al. 2011 §3.3.1) of the ``primal-dual`` rule:
-            adds ``admm_rel_tol * max(||y||, ||z||)`` to the primal and ``admm_rel_tol * ||lam||``
-            to the dual tolerance of each edge (:mod:`torch_gpmpc.coordination.penalty`).
-        admm_stop: ``primal-dual`` (both residuals, Boyd et al. 2011 §3.3.1) or ``primal`` (the
-            paper's rule: a consensus that is feasible, not necessarily optimal).
-        rho_update: ``adaptive`` (residual balancing per edge, Boyd et al. 2011 §3.4.1: rho_e
-            doubles when its primal residual ratio (residual over tolerance) exceeds 10x its
-            dual one, halves in the opposite case; ``rho`` is the start, carried over by warm
-            starts) or ``fixed``.
-        admm_max_iter: ADMM iteration cap per time step.
-        admm_acceleration: ``off`` or ``anderson`` (type-II Anderson acceleration of each step's
-            consensus and duals, :mod:`torch_gpmpc.coordination.acceleration`).
-        admm_anderson_memory: how many past iterates the Anderson mix uses.
-        admm_coupling: what neighbours agree on: ``copies`` (the paper's copies of the pair's
-            trajectories) or ``planes`` (a separating-plane offset per edge and horizon step;
-            :mod:`torch_gpmpc.coordination.planes`).
-        comm_radius: agents closer than this communicate; ``None`` = all pairs.
         goal_tol: an agent has arrived when within this distance of its target.
         max_steps: closed-loop step cap.
-        uncertainty: ``auto`` (default: ``pointwise`` for models whose residual rows are their
-            positions, as the paper's; ``propagated`` otherwise, e.g. the double integrator, whose
-            velocity residual reaches the position only through the dynamics),
-            ``pointwise`` (paper: GP variance at the linearization point),
-            ``propagated`` (covariance pushed open loop through the linearized dynamics) or
-            ``feedback`` (pushed through them under the LQR feedback of the nominal model, as
-            tube MPC does: bounded instead of growing like sqrt(tau)).
-        margin_variance: ``predictive`` (latent GP variance plus the learned noise variance: what
-            moves an agent off its plan) or ``latent`` (the paper's GP variance alone).
-        pair_margin: how a pair's chance margin is built: ``sum`` (both agents' margins
-            ``m_k + m_j``, sound by the union bound), ``joint`` (``Phi^-1(1 - eps) sqrt(s_k + s_j)``,
-            the tightest sound choice for independent Gaussian agents, no risk split) or
-            ``own`` (the paper's eq. 24: each agent only its own margin; not sound).
         scenario: ``paper``, ``circle``, ``random``, ``forest`` or ``doorway`` (obstacles and
             walls: :mod:`~torch_gpmpc.sim.scenarios`).
         num_agents: K (the paper scenario has 3).
         seed: seed for data, noise and scenario generation.
-        solver: ``fast`` (structure-exploiting interior point compiled with numba, :mod:`~torch_gpmpc.control.solvers.interior_point`),
-            ``clarabel`` (cvxpylayers + diffcp with Clarabel) or ``reference`` (cvxpylayers' default).
-        solver_warm: with ``fast``, solve each ADMM iteration's problems first by the exact
-            active-set method from the previous iteration's solutions (falling back to the cold
-            interior point per problem); ``false``: every solve cold. Gradient tuning always solves cold.
-        admm_compiled: with ``fast`` and a frozen linearization (``relinearize = false``), a control
-            step's ADMM iterations after its second run as compiled calls (the same plans, a third of
-            the time per iteration); ``false``: every iteration through the torch path (the reference).
-        method: one of :data:`METHODS`.
         dim: position dimension (2 or 3) of the built-in models; the single integrator's state
             and input have this dimension, the double integrator's state has twice it.
         model: the agent model: ``single-integrator`` (the paper), ``double-integrator`` (state
@@ -123,42 +71,11 @@ class Config:
         gp_inputs: ``state`` (paper) or ``state_input``.
         gp_optimizer: ``lbfgs`` (paper) or ``adam``.
         gp_iters: optimizer iterations for GP fitting.
-        slack_penalty: exact-penalty weight on collision slacks.
-        relinearize: re-set linearization points from each ADMM iterate (Algorithm 1, step 9);
-            false (default): linearize once per control step around the warm start, so ADMM
-            converges on one convex problem (the paper's per-iterate rule keeps it moving).
         wind_scale: amplitude of the vortex wind g (paper: 0.1).
-        workspace: a soft box on the positions, ``{"min": [...], "max": [...]}`` (P numbers each),
-            or null (none); a scenario file's ``workspace`` sets it for its run.
-        risk_mode: ``pair_step`` (default: every pair's collision rows hold with probability
-            ``1 - eps`` at every step) or ``mission`` (the probability of any collision over the
-            whole run is at most ``risk_budget``: each agent starts with ``risk_budget / K`` and
-            spends it on its pairs' steps; :mod:`~torch_gpmpc.coordination.mission_risk`).
-        risk_budget: the mission's collision probability delta (``risk_mode = mission``).
-        risk_pacing: under ``mission``, a control step spends at most ``1 / risk_pacing`` of an
-            agent's remaining budget (so it never runs out, however long the run).
-        obstacles: static obstacles, a list of ``{"center": [...], "radius": r}`` (disc/sphere),
-            ``{"center": [x, y], "radius": r, "z": [zmin, zmax]}`` (vertical cylinder, 3D) and
-            ``{"min": [...], "max": [...]}`` (box) tables, or null; a scenario's obstacles set it.
-            An agent's centre keeps ``r_safe / 2`` from every obstacle.
-        obstacle_eps: the risk of one obstacle row per step (chance methods: the row's margin is
-            ``Phi^{-1}(1 - obstacle_eps)`` times the agent's own standard deviation along it;
-            default 1e-6, as an agent rides a row for many steps of a run).
-        obstacle_rows: obstacle rows per agent and horizon step (its nearest obstacles).
-        radii: each agent's body radius, a list of K numbers (a pair keeps ``r_k + r_j`` between
-            centres, an agent ``r_k`` from every obstacle), or null: ``r_safe / 2`` each; a
-            scenario file's ``radii`` set it for its run.
         models: a mixed team: one model per agent (built-in names or model files, K of them), or
             null (every agent has ``model``); overrides ``model``. Models of different sizes are
             lifted to the largest (:mod:`~torch_gpmpc.config.team`); they must share ``dt``, the
             position indices and the number of residual rows. A scenario file's ``models`` set it.
-        pair_buffer: extra distance the collision rows ask beyond ``r_safe`` (or ``r_k + r_j``),
-            for example ``admm_tol``, so that plans whose copies agree only to the consensus
-            tolerance still keep ``r_safe``; metrics and risk bounds judge ``r_safe`` itself.
-        safety_fallback: the re-plan after an unconverged ADMM stop: ``cells`` (agents that can
-            stop at once, among neighbours that can too, re-plan inside buffered Voronoi cells;
-            agents with momentum against their neighbours' plans as fixed obstacles) or
-            ``obstacles`` (every agent of a pair unsafe at tau = 1 against its neighbours' plans).
         num_obstacles: the cylinders (discs in 2D) of ``scenario = forest``.
         forest_gap: the free gap ``scenario = forest`` keeps between two trees beyond ``r_safe``
             (room for an agent's chance margins on both sides; a wider gap also lengthens the band,
@@ -180,7 +97,6 @@ class Config:
             leave first), hyperparameters re-fitted every ``gp_online_refit_every`` steps (0: never);
             with ``gp_online_max_input_change`` only transitions whose input changed by at most that
             (norm, input units) since the agent's previous step are added (null: all).
-
     Example:
         >>> from torch_gpmpc import Config
         >>> cfg = Config(model="double-integrator", dim=3, scenario="circle", num_agents=6)
@@ -190,39 +106,13 @@ class Config:
         13
     """
 
-    horizon: int = 13
-    rho: float = 20.0
-    r_safe: float = 0.5
-    eps: float = 0.1
-    risk_split: float = 0.5
     u_max: float = 2.0
-    alpha: float = 1e-3
-    cost: CostTable | None = None
-    terminal_cost: str = "lqr"
-    input_rate_weight: float = 0.0
     noise_std: float = 0.1
-    admm_tol: float = 1e-3
-    admm_dual_tol: float | None = None
-    admm_rel_tol: float = 1e-4
-    admm_max_iter: int = 100
-    admm_acceleration: str = "off"
-    admm_anderson_memory: int = 5
-    admm_coupling: str = "copies"
-    admm_stop: str = "primal-dual"
-    rho_update: str = "adaptive"
-    comm_radius: float | None = None
     goal_tol: float = 0.1
     max_steps: int = 150
-    uncertainty: str = "auto"
-    margin_variance: str = "predictive"
-    pair_margin: str = "sum"
     scenario: str = "paper"
     num_agents: int = 3
     seed: int = 0
-    solver: str = "fast"
-    solver_warm: bool = True
-    admm_compiled: bool = True
-    method: str = "gp-chance"
     dim: int = 2
     model: str | ModelSpec = "single-integrator"
     dt: float = 0.1
@@ -235,20 +125,8 @@ class Config:
     gp_inputs: str = "state"
     gp_optimizer: str = "lbfgs"
     gp_iters: int = 50
-    slack_penalty: float = 1e4
-    relinearize: bool = False
     wind_scale: float = 0.1
-    workspace: Workspace | None = None
-    risk_mode: str = "pair_step"
-    risk_budget: float = 0.05
-    risk_pacing: int = 10
-    obstacles: ObstacleField | None = None
-    obstacle_eps: float = 1e-6
-    obstacle_rows: int = 4
-    radii: tuple[float, ...] | None = None
     models: tuple[str, ...] | None = None
-    pair_buffer: float = 0.0
-    safety_fallback: str = "cells"
     num_obstacles: int = 20
     forest_gap: float = FOREST_GAP_EXTRA
     deadlock_detour: bool = True
@@ -293,7 +171,7 @@ class Config:
                 f"config key 'num_agents': the paper scenario has 3 agents, got {self.num_agents}; "
                 "use scenario=circle or scenario=random for other team sizes"
             )
-        warn_ignored_keys(self)
+        warn_ignored(self, CONFIG_CONDITIONS, "config key")
 
     def model_spec(self) -> ModelSpec:
         """The agent model of this run (built-in, read from the model file, or given); with
@@ -313,8 +191,11 @@ class Config:
         return team_spec([resolve_model(name, self.dim, self.dt, self.u_max) for name in self.models])
 
     def controller_settings(self) -> ControllerSettings:
-        """The controller's settings (the keys of :class:`ControllerSettings`)."""
-        return ControllerSettings(**{key: getattr(self, key) for key in controller_keys()})
+        """The controller's settings (the keys of :class:`ControllerSettings`); the keys were checked, and
+        any ignored one warned about, when this configuration was built."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            return ControllerSettings(**{key: getattr(self, key) for key in controller_keys()})
 
     def gp_fit_settings(self) -> GPFitSettings:
         """How the agents' GPs are fitted (``gp_samples``, ``gp_iters``, ``gp_optimizer``, the
@@ -375,36 +256,38 @@ class Config:
         return out
 
 
-#: Keys that shape only the built-in models, and their defaults.
-_BUILTIN_MODEL_KEYS = ("dim", "dt", "u_max")
+def _builtin_model(cfg) -> bool:
+    return cfg.models is not None or (isinstance(cfg.model, str) and cfg.model in BUILTIN_MODELS)
 
 
-def warn_ignored_keys(cfg: Config) -> None:
-    """Warn, naming the key that overrides it, about every key set to a non-default value that
-    the current choices ignore."""
-    defaults = {f.name: f.default for f in dataclasses.fields(Config)}
-    ignored = []
-    if cfg.models is not None:  # dim, dt and u_max shape the built-ins it names
-        if cfg.model != defaults["model"]:
-            ignored.append(("model", "models", "every agent has its own model"))
-    elif not (isinstance(cfg.model, str) and cfg.model in ("single-integrator", "double-integrator")):
-        ignored += [(key, "model", "the model defines its own state, sampling time and input bound")
-                    for key in _BUILTIN_MODEL_KEYS if getattr(cfg, key) != defaults[key]]
-    elif cfg.model == "single-integrator" and cfg.dt != defaults["dt"]:
-        ignored.append(("dt", "model", "the single integrator has the paper's B = 0.1 I"))
-    if cfg.plant == "model":
-        ignored += [(key, "plant", "it configures the RotorPy plant") for key in
-                    ("plant_vehicle", "plant_wind", "plant_wind_speed", "plant_rate_hz", "plant_sensor_noise")
-                    if getattr(cfg, key) != defaults[key]]
-    if cfg.admm_stop == "primal" and cfg.admm_rel_tol != defaults["admm_rel_tol"]:
-        ignored.append(("admm_rel_tol", "admm_stop", "the paper's primal rule has absolute tolerances only"))
-    for key, by, why in ignored:
-        warnings.warn(f"config key '{key}' is ignored under {by}={_show(getattr(cfg, by))}: {why}",
-                      UserWarning, stacklevel=4)
+def _needs_gp(cfg) -> bool:
+    return cfg.method not in ("nominal", "nonlinear")
 
 
-def _show(value: Any) -> str:
-    return value.name if isinstance(value, ModelSpec) else str(value)
+_MODEL_RULE = Applies("model", _builtin_model, "the model defines its own state, sampling time and input bound")
+_PLANT_RULE = Applies("plant", lambda c: c.plant == "rotorpy", "it configures the RotorPy plant")
+_GP_DATA_RULE = Applies("method", _needs_gp, "this method learns no residual GP")
+_ONLINE_RULE = Applies("gp_online", lambda c: c.gp_online, "it configures the online GP updates")
+
+#: When each run key applies (with the controller's, :data:`CONTROLLER_CONDITIONS`); a key set while it
+#: does not warns, naming the key that decides.
+CONFIG_CONDITIONS: dict[str, tuple[Applies, ...]] = {
+    **CONTROLLER_CONDITIONS,
+    "model": (Applies("models", lambda c: c.models is None, "every agent has its own model"),),
+    "dim": (_MODEL_RULE,),
+    "u_max": (_MODEL_RULE,),
+    "dt": (_MODEL_RULE, Applies("model", lambda c: c.models is not None or c.model != "single-integrator",
+                                "the single integrator has the paper's B = 0.1 I")),
+    **{key: (_PLANT_RULE,) for key in ("plant_vehicle", "plant_wind", "plant_wind_speed", "plant_rate_hz",
+                                       "plant_sensor_noise")},
+    "wind_scale": (Applies("plant", lambda c: c.plant == "model", "RotorPy's wind is plant_wind"),),
+    **{key: (_GP_DATA_RULE,) for key in ("gp_samples", "gp_iters", "gp_optimizer", "gp_box")},
+    **{key: (_ONLINE_RULE,) for key in ("gp_online_budget", "gp_online_refit_every", "gp_online_max_input_change")},
+    **{key: (Applies("scenario", lambda c: c.scenario == "forest", "it shapes the forest"),)
+       for key in ("num_obstacles", "forest_gap")},
+    "min_separation": (Applies("scenario", lambda c: c.scenario == "random", "it spaces random draws"),),
+    "ref_points": (Applies("reference", lambda c: c.reference == "line", "it paces the line reference"),),
+}
 
 
 _CHOICES = {

@@ -17,7 +17,7 @@ import typing
 from dataclasses import dataclass
 
 from torch_gpmpc.config.cost_table import TERMINAL_COSTS, CostTable
-from torch_gpmpc.config.fields import Rules, build, check_keys, coerce_lists, validate
+from torch_gpmpc.config.fields import Applies, Rules, build, check_keys, coerce_lists, validate, warn_ignored
 from torch_gpmpc.config.model_spec import ModelSpec
 from torch_gpmpc.config.obstacles import ObstacleField
 from torch_gpmpc.config.workspace import Workspace
@@ -81,58 +81,100 @@ CONTROLLER_RANGES: dict[str, tuple[typing.Callable[[typing.Any], bool], str]] = 
 class ControllerSettings:
     """Settings of the cooperative controller (defaults: the paper scenario, sound margins).
 
-    The names and meanings are those of the run configuration's keys
-    (:class:`~torch_gpmpc.config.schema.Config` documents each); the model-dependent ones
-    (input bound, state size, ``uncertainty = auto``) are resolved from the agent model.
+    The run configuration (:class:`~torch_gpmpc.config.schema.Config`) extends these keys with
+    the run's (scenario, model, noise, GP data, plant), under the same flat names; each key is
+    documented once, here or there. The model-dependent parts (input bound, state size,
+    ``uncertainty = auto``, the LQR terminal weight) are resolved from the agent model.
 
     Attributes:
-        method: the controller method (one of :data:`METHOD_NAMES`).
-        horizon: MPC horizon T.
-        alpha: control-effort weight (the default cost's R = alpha I). slack_penalty: exact-penalty
-            weight on slacks.
-        cost: a stated tracking cost (:class:`~torch_gpmpc.config.cost_table.CostTable`, or its table
-            ``{"Q": ..., "R": ..., "P": ..., "u_ref": ...}``), or ``None``: Q = I, R = alpha I.
+        method: one of :data:`METHODS`.
+        horizon: MPC horizon T (plans have T+1 states, T inputs).
+        alpha: control-effort weight in the cost (R = alpha I when no ``cost`` is given).
+        cost: a stated tracking cost, a ``[cost]`` table ``{Q, R, P, u_ref}`` (each weight a number times
+            I, a diagonal list or a list of rows; :class:`~torch_gpmpc.control.cost.QuadraticCost`):
+            stage cost ``(x - r)^T Q (x - r) + (u - u_ref)^T R (u - u_ref)``, terminal ``(x_T - r_T)^T P
+            (x_T - r_T)``; null: Q = I, R = alpha I.
         terminal_cost: the terminal weight P when the cost gives none: ``lqr`` (the model's LQR
-            cost-to-go for Q and R) or ``stage`` (P = Q: the paper's cost).
-        input_rate_weight: weight beta of the input changes ``sum_t ||U_t - U_{t-1}||^2`` (with
-            ``U_{-1}`` the input applied last; 0: not in the cost).
-        solver: ``fast`` (compiled interior point), ``clarabel`` or ``reference`` (cvxpylayers).
-        solver_warm: with ``fast``, warm active-set solves from the previous ADMM iteration's
-            solutions (:mod:`~torch_gpmpc.control.solvers.ipm_active`); ``False``: every solve cold.
-        admm_compiled: with ``fast`` and a frozen linearization, a control step's ADMM iterations
-            after its second run as compiled calls (:mod:`~torch_gpmpc.coordination.steady`; the same
-            plans); ``False``: every iteration through the torch path.
-        r_safe, eps, risk_split: safety radius, pair risk, lower-indexed agent's share.
-        radii: each agent's body radius (a pair keeps ``r_k + r_j`` between centres, an agent
-            ``r_k`` from every obstacle), or ``None``: ``r_safe / 2`` each.
+            cost-to-go, the default) or ``stage`` (P = Q, the paper's cost; ``gpmpc reproduce`` uses it).
+        input_rate_weight: weight beta of the input changes ``beta sum_t ||U_t - U_{t-1}||^2`` in
+            the cost (``U_{-1}``: the input applied at the previous step); smooth plans for
+            vehicles whose acceleration cannot jump (quadrotors: tilt and motor lag). 0: off.
+        slack_penalty: exact-penalty weight on collision slacks.
+        solver: ``fast`` (structure-exploiting interior point compiled with numba, :mod:`~torch_gpmpc.control.solvers.interior_point`),
+            ``clarabel`` (cvxpylayers + diffcp with Clarabel) or ``reference`` (cvxpylayers' default).
+        solver_warm: with ``fast``, solve each ADMM iteration's problems first by the exact
+            active-set method from the previous iteration's solutions (falling back to the cold
+            interior point per problem); ``false``: every solve cold. Gradient tuning always solves cold.
+        admm_compiled: with ``fast`` and a frozen linearization (``relinearize = false``), a control
+            step's ADMM iterations after its second run as compiled calls (the same plans, a third of
+            the time per iteration); ``false``: every iteration through the torch path (the reference).
+        r_safe: minimum allowed distance between two agents.
+        eps: total collision risk per pair, in (0, 1); split between the two agents.
+        risk_split: share of ``eps`` taken by the lower-indexed agent of each pair, in (0, 1).
+        pair_margin: how a pair's chance margin is built: ``sum`` (both agents' margins
+            ``m_k + m_j``, sound by the union bound), ``joint`` (``Phi^-1(1 - eps) sqrt(s_k + s_j)``,
+            the tightest sound choice for independent Gaussian agents, no risk split) or
+            ``own`` (the paper's eq. 24: each agent only its own margin; not sound).
+        margin_variance: ``predictive`` (latent GP variance plus the learned noise variance: what
+            moves an agent off its plan) or ``latent`` (the paper's GP variance alone).
+        uncertainty: ``auto`` (default: ``pointwise`` for models whose residual rows are their
+            positions, as the paper's; ``propagated`` otherwise, e.g. the double integrator, whose
+            velocity residual reaches the position only through the dynamics),
+            ``pointwise`` (paper: GP variance at the linearization point),
+            ``propagated`` (covariance pushed open loop through the linearized dynamics) or
+            ``feedback`` (pushed through them under the LQR feedback of the nominal model, as
+            tube MPC does: bounded instead of growing like sqrt(tau)).
+        rho: ADMM penalty rho > 0.
+        rho_update: ``adaptive`` (residual balancing per edge, Boyd et al. 2011 §3.4.1: rho_e
+            doubles when its primal residual ratio (residual over tolerance) exceeds 10x its
+            dual one, halves in the opposite case; ``rho`` is the start, carried over by warm
+            starts) or ``fixed``.
+        admm_tol: absolute tolerance of the per-edge primal residual ||y - z||.
+        admm_dual_tol: absolute tolerance of the per-edge dual residual rho ||z - z_prev||
+            (``null``: 10 ``admm_tol``; the paper's ``primal`` rule tests it only when set).
+        admm_rel_tol: relative tolerance (Boyd et al. 2011 §3.3.1) of the ``primal-dual`` rule:
+            adds ``admm_rel_tol * max(||y||, ||z||)`` to the primal and ``admm_rel_tol * ||lam||``
+            to the dual tolerance of each edge (:mod:`torch_gpmpc.coordination.penalty`).
+        admm_stop: ``primal-dual`` (both residuals, Boyd et al. 2011 §3.3.1) or ``primal`` (the
+            paper's rule: a consensus that is feasible, not necessarily optimal).
+        admm_max_iter: ADMM iteration cap per time step.
+        admm_acceleration: ``off`` or ``anderson`` (type-II Anderson acceleration of each step's
+            consensus and duals, :mod:`torch_gpmpc.coordination.acceleration`).
+        admm_anderson_memory: how many past iterates the Anderson mix uses.
+        admm_coupling: what neighbours agree on: ``copies`` (the paper's copies of the pair's
+            trajectories) or ``planes`` (a separating-plane offset per edge and horizon step;
+            :mod:`torch_gpmpc.coordination.planes`).
+        relinearize: re-set linearization points from each ADMM iterate (Algorithm 1, step 9);
+            false (default): linearize once per control step around the warm start, so ADMM
+            converges on one convex problem (the paper's per-iterate rule keeps it moving).
+        comm_radius: agents closer than this communicate; ``None`` = all pairs.
+        workspace: a soft box on the positions, ``{"min": [...], "max": [...]}`` (P numbers each),
+            or null (none); a scenario file's ``workspace`` sets it for its run.
+        risk_mode: ``pair_step`` (default: every pair's collision rows hold with probability
+            ``1 - eps`` at every step) or ``mission`` (the probability of any collision over the
+            whole run is at most ``risk_budget``: each agent starts with ``risk_budget / K`` and
+            spends it on its pairs' steps; :mod:`~torch_gpmpc.coordination.mission_risk`).
+        risk_budget: the mission's collision probability delta (``risk_mode = mission``).
+        risk_pacing: under ``mission``, a control step spends at most ``1 / risk_pacing`` of an
+            agent's remaining budget (so it never runs out, however long the run).
+        obstacles: static obstacles, a list of ``{"center": [...], "radius": r}`` (disc/sphere),
+            ``{"center": [x, y], "radius": r, "z": [zmin, zmax]}`` (vertical cylinder, 3D) and
+            ``{"min": [...], "max": [...]}`` (box) tables, or null; a scenario's obstacles set it.
+            An agent's centre keeps ``r_safe / 2`` from every obstacle.
+        obstacle_eps: the risk of one obstacle row per step (chance methods: the row's margin is
+            ``Phi^{-1}(1 - obstacle_eps)`` times the agent's own standard deviation along it;
+            default 1e-6, as an agent rides a row for many steps of a run).
+        obstacle_rows: obstacle rows per agent and horizon step (its nearest obstacles).
+        radii: each agent's body radius, a list of K numbers (a pair keeps ``r_k + r_j`` between
+            centres, an agent ``r_k`` from every obstacle), or null: ``r_safe / 2`` each; a
+            scenario file's ``radii`` set it for its run.
+        pair_buffer: extra distance the collision rows ask beyond ``r_safe`` (or ``r_k + r_j``),
+            for example ``admm_tol``, so that plans whose copies agree only to the consensus
+            tolerance still keep ``r_safe``; metrics and risk bounds judge ``r_safe`` itself.
         safety_fallback: the re-plan after an unconverged ADMM stop: ``cells`` (agents that can
             stop at once, among neighbours that can too, re-plan inside buffered Voronoi cells;
-            others against their neighbours' plans) or ``obstacles`` (every agent of a pair unsafe
-            at tau = 1 against its neighbours' plans as fixed obstacles, the earlier rule).
-        pair_buffer: what the collision rows ask beyond the pair's distance (e.g. ``admm_tol``:
-            copies that agree only to the consensus tolerance still keep it); the safety metrics
-            and the risk bounds still judge the distance itself.
-        risk_mode, risk_budget, risk_pacing: ``pair_step`` (every pair may fail with probability
-            ``eps`` at every step) or ``mission`` (the team's probability of any collision over
-            the run is at most ``risk_budget``; :mod:`~torch_gpmpc.coordination.mission_risk`).
-        pair_margin, margin_variance, uncertainty: how chance margins are built.
-        rho, rho_update: ADMM penalty (start) and its update rule.
-        admm_tol, admm_dual_tol, admm_rel_tol, admm_stop, admm_max_iter: ADMM stopping.
-        admm_acceleration: ``off`` or ``anderson`` (each step's consensus and duals mixed by
-            :mod:`~torch_gpmpc.coordination.acceleration`); admm_anderson_memory: its history.
-        admm_coupling: what neighbours agree on: ``copies`` (the paper: each agent's copy of the
-            pair's trajectories) or ``planes`` (one separating-plane offset per edge and horizon step,
-            :mod:`~torch_gpmpc.coordination.planes`; in process (tuning and mixed teams too) and
-            across processes, no Anderson, no ``relinearize``).
-        relinearize: re-linearize at every ADMM iterate (Algorithm 1, step 9).
-        comm_radius: agents closer than this communicate (``None``: all pairs).
-        workspace: a soft box on the positions (:class:`~torch_gpmpc.config.workspace.Workspace`,
-            or ``{"min": [...], "max": [...]}``), or ``None``.
-        obstacles, obstacle_eps, obstacle_rows: static obstacles
-            (:class:`~torch_gpmpc.config.obstacles.ObstacleField` or its list of tables, or ``None``),
-            the risk of one obstacle row (chance methods), and the rows per agent (its nearest
-            obstacles over the horizon; :mod:`~torch_gpmpc.control.obstacle_rows`).
-
+            agents with momentum against their neighbours' plans as fixed obstacles) or
+            ``obstacles`` (every agent of a pair unsafe at tau = 1 against its neighbours' plans).
     Example:
         >>> from torch_gpmpc import ControllerSettings
         >>> s = ControllerSettings(horizon=10, eps=0.05)
@@ -193,6 +235,7 @@ class ControllerSettings:
         validate(self, RULES)
         check_risk_mode(self.risk_mode, self.method, self.pair_margin, "controller setting")
         check_coupling(self.admm_coupling, self.admm_acceleration, self.relinearize, "controller setting")
+        warn_ignored(self, CONTROLLER_CONDITIONS, "controller setting")
 
     def replace(self, **changes: typing.Any) -> "ControllerSettings":
         """A copy with ``changes`` applied (same checks; unknown keys name the nearest one)."""
@@ -210,6 +253,36 @@ class ControllerSettings:
 
 
 RULES = Rules("controller setting", "", CONTROLLER_CHOICES, CONTROLLER_RANGES)
+
+
+def _chance(s) -> bool:
+    return s.method in CHANCE_METHODS
+
+
+#: When each controller key applies (the rest always do); a key set while it does not warns, naming the
+#: key that decides (:func:`~torch_gpmpc.config.fields.warn_ignored`).
+CONTROLLER_CONDITIONS: dict[str, tuple[Applies, ...]] = {
+    "eps": (Applies("method", _chance, "only the chance methods have pair margins"),
+            Applies("risk_mode", lambda s: s.risk_mode == "pair_step", "the mission budget sets every risk")),
+    "risk_split": (Applies("method", _chance, "only the chance methods have pair margins"),
+                   Applies("risk_mode", lambda s: s.risk_mode == "pair_step", "the mission budget sets every risk"),
+                   Applies("pair_margin", lambda s: s.pair_margin != "joint", "the joint margin has no split")),
+    "pair_margin": (Applies("method", _chance, "only the chance methods have pair margins"),),
+    "obstacle_eps": (Applies("method", _chance, "only the chance methods have obstacle margins"),
+                     Applies("risk_mode", lambda s: s.risk_mode == "pair_step", "the mission budget sets every risk")),
+    "risk_budget": (Applies("risk_mode", lambda s: s.risk_mode == "mission", "it is the mission's budget"),),
+    "risk_pacing": (Applies("risk_mode", lambda s: s.risk_mode == "mission", "it paces the mission's budget"),),
+    "admm_anderson_memory": (Applies("admm_acceleration", lambda s: s.admm_acceleration == "anderson",
+                                     "it sizes the Anderson history"),),
+    "admm_rel_tol": (Applies("admm_stop", lambda s: s.admm_stop == "primal-dual",
+                             "the paper's primal rule has absolute tolerances only"),),
+    "solver_warm": (Applies("solver", lambda s: s.solver == "fast", "only the compiled solver keeps warm points"),),
+    "admm_compiled": (Applies("solver", lambda s: s.solver == "fast", "only the compiled solver has them"),),
+    "alpha": (Applies("cost", lambda s: s.cost is None or s.uncertainty == "feedback",
+                      "the cost's R replaces alpha I"),),
+    "terminal_cost": (Applies("cost", lambda s: s.cost is None or s.cost.P is None, "the cost gives its own P"),),
+}
+
 
 
 def agent_radii(radii: typing.Sequence[float] | None, r_safe: float, num_agents: int) -> tuple[float, ...]:
