@@ -104,6 +104,9 @@ def fit_residual_gp(inputs: Tensor, y: Tensor, optimizer: str = "lbfgs", iters: 
 
     Raises:
         GpmpcError: bad arguments, non-PD kernel matrices, or a diverged fit.
+
+    An exact fit runs on :data:`FIT_THREADS` torch thread whatever the caller's count (the caller's is
+    restored): its small matrices gain nothing from a second thread, and a loaded machine loses.
     """
     if optimizer not in ("lbfgs", "adam"):
         raise GpmpcError(f"optimizer must be 'lbfgs' or 'adam', got {optimizer!r}")
@@ -117,9 +120,10 @@ def fit_residual_gp(inputs: Tensor, y: Tensor, optimizer: str = "lbfgs", iters: 
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(seed))
         if method == "exact":
-            gp = ResidualGP(inputs, y, gp_inputs=gp_inputs)
-            _optimize(gp, optimizer, int(iters), callback, lr)
-            return gp.refresh()
+            with torch_threads(FIT_THREADS):  # at most 1000 points: threads only add hand-offs
+                gp = ResidualGP(inputs, y, gp_inputs=gp_inputs)
+                _optimize(gp, optimizer, int(iters), callback, lr)
+                return gp.refresh()
         return _fit_sparse(inputs, y, optimizer, int(iters), int(seed), callback, lr, gp_inputs, int(num_inducing))
 
 
