@@ -37,6 +37,9 @@ def main(argv: list[str] | None = None) -> int:
     script calls it through :func:`console_main`."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command is None:  # a bare `gpmpc`: what it can do
+        parser.print_help()
+        return 0
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import sys
+import time
 from pathlib import Path
 
 from tqdm import tqdm
@@ -43,6 +44,7 @@ def output_dir(text: str) -> Path:
 def main(args) -> int:
     from torch_gpmpc.coordination.distributed.transport import is_agent_rank
 
+    started = time.perf_counter()
     distributed = args.backend == "distributed"
     if distributed and is_agent_rank():  # torchrun / env launch: ranks > 0 serve agents, rank 0 writes
         from torch_gpmpc.coordination.distributed.agent_process import agent_main
@@ -104,7 +106,7 @@ def main(args) -> int:
         from torch_gpmpc.report.figures import save_run_figures
 
         save_run_figures(rollout, out / "figures", reference_paths=scenario.reference_path().numpy())
-    print(_summary(metrics, out))
+    print(_summary(metrics, out, time.perf_counter() - started, figures=not args.no_figures))
     if distributed and report.lost_agents:
         print(f"gpmpc run: warning: {report.summary()}", file=sys.stderr)
         return 3
@@ -147,7 +149,9 @@ def _clearance_note(m: dict) -> str:
     return "" if clearance is None else f", closest clearance {clearance:+.3f}"
 
 
-def _summary(m: dict, out: Path) -> str:
+def _summary(m: dict, out: Path, total_s: float, figures: bool = True) -> str:
+    """The run's result in two lines: the outcome, then where its files went and its times (the
+    closed loop's and the whole command's, GP fits and figures included)."""
     def num(value, fmt: str) -> str:  # null when K = 1 (no pairs) or no step was taken
         return "-" if value is None else format(value, fmt)
 
@@ -158,5 +162,7 @@ def _summary(m: dict, out: Path) -> str:
         f"in {m['steps']} steps; min distance {num(m['min_pair_distance'], '.3f')} "
         f"({m['violations']} violating step-pairs{_clearance_note(m)}{_risk_note(m)}){_obstacle_note(m)}; "
         f"ADMM iterations mean {num(m['admm_iterations_mean'], '.1f')} "
-        f"max {num(m['admm_iterations_max'], 'd')}; wall {m['wall_time_s']:.1f} s -> {out}"
+        f"max {num(m['admm_iterations_max'], 'd')}\n"
+        f"wrote {out}/metrics.json, rollout.npz{', figures/' if figures else ''} and tb/ (tensorboard --logdir "
+        f"{out / 'tb'}); closed loop {m['wall_time_s']:.1f} s, whole command {total_s:.1f} s"
     )

@@ -247,9 +247,11 @@ def _nearest_neighbour_distances(states: np.ndarray) -> np.ndarray:
 
 
 def plot_admm_residuals(rollout: Rollout, path: str | Path) -> Path:
-    """ADMM primal and dual residual vs iteration, every step thin, the mean thick (log y).
+    """ADMM primal and dual residual vs iteration, every step thin, the mean thick (log y), with each
+    panel's stopping tolerance (the dual one ``admm_dual_tol``, or its default ``10 admm_tol``).
 
-    The mean at iteration i is over the steps still iterating at i (NaN padding skipped).
+    The mean at iteration i is over the steps still iterating at i (NaN padding skipped), drawn only
+    while at least a quarter of the steps (and 3) are: a mean of the few slowest steps says little.
 
     Args:
         rollout: the run; uses ``primal_residuals`` and ``dual_residuals`` (S, I),
@@ -261,9 +263,13 @@ def plot_admm_residuals(rollout: Rollout, path: str | Path) -> Path:
     """
     cfg = rollout.config or {}
     fig, axes = _new_figure(2)
+    primal_tol = cfg.get("admm_tol")
+    dual_tol = cfg.get("admm_dual_tol")
+    if dual_tol is None and primal_tol is not None and cfg.get("admm_stop", "primal-dual") == "primal-dual":
+        dual_tol = 10.0 * float(primal_tol)  # the rule's default (penalty.py)
     panels = (
-        ("primal residual max ||y - z||", rollout.primal_residuals, cfg.get("admm_tol")),
-        ("dual residual rho ||z - z_prev||", rollout.dual_residuals, cfg.get("admm_dual_tol")),
+        ("primal residual max ||y - z||", rollout.primal_residuals, primal_tol),
+        ("dual residual rho ||z - z_prev||", rollout.dual_residuals, dual_tol),
     )
     for ax, (label, res, tol) in zip(axes[0], panels):
         _draw_residuals(ax, np.asarray(res, dtype=np.float64), tol)
@@ -285,12 +291,15 @@ def _draw_residuals(ax: Any, res: np.ndarray, tol: float | None) -> None:
     for s in segs:  # single-iteration steps still show up
         if len(s) == 1:
             ax.plot(s[0, 0], s[0, 1], ".", color="C0", ms=2, alpha=0.3)
-    ax.plot(its, _nanmean_rows(res), color="C3", lw=2.0, label="mean over steps")
+    mean = _nanmean_rows(res)
+    still = np.isfinite(res).sum(axis=0)
+    mean[still < max(3, 0.25 * res.shape[0])] = np.nan  # a mean of the few slowest steps says little
+    ax.plot(its, mean, color="C3", lw=2.0, label="mean over the steps still iterating")
     if tol is not None:
-        ax.axhline(float(tol), color="k", ls="--", lw=1.0, label=f"tolerance {float(tol):g}")
+        ax.axhline(float(tol), color="k", ls="--", lw=1.0, label=f"absolute tolerance {float(tol):g}")
     ax.set_yscale("log")
     ax.autoscale_view()
-    ax.grid(True, which="both", lw=0.3)
+    ax.grid(True, which="major", lw=0.4, alpha=0.6)
     ax.legend(fontsize=7)
 
 

@@ -138,6 +138,7 @@ def plot_prediction_error(runs, path: str | Path, change_step: int | None = None
     fig = Figure(figsize=(7.0, 5.2))
     FigureCanvasAgg(fig)
     ax_err, ax_cov = fig.subplots(2, 1, sharex=True)
+    lowest = 1.0
     for i, (label, rollout) in enumerate(runs.items()):
         if getattr(rollout, "prediction_error", None) is None:
             raise GpmpcError(f"run {label!r} has no GP predictions (a method without GPs?)")
@@ -148,15 +149,18 @@ def plot_prediction_error(runs, path: str | Path, change_step: int | None = None
         ax_err.plot(steps, np.sqrt(var.mean(axis=(1, 2))), ":", color=color, lw=1.2, label=f"{label}: predicted std")
         inside = (np.abs(err) <= 1.96 * np.sqrt(var)).mean(axis=(1, 2))
         w = max(1, min(window, len(steps)))  # a run shorter than the window: one point
-        ax_cov.plot(steps[w - 1:], np.convolve(inside, np.ones(w) / w, mode="valid"), "-", color=color, label=label)
+        share = np.convolve(inside, np.ones(w) / w, mode="valid")
+        lowest = min(lowest, float(np.nanmin(share)) if share.size else 1.0)
+        ax_cov.plot(steps[w - 1:], share, "-", color=color, label=label)
     for ax in (ax_err, ax_cov):
         if change_step is not None:
             ax.axvline(change_step, color="k", lw=0.8, ls="--")
-    ax_cov.axhline(0.95, color="grey", lw=0.8)
+    ax_cov.axhline(0.95, color="grey", lw=0.8, ls="--", label="nominal 95 %")
+    ax_err.set_title("The GPs' one-step residual prediction during the run", fontsize=10)
     ax_err.set_ylabel("one-step residual, RMS")
-    ax_cov.set_ylabel(f"95% coverage ({window}-step window)")
+    ax_cov.set_ylabel(f"share inside the 95 % band\n({window}-step window)")
     ax_cov.set_xlabel("control step")
-    ax_cov.set_ylim(0, 1.05)
+    ax_cov.set_ylim(max(0.0, min(0.9, lowest) - 0.05), 1.01)  # the band's share, not a 0-1 axis
     ax_err.legend(fontsize=7)
     ax_cov.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
