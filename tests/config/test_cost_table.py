@@ -50,8 +50,9 @@ def test_without_a_table_the_terminal_weight_follows_terminal_cost():
 
 
 @pytest.mark.parametrize("table, match", [
-    ({"Q": 1.0}, "with Q and R"),
-    ({"Q": 1.0, "R": 1.0, "S": 1.0}, "with Q and R"),
+    ({"Q": 1.0}, "missing entry R"),
+    ({"Q": 1.0, "R": 1.0, "Qf": 1.0}, "unknown entry 'Qf' \\(did you mean 'Q'\\?\\)"),
+    (5.0, "with Q and R"),
     ({"Q": "big", "R": 1.0}, r"'cost', entry Q: give a finite number"),
     ({"Q": [[1, 0], [0]], "R": 1.0}, r"'cost', entry Q"),
     ({"Q": 1.0, "R": 1.0, "u_ref": [[0.0]]}, r"'cost', entry u_ref"),

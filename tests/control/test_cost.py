@@ -136,9 +136,37 @@ def test_lqr_terminal_weight_solves_the_riccati_equation():
     (dict(Q=1.0, R=0.0), "R"),
     (dict(Q=1.0, R=1.0, P=torch.eye(3)), "P"),
     (dict(Q=1.0, R=1.0, u_ref=torch.zeros(3)), "u_ref"),
+    (dict(Q="abc", R=1.0), "Q"),
     (dict(Q=float("nan"), R=1.0), "Q"),
 ])
 def test_bad_weights_name_their_field(kwargs, field):
     model = NominalModel(ModelSpec.double_integrator(2, dt=0.1, u_max=2.0))
     with pytest.raises(GpmpcError, match=f"QuadraticCost.{field}"):
         QuadraticCost(**kwargs).resolve(model)
+
+
+def test_the_default_lqr_terminal_weight_passes_gradients_to_q_and_r():
+    """With P left to the LQR cost-to-go, the plans' gradient with respect to Q and R includes P's
+    dependence on them (the Riccati equation's implicit derivative): central differences agree."""
+    model, data = _instance(3)
+    layer = make_local_solver(T, 4, 1, model, None, 1e-3, PENALTY, warm_start=False)
+
+    def loss(Q, R):
+        Qw, Rw, Pw, _ = QuadraticCost(Q=Q, R=R).resolve(model)
+        sol = layer(LocalProblemData(**{**data.__dict__, "cost_Q": Qw[None], "cost_R": Rw[None],
+                                        "cost_P": Pw[None], "u_ref": None}))
+        return (sol.X[0, 1:, :2] ** 2).sum() + (sol.U[0] ** 2).sum()
+
+    q = torch.tensor([1.0, 2.0, 0.3, 0.2], dtype=torch.float64, requires_grad=True)
+    r = torch.tensor([0.05, 0.08], dtype=torch.float64, requires_grad=True)
+    gq, gr = torch.autograd.grad(loss(q, r), (q, r))
+    h = 1e-5
+    for value, grad, which in ((q, gq, 0), (r, gr, 1)):
+        for i in range(value.numel()):
+            step = torch.zeros_like(value)
+            step[i] = h
+            with torch.no_grad():
+                args_up = (q + step, r) if which == 0 else (q, r + step)
+                args_down = (q - step, r) if which == 0 else (q, r - step)
+                numeric = (loss(*args_up) - loss(*args_down)) / (2 * h)
+            assert float(grad[i]) == pytest.approx(float(numeric), rel=1e-5, abs=1e-6)

@@ -64,6 +64,11 @@ def main(args) -> int:
         gps = [load_model_gp(args.gp_model, cfg.model_spec())] if args.gp_model else None
         if gps is None and needs_gp(cfg.method):
             check_gp_inputs(cfg)
+        if cfg.cost is not None and cfg.models is None:  # its sizes against the model, before the GP fits
+            from torch_gpmpc.coordination.agent_step import cost_weights
+            from torch_gpmpc.dynamics.systems import NominalModel
+
+            cost_weights(None, cfg.controller_settings(), NominalModel(cfg.model_spec()))
         out = output_dir(args.out)
         if distributed:
             from torch_gpmpc.sim.distributed import check_distributed

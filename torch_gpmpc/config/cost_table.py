@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from torch_gpmpc.config.fields import nearest_key
 from torch_gpmpc.errors import GpmpcError
 
 #: How a terminal weight is chosen when the cost gives no ``P``.
@@ -58,9 +59,16 @@ class CostTable:
         if isinstance(value, CostTable):
             return value
         allowed = ("Q", "R", "P", "u_ref")
-        if not isinstance(value, dict) or not {"Q", "R"} <= set(value) or not set(value) <= set(allowed):
+        if not isinstance(value, dict):
             raise GpmpcError(f"{where}: give the cost as a table with Q and R (and optionally P, u_ref), e.g. "
                              f"[cost] Q = [1, 1, 0.1, 0.1] R = 0.01; got {value!r}")
+        for key in value:
+            if key not in allowed:
+                raise GpmpcError(f"{where}: unknown entry {key!r} (did you mean {nearest_key(key, allowed)!r}?); "
+                                 f"the entries are Q, R, P (terminal) and u_ref")
+        missing = [key for key in ("Q", "R") if key not in value]
+        if missing:
+            raise GpmpcError(f"{where}: missing entry {' and '.join(missing)}; a cost needs Q and R")
         u_ref = value.get("u_ref")
         if u_ref is not None:
             u_ref = _weight(u_ref, f"{where}, entry u_ref")

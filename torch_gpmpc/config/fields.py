@@ -167,5 +167,7 @@ def warn_ignored(obj: Any, conditions: Mapping[str, tuple[Applies, ...]], what: 
         rule = next((r for r in rules if not r.when(obj)), None)
         if rule is not None:
             by = getattr(obj, rule.by)
-            warnings.warn(f"{what} '{key}' is ignored under {rule.by}={getattr(by, 'name', by)}: {rule.why}",
-                          UserWarning, stacklevel=5)
+            shown = getattr(by, "name", by) if by is None or isinstance(by, (str, int, float, bool)) \
+                or hasattr(by, "name") else "(a table)"
+            warnings.warn(f"{what} '{key}' is ignored under {rule.by}={shown}: {rule.why}", UserWarning,
+                          stacklevel=4)

@@ -138,9 +138,9 @@ class ModelSpec:
         return parse_model(table, where)
 
     def __post_init__(self) -> None:
-        # tensors, arrays or lists given to the constructor: validate them as a model table is and keep the
-        # plain tuples (torch would otherwise copy-construct from a tensor and warn)
-        if all(_is_plain(getattr(self, f)) for f in self.__dataclass_fields__):
+        # whatever the constructor was given (tuples, lists, tensors, arrays): validated as a model table
+        # is, and kept as plain tuples (torch would otherwise copy-construct from a tensor and warn)
+        if _VALIDATING:  # parse_model's own construction, of values it has just checked
             return
         values = {f: _as_plain(getattr(self, f)) for f in self.__dataclass_fields__}
         spec = parse_model(_table(values), "ModelSpec")
@@ -152,11 +152,8 @@ class ModelSpec:
         return _table({f: getattr(self, f) for f in self.__dataclass_fields__})
 
 
-def _is_plain(value: Any) -> bool:
-    """Whether a field value is already the validated form: ``None``, a str or number, or (nested) tuples."""
-    if value is None or isinstance(value, (str, int, float)):
-        return True
-    return isinstance(value, tuple) and all(_is_plain(v) for v in value)
+#: Set while :func:`parse_model` builds a ModelSpec from values it validated.
+_VALIDATING: list = []
 
 
 def _as_plain(value: Any) -> Any:
@@ -172,20 +169,18 @@ def _as_plain(value: Any) -> Any:
 
 def _table(v: dict[str, Any]) -> dict[str, Any]:
     """The model file's table of ModelSpec field values ``v`` (by field name)."""
-    table: dict[str, Any] = {
-        "name": v["name"], "dt": v["dt"], "A": [list(r) for r in v["A"]], "B": [list(r) for r in v["B"]],
-        "position": list(v["position"]), "residual": list(v["residual"]), "gp_inputs": list(v["gp_inputs"]),
-        "input_bound": {**({} if v["input_norm"] is None else {"norm": v["input_norm"]}),
-                        **({} if v["input_box"] is None else {"box": list(v["input_box"])})},
-    }
+    table: dict[str, Any] = {key: v[key] for key in ("name", "dt", "A", "B", "position", "residual", "gp_inputs")
+                             if v[key] is not None}  # parse_model names what is missing or malformed
+    table["input_bound"] = {**({} if v["input_norm"] is None else {"norm": v["input_norm"]}),
+                            **({} if v["input_box"] is None else {"box": v["input_box"]})}
     if v["state_bound_norm"] is not None:
-        table["state_bound"] = {"indices": list(v["state_bound_indices"]), "norm": v["state_bound_norm"]}
+        table["state_bound"] = {"indices": v["state_bound_indices"], "norm": v["state_bound_norm"]}
     if v["state_box_indices"] is not None:
-        table["state_box"] = {"indices": list(v["state_box_indices"]), "lower": list(v["state_box_lower"]),
-                              "upper": list(v["state_box_upper"])}
+        table["state_box"] = {"indices": v["state_box_indices"], "lower": v["state_box_lower"],
+                              "upper": v["state_box_upper"]}
     if v["state_rows_G"] is not None:
-        table["state_rows"] = {"G": [list(r) for r in v["state_rows_G"]], "h": list(v["state_rows_h"])}
-    return table
+        table["state_rows"] = {"G": v["state_rows_G"], "h": v["state_rows_h"]}
+    return _as_plain(table)
 
 
 def single_integrator(dim: int, u_max: float, b: float = 0.1) -> ModelSpec:
@@ -288,10 +283,14 @@ def parse_model(data: dict[str, Any], where: str = "model") -> ModelSpec:
     sb_idx, sb_norm = _state_bound(data.get("state_bound"), n, where)
     box_idx, box_lo, box_hi = _state_box(data.get("state_box"), n, where)
     rows_G, rows_h = _state_rows(data.get("state_rows"), n, where)
-    return ModelSpec(name=str(data.get("name", Path(where).stem)), dt=dt, A=A, B=B, position=position,
-                     residual=residual, gp_inputs=gp_inputs, input_norm=norm, input_box=box,
-                     state_bound_indices=sb_idx, state_bound_norm=sb_norm, state_box_indices=box_idx,
-                     state_box_lower=box_lo, state_box_upper=box_hi, state_rows_G=rows_G, state_rows_h=rows_h)
+    _VALIDATING.append(True)
+    try:
+        return ModelSpec(name=str(data.get("name", Path(where).stem)), dt=dt, A=A, B=B, position=position,
+                         residual=residual, gp_inputs=gp_inputs, input_norm=norm, input_box=box,
+                         state_bound_indices=sb_idx, state_bound_norm=sb_norm, state_box_indices=box_idx,
+                         state_box_lower=box_lo, state_box_upper=box_hi, state_rows_G=rows_G, state_rows_h=rows_h)
+    finally:
+        _VALIDATING.pop()
 
 
 def _rows(m: list[list[float]]) -> tuple[tuple[float, ...], ...]:

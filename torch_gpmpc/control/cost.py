@@ -23,16 +23,21 @@ from torch import Tensor
 from torch_gpmpc.errors import GpmpcError
 
 
-def _as_weight(value, size: int, name: str, *, dtype: torch.dtype, where: str = "QuadraticCost.") -> Tensor:
+def _as_weight(value, size: int, name: str, *, dtype: torch.dtype, where: str = "QuadraticCost.",
+               unit: str = "states") -> Tensor:
     """A (size, size) symmetric positive semidefinite weight from a matrix, a vector (its diagonal)
     or a number (times I); raises naming ``name`` otherwise."""
-    t = torch.as_tensor(value, dtype=dtype) if not isinstance(value, Tensor) else value.to(dtype)
+    try:
+        t = torch.as_tensor(value, dtype=dtype) if not isinstance(value, Tensor) else value.to(dtype)
+    except (TypeError, ValueError, RuntimeError):
+        raise GpmpcError(f"{where}{name} must be a number, a vector (the diagonal) or a matrix of numbers; got "
+                         f"{value!r}") from None
     if t.dim() == 0:
         t = t * torch.eye(size, dtype=dtype)
     elif t.dim() == 1:
         if t.shape[0] != size:
             raise GpmpcError(f"{where}{name}: a diagonal of {size} entries is needed (the model has "
-                             f"{size}), got {t.shape[0]}")
+                             f"{size} {unit}), got {t.shape[0]}")
         t = torch.diag_embed(t)
     if tuple(t.shape) != (size, size):
         raise GpmpcError(f"{where}{name} must be ({size}, {size}), a diagonal of {size} or a number; "
@@ -46,19 +51,55 @@ def _as_weight(value, size: int, name: str, *, dtype: torch.dtype, where: str = 
     if smallest < -1e-9 * max(1.0, float(d.abs().max())):
         raise GpmpcError(f"{where}{name} must be positive semidefinite (smallest eigenvalue "
                          f"{smallest:.3g})")
-    return t
+    return 0.5 * (t + t.mT)  # symmetric in value already; so are its gradients
+
+
+class _RiccatiSolution(torch.autograd.Function):
+    """The stabilizing DARE solution P(Q, R) of a fixed (A, B), differentiable in Q and R.
+
+    Its differential is ``dP = A_cl^T dP A_cl + dQ + K^T dR K`` (``K = (R + B^T P B)^{-1} B^T P A``,
+    ``A_cl = A - B K``): a discrete Lyapunov equation, so the vector-Jacobian product solves its adjoint
+    ``Y = A_cl Y A_cl^T + G`` and gives ``dL/dQ = Y``, ``dL/dR = K Y K^T``.
+    """
+
+    @staticmethod
+    def forward(ctx, Q: Tensor, R: Tensor, A: Tensor, B: Tensor) -> Tensor:  # noqa: D102
+        import scipy.linalg
+
+        a, b, q, r = (np.asarray(t.detach().cpu().double().numpy()) for t in (A, B, Q, R))
+        try:
+            p = scipy.linalg.solve_discrete_are(a, b, q, r)
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            raise GpmpcError(f"no LQR terminal weight for this model ({exc}); give the cost's P explicitly, or "
+                             f"terminal_cost=stage") from None
+        p = 0.5 * (p + p.T)
+        k = np.linalg.solve(r + b.T @ p @ b, b.T @ p @ a)
+        ctx.closed_loop, ctx.gain, ctx.dtypes = a - b @ k, k, (Q.dtype, R.dtype)
+        return torch.as_tensor(p, dtype=torch.float64, device=Q.device)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):  # noqa: D102
+        import scipy.linalg
+
+        g = grad.detach().cpu().double().numpy()
+        y = scipy.linalg.solve_discrete_lyapunov(ctx.closed_loop, 0.5 * (g + g.T))
+        k, (q_type, r_type) = ctx.gain, ctx.dtypes
+        return (torch.as_tensor(y, dtype=q_type, device=grad.device),
+                torch.as_tensor(k @ y @ k.T, dtype=r_type, device=grad.device), None, None)
 
 
 def lqr_terminal_weight(A: Tensor, B: Tensor, Q: Tensor, R: Tensor) -> Tensor:
     """The infinite-horizon LQR cost-to-go ``P`` of ``x' = A x + B u`` with weights Q, R: the
     stabilizing solution of the discrete algebraic Riccati equation
-    ``P = Q + A^T P A - A^T P B (R + B^T P B)^{-1} B^T P A`` (scipy's ``solve_discrete_are``).
+    ``P = Q + A^T P A - A^T P B (R + B^T P B)^{-1} B^T P A`` (scipy's ``solve_discrete_are``),
+    differentiable with respect to Q and R (implicitly, through the Riccati equation's Lyapunov
+    differential).
 
     Args:
         A: (n, n). B: (n, m). Q: (n, n) PSD. R: (m, m) positive definite.
 
     Returns:
-        P, shape (n, n), float64 (a constant: not differentiable).
+        P, shape (n, n), float64.
 
     Raises:
         GpmpcError: when R is singular or the pair (A, B) admits no stabilizing solution.
@@ -69,15 +110,7 @@ def lqr_terminal_weight(A: Tensor, B: Tensor, Q: Tensor, R: Tensor) -> Tensor:
         >>> round(float(P), 6)  # p^2 - p - 0.1 = 0
         1.091608
     """
-    import scipy.linalg
-
-    a, b, q, r = (np.asarray(t.detach().cpu().double().numpy()) for t in (A, B, Q, R))
-    try:
-        p = scipy.linalg.solve_discrete_are(a, b, q, r)
-    except (np.linalg.LinAlgError, ValueError) as exc:
-        raise GpmpcError(f"QuadraticCost: no LQR terminal weight for this model ({exc}); give P "
-                         f"explicitly") from None
-    return torch.as_tensor(0.5 * (p + p.T), dtype=torch.float64)
+    return _RiccatiSolution.apply(Q, R, A, B)
 
 
 @dataclass
@@ -120,10 +153,10 @@ class QuadraticCost:
         validated (raises :class:`GpmpcError` naming ``<where><field>``); ``nominal`` is a
         :class:`~torch_gpmpc.dynamics.systems.NominalModel` (its A and B give the LQR ``P``)."""
         dtype = torch.float64
-        A, B = nominal.A(dtype), nominal.B(dtype)
+        A, B = nominal.A(dtype), nominal.B(dtype)  # constants: the cost's gradients are Q's, R's, P's
         n, m = A.shape[0], B.shape[1]
         Q = _as_weight(self.Q, n, "Q", dtype=dtype, where=where)
-        R = _as_weight(self.R, m, "R", dtype=dtype, where=where)
+        R = _as_weight(self.R, m, "R", dtype=dtype, where=where, unit="inputs")
         if float(torch.linalg.eigvalsh(R.detach()).min()) <= 0.0:
             raise GpmpcError(f"{where}R must be positive definite (every input needs a weight > 0)")
         P = lqr_terminal_weight(A, B, Q, R) if self.P is None else _as_weight(self.P, n, "P", dtype=dtype,
@@ -131,8 +164,11 @@ class QuadraticCost:
         if self.u_ref is None:
             u_ref = torch.zeros(m, dtype=dtype)
         else:
-            u_ref = torch.as_tensor(self.u_ref, dtype=dtype) if not isinstance(self.u_ref, Tensor) \
-                else self.u_ref.to(dtype)
+            try:
+                u_ref = torch.as_tensor(self.u_ref, dtype=dtype) if not isinstance(self.u_ref, Tensor) \
+                    else self.u_ref.to(dtype)
+            except (TypeError, ValueError, RuntimeError):
+                raise GpmpcError(f"{where}u_ref must be {m} numbers (one per input), got {self.u_ref!r}") from None
             if tuple(u_ref.shape) != (m,) or not bool(torch.isfinite(u_ref.detach()).all()):
                 raise GpmpcError(f"{where}u_ref must be {m} finite numbers (one per input), got shape "
                                  f"{tuple(u_ref.shape)}")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -164,21 +165,46 @@ def cost_weights(cost: QuadraticCost | list[QuadraticCost] | None, settings: Con
                  nominal: NominalModel) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
     """The tracking cost's weights ``(Q, R, P, u_ref)`` with a leading agent axis (1 row for a cost shared
     by all, else one per agent id), or ``None`` for the paper's cost (no cost stated, ``terminal_cost =
-    stage``): see :class:`LocalStep`'s ``cost``."""
+    stage``): see :class:`LocalStep`'s ``cost``. A cost without P gets the terminal weight of
+    ``settings.terminal_cost``.
+
+    Raises:
+        GpmpcError: a cost given both ways, not a :class:`QuadraticCost`, or weights that do not fit the model.
+    """
+    table = settings.cost
+    if cost is not None and table is not None:
+        raise GpmpcError("the cost is given twice, as the settings' cost table and as cost=QuadraticCost(...); "
+                         "keep one")
     if cost is None:
-        table = settings.cost
         if table is None and settings.terminal_cost == "stage":
             return None
-        Q, R = (1.0, settings.alpha) if table is None else (table.Q, table.R)
-        P = None if table is None else table.P
-        cost = QuadraticCost(Q=Q, R=R, P=P, u_ref=None if table is None else table.u_ref)
-        where = "QuadraticCost." if table is None else "config key 'cost', entry "
-        if cost.P is None and settings.terminal_cost == "stage":
-            cost = dataclasses.replace(cost, P=cost.Q)
-        return tuple(w.unsqueeze(0) for w in cost.resolve(nominal, where))  # type: ignore[return-value]
-    if isinstance(cost, QuadraticCost):
-        return tuple(w.unsqueeze(0) for w in cost.resolve(nominal))  # type: ignore[return-value]
-    return tuple(torch.stack(ws) for ws in zip(*(c.resolve(nominal) for c in cost)))  # type: ignore[return-value]
+        costs = [QuadraticCost(Q=1.0, R=settings.alpha) if table is None else
+                 QuadraticCost(Q=table.Q, R=table.R, P=table.P, u_ref=table.u_ref)]
+        where = ["the default cost (Q = I, R = alpha I): " if table is None else "config key 'cost', entry "]
+    else:
+        costs = [cost] if isinstance(cost, QuadraticCost) else list(cost) if isinstance(cost, (list, tuple)) else None
+        if costs is None or not costs or not all(isinstance(c, QuadraticCost) for c in costs):
+            raise GpmpcError(f"cost must be a QuadraticCost or a list of them (one per agent), got "
+                             f"{type(cost).__name__}; a table {{Q, R, P, u_ref}} goes in the settings' cost")
+        where = ["QuadraticCost."] if len(costs) == 1 else [f"the cost of agent {k}: QuadraticCost."
+                                                              for k in range(len(costs))]
+    resolved = []
+    for c, at in zip(costs, where):
+        if c.P is None and settings.terminal_cost == "stage":
+            c = dataclasses.replace(c, P=c.Q)
+        resolved.append(c.resolve(nominal, at))
+    return tuple(torch.stack(ws) for ws in zip(*resolved))  # type: ignore[return-value]
+
+
+def cost_version(cost: QuadraticCost | list[QuadraticCost] | None) -> tuple | None:
+    """What identifies a stated cost's current values: its tensors' identities and versions (an in-place
+    change is seen), or ``None`` when gradients must reach them (resolve anew, into a new graph)."""
+    costs = [] if cost is None else [cost] if isinstance(cost, QuadraticCost) else list(cost)
+    tensors = [v for c in costs if isinstance(c, QuadraticCost) for v in (c.Q, c.R, c.P, c.u_ref)
+               if isinstance(v, Tensor)]
+    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        return None
+    return tuple(id(c) for c in costs) + tuple((id(t), t._version) for t in tensors)
 
 
 def as_nominal(model: NominalModel | ModelSpec) -> NominalModel:
@@ -256,9 +282,15 @@ class LocalStep:
         self.wind = wind
         self.gps = gps
         self.cost = cost
+        if cost is not None and self.settings.alpha != ControllerSettings.alpha \
+                and self.settings.uncertainty != "feedback":
+            warnings.warn("controller setting 'alpha' is ignored under cost=QuadraticCost(...): the cost's R "
+                          "replaces alpha I", UserWarning, stacklevel=3)
         #: the cost's weights ``(Q, R, P, u_ref)``, one row per agent id (or one row for all), or
-        #: ``None``: the default ``||X - Xref||^2 + alpha ||U||^2``
+        #: ``None``: the default ``||X - Xref||^2 + alpha ||U||^2`` (refreshed by :meth:`cost_rows` when the
+        #: cost's tensors change in place or need gradients)
         self.cost_weights = cost_weights(cost, self.settings, self.nominal)
+        self._cost_key = cost_version(cost)
         self._cost_rows: dict = {}  # cost_rows' tensors of the last agents asked for
         #: the covariance model in use (``settings.uncertainty`` with ``auto`` resolved for the model)
         self.uncertainty = self.settings.uncertainty_for(self.nominal.spec)
@@ -284,9 +316,13 @@ class LocalStep:
         (int64 (B,)) in ``like``'s dtype and device; empty for the default cost."""
         if self.cost_weights is None:
             return {}
+        version = cost_version(self.cost)
+        if version is None or version != self._cost_key:  # changed in place, or gradients wanted: resolve anew
+            self.cost_weights, self._cost_key, self._cost_rows = cost_weights(self.cost, self.settings,
+                                                                              self.nominal), version, {}
         # the same tensor objects for the same agents: the solver's caches key on them
         key = (tuple(agent_ids.tolist()), like.dtype, like.device)
-        if key not in self._cost_rows or any(w.requires_grad for w in self.cost_weights):
+        if key not in self._cost_rows or version is None:
             B = agent_ids.shape[0]
             rows = [w.expand(B, *w.shape[1:]) if w.shape[0] == 1 else w[agent_ids] for w in self.cost_weights]
             self._cost_rows = {key: dict(zip(("cost_Q", "cost_R", "cost_P", "u_ref"), (w.to(like) for w in rows)))}

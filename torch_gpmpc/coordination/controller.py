@@ -84,7 +84,7 @@ class Controller:
                              "use settings.method='nominal' for none")
         gps = None if gps is None else list(gps)
         team = team_spec([as_nominal(m).spec for m in models]) if len(models) > 1 else None
-        if cost is not None and not isinstance(cost, QuadraticCost):
+        if isinstance(cost, tuple):
             cost = list(cost)
         if team is not None and team.is_mixed:
             if cost is not None:
