@@ -42,8 +42,12 @@ def test_readme_main_command_runs_a_short_paper_scenario(tmp_path):
     assert sorted(p.name for p in (out / "figures").iterdir())
 
 
+def _python_snippets(path: Path) -> list[str]:
+    return re.findall(r"```python\n(.+?)\n```", path.read_text(), flags=re.S)
+
+
 def _readme_python_snippets() -> list[str]:
-    return re.findall(r"```python\n(.+?)\n```", (ROOT / "README.md").read_text(), flags=re.S)
+    return _python_snippets(ROOT / "README.md")
 
 
 def test_readme_python_snippets_run_as_written(tmp_path, monkeypatch, capsys):
@@ -55,3 +59,15 @@ def test_readme_python_snippets_run_as_written(tmp_path, monkeypatch, capsys):
         exec(compile(code, f"README.md python snippet {i}", "exec"), {"__name__": f"readme_{i}"})
     out = capsys.readouterr().out
     assert "propagated" in out
+
+
+def test_the_docs_python_snippets_run_as_written(tmp_path, monkeypatch, capsys):
+    """Every ```python block of the docs' pages runs, in a fresh namespace, in an empty directory (the
+    tutorials run when the docs build)."""
+    monkeypatch.chdir(tmp_path)
+    ran = 0
+    for page in sorted((ROOT / "docs").rglob("*.md")):
+        for i, code in enumerate(_python_snippets(page)):
+            exec(compile(code, f"{page.relative_to(ROOT)} python snippet {i}", "exec"), {"__name__": f"docs_{i}"})
+            ran += 1
+    assert ran >= 3

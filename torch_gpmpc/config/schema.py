@@ -37,11 +37,10 @@ SCENARIOS = ("paper", "circle", "random", "forest", "doorway")
 @dataclass(frozen=True)
 class Config(ControllerSettings):
     """All tunable settings of a run: the controller's (:class:`ControllerSettings`) and the run's own.
-    Defaults are the paper scenario.
+    Defaults are the paper scenario. The controller's keys, from ``horizon`` to ``safety_fallback``, are
+    :class:`ControllerSettings`'s, which this class extends; its own are these.
 
     Attributes:
-        (the controller's keys, from ``horizon`` to ``safety_fallback``: :class:`ControllerSettings`,
-        which this class extends)
         u_max: bound on the Euclidean norm of each input.
         noise_std: standard deviation s of the process noise w ~ N(0, s^2 I).
         goal_tol: an agent has arrived when within this distance of its target.

@@ -60,8 +60,7 @@ class Rollout:
             in contact or methods without margins (``None`` in older files).
         obstacle_risk: each agent's summed bound on hitting an obstacle of its rows at the next
             sample, shape (S, K), NaN for methods without margins (``None`` without obstacles and
-            in older files).
-        (The last four are ``None`` in files written before they existed.)
+            in older files; the last four are ``None`` in files written before they existed).
         position: the state indices of the position (P of them); ``None``: every state.
         prediction_error: each agent's one-step GP prediction error of the residual it observed, shape
             (S, K, R) (``None`` without GPs; :class:`~torch_gpmpc.gp.online.OnlineLearning`).

@@ -1,0 +1,94 @@
+"""Pages generated when the docs build (mkdocs-gen-files): the configuration reference from the schema,
+the command-line reference from the argument parser, and the changelog from CHANGELOG.md."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from pathlib import Path
+
+import mkdocs_gen_files
+
+from torch_gpmpc.cli.parser import build_parser
+from torch_gpmpc.config.schema import CONFIG_CONDITIONS, RULES, Config
+from torch_gpmpc.config.settings import ControllerSettings
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def attribute_docs(cls: type) -> dict[str, str]:
+    """``name -> text`` of a class docstring's ``Attributes:`` entries (Google style)."""
+    doc = cls.__doc__ or ""
+    block = doc.split("Attributes:", 1)[1].split("\n    Example", 1)[0] if "Attributes:" in doc else ""
+    entries: dict[str, list[str]] = {}
+    current = None
+    for line in block.split("\n"):
+        m = re.match(r"^        ([a-z_0-9]+): (.*)$", line)
+        if m:
+            current = m.group(1)
+            entries[current] = [m.group(2)]
+        elif current is not None and line.strip():
+            entries[current].append(line.strip())
+    return {k: " ".join(v) for k, v in entries.items()}
+
+
+def cell(text: str) -> str:
+    text = re.sub(r":(?:class|meth|func|mod|data|attr):`~?([^`]*)`", lambda m: f"`{m.group(1).rsplit('.', 1)[-1]}`", text)
+    return text.replace("``", "`").replace("|", "\\|").replace("\n", " ")
+
+
+def type_name(field: dataclasses.Field) -> str:
+    return str(field.type).replace("typing.", "").replace("torch_gpmpc.config.", "")
+
+
+def allowed(name: str) -> str:
+    if name in RULES.choices:
+        return ", ".join(f"`{c}`" for c in RULES.choices[name])
+    if name in RULES.ranges:
+        return RULES.ranges[name][1]
+    return ""
+
+
+def applies(name: str) -> str:
+    rules = CONFIG_CONDITIONS.get(name, ())
+    return "; ".join(f"depends on `{r.by}` (else ignored, with a warning: {r.why})" for r in rules) or "always"
+
+
+def config_page() -> str:
+    docs = {**attribute_docs(Config), **attribute_docs(ControllerSettings)}
+    controller = set(ControllerSettings.__dataclass_fields__)
+    lines = ["# Configuration keys", "",
+             "Every key of a run, generated from the schema (`torch_gpmpc.config`). Keys are flat and the same in",
+             "a TOML/JSON/YAML file (`gpmpc run --config FILE`) and on the command line (`--set NAME=VALUE`);",
+             "an unknown key fails with the nearest valid one. A key that matters only under another key's value",
+             "says so in the last column; set while it does not apply, it warns, naming the key that decides.", ""]
+    for title, keys in (("Controller keys (also `ControllerSettings`)", [f for f in dataclasses.fields(Config)
+                                                                          if f.name in controller]),
+                        ("Run keys (`Config` only)", [f for f in dataclasses.fields(Config) if f.name not in controller])):
+        lines += [f"## {title}", "", "| key | type | default | allowed | applies | meaning |", "|---|---|---|---|---|---|"]
+        for f in keys:
+            default = f.default if f.default is not dataclasses.MISSING else ""
+            lines.append(f"| `{f.name}` | `{cell(type_name(f))}` | `{default!r}` | {cell(allowed(f.name))} | "
+                         f"{cell(applies(f.name))} | {cell(docs.get(f.name, ''))} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def cli_page() -> str:
+    import argparse
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    lines = ["# Command line", "", "`gpmpc --help` and every command's `--help`, as they print.", "",
+             "```text", parser.format_help().rstrip(), "```", ""]
+    for name, p in sub.choices.items():
+        lines += [f"## `gpmpc {name}`", "", "```text", p.format_help().rstrip(), "```", ""]
+    return "\n".join(lines)
+
+
+with mkdocs_gen_files.open("reference/config.md", "w") as f:
+    f.write(config_page())
+with mkdocs_gen_files.open("reference/cli.md", "w") as f:
+    f.write(cli_page())
+with mkdocs_gen_files.open("changelog.md", "w") as f:
+    f.write((ROOT / "CHANGELOG.md").read_text())
