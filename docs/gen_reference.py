@@ -86,6 +86,47 @@ def cli_page() -> str:
     return "\n".join(lines)
 
 
+TRANSITIONS_COMMAND = """gpmpc benchmark --scenario random --agents 4,8,20 --seeds 3 --set model=examples/transition/di3d.toml \\
+  --set 'workspace={"min": [-0.97, -0.97, -0.97], "max": [0.97, 0.97, 0.97]}' --set r_safe=0.35 \\
+  --set min_separation=0.35 --set horizon=15 --set reference=target --set method=nominal \\
+  --set noise_std=0 --set wind_scale=0 --set pair_buffer=0.001 --workers 1 --out DIR"""
+
+
+def transitions_page() -> str:
+    """Today's random 3D transitions, from the benchmark.csv files the command wrote (docs/benchmarks/data)."""
+    import csv
+    from statistics import mean
+
+    def rows(name: str) -> list[dict]:
+        return list(csv.DictReader((ROOT / "docs" / "benchmarks" / "data" / name).read_text().splitlines()))
+
+    lines = ["# Random 3D transitions", "",
+             "The random-transition setting of the DMPC line of work (3D double integrators at dt 0.2, a per-axis",
+             "acceleration bound 1, starts and goals in a cube of side 1.59 m, r_safe 0.35, horizon 15, reference =",
+             "target, noiseless), with the default cost (its terminal weight the LQR cost-to-go) and with the paper's",
+             "cost (`--set terminal_cost=stage`). The tables are generated from the `benchmark.csv` files the command",
+             "wrote (`docs/benchmarks/data/`), measured on this project's 2-core machine, one worker:", "",
+             "```bash", TRANSITIONS_COMMAND, "```", ""]
+    for title, name in (("default cost (`terminal_cost = lqr`)", "transitions_default.csv"),
+                        ("the paper's cost (`terminal_cost = stage`)", "transitions_paper_cost.csv")):
+        data = rows(name)
+        lines += [f"## {title}", "", "| agents | runs | success | transition time, mean over all runs (s) | closest pair (worst) | "
+                  "compute per agent-step (ms) |", "|---|---|---|---|---|---|"]
+        for agents in sorted({int(r["agents"]) for r in data}):
+            group = [r for r in data if int(r["agents"]) == agents]
+            ok = [r for r in group if r["success"] == "True"]
+            times = [float(r["transition_time_s"]) for r in group if r["transition_time_s"]]
+            lines.append(f"| {agents} | {len(group)} | {100 * len(ok) / len(group):.0f} % | {mean(times):.2f} | "
+                         f"{min(float(r['min_pair_distance']) for r in group):.4f} | "
+                         f"{mean(float(r['compute_ms_per_agent_step']) for r in group):.1f} |")
+        lines.append("")
+    lines += ["Every failure of both is a pair closer than r_safe by less than 1 mm: ADMM's consensus tolerance",
+              "(see [Benchmark](benchmark.md) for `pair_buffer` and the tolerances).", ""]
+    return "\n".join(lines)
+
+
+with mkdocs_gen_files.open("benchmarks/transitions.md", "w") as f:
+    f.write(transitions_page())
 with mkdocs_gen_files.open("reference/config.md", "w") as f:
     f.write(config_page())
 with mkdocs_gen_files.open("reference/cli.md", "w") as f:

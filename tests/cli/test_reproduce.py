@@ -24,7 +24,7 @@ def test_short_reproduction_writes_every_file_and_resumes(tmp_path, capsys):
     for name in FIGURES:
         data = (out / "figures" / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n", name
-    rows = list(csv.DictReader((out / "table.csv").open()))
+    rows = list(csv.DictReader((out / "table.csv").read_text().splitlines()))
     assert [r["method"] for r in rows] == [*METHODS, SOUND_LABEL]  # the paper's six, then the sound one
     assert all(r["runs"] == "1" for r in rows)
     md = (out / "table.md").read_text()

@@ -105,7 +105,7 @@ def _one_agent_problem(solver: str, variance: float | None):
     the straight line: the local problem with its obstacle rows."""
     settings = ControllerSettings(horizon=6, method="gp-chance" if variance else "nominal", solver=solver,
                                   margin_variance="latent", obstacles=[{"center": [0.6, 0.05], "radius": 0.3}],
-                                  obstacle_eps=0.05, obstacle_rows=2, terminal_cost="stage")
+                                  obstacle_rows=2, terminal_cost="stage", **({"obstacle_eps": 0.05} if variance else {}))
     gps = [ConstantVarianceGP(variance)] if variance else None
     step = LocalStep(settings, ModelSpec.single_integrator(2), gps=gps)
     x0 = t([0.0, 0.0])

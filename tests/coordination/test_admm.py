@@ -100,7 +100,8 @@ def test_admm_matches_centralized_solution(method, pair_margin):
     # demand the dual residual too.
     cfg = Config(horizon=6, rho=5.0, admm_tol=1e-7, admm_dual_tol=1e-7, admm_rel_tol=0.0, admm_max_iter=1500,
                  relinearize=False,
-                 eps=0.1, risk_split=0.3, noise_std=0.0, pair_margin=pair_margin, terminal_cost="stage")
+                 eps=0.1, noise_std=0.0, pair_margin=pair_margin, terminal_cost="stage",
+                 **({} if pair_margin == "joint" else {"risk_split": 0.3}))  # joint has no split
     x0 = torch.tensor([[-0.6, 0.0], [0.6, 0.1], [0.0, 0.9]], dtype=torch.float64)
     xref = torch.stack([torch.linspace(0, 1, 7, dtype=torch.float64)[:, None] * (-x0[k] * 2) + x0[k] for k in range(3)])
     wind = VortexWind(0.1)

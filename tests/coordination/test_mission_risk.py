@@ -177,8 +177,8 @@ def test_obstacle_rows_are_charged_to_the_budget_through_the_controller():
 
     def controller(mode):
         return Controller(model, gps=gps, settings=ControllerSettings(
-            horizon=8, risk_mode=mode, risk_budget=0.05, risk_pacing=10, obstacles=disc, obstacle_rows=1,
-            obstacle_eps=0.01))
+            horizon=8, risk_mode=mode, obstacles=disc, obstacle_rows=1,
+            **({"risk_budget": 0.05, "risk_pacing": 10} if mode == "mission" else {"obstacle_eps": 0.01})))
 
     rows = {mode: controller(mode).step(x, xref).problem.halfspace_bounds for mode in ("pair_step", "mission")}
     ctrl = controller("mission")

@@ -52,5 +52,7 @@ def test_a_worker_ends_when_the_process_that_started_it_is_killed(tmp_path):
         assert not _alive(worker)
     finally:
         parent.kill()
+        parent.wait(timeout=30)
+        parent.stdout.close()
         if worker is not None and _alive(worker):
             os.kill(worker, 9)

@@ -113,7 +113,7 @@ def test_tuned_parameters_beat_defaults_on_heldout_seeds():
     assert tuned < 1.1 * grid_heldout, (tuned, grid_heldout)
     assert grid["evaluations"] == 8 and train.evaluations == 6 + 8
     assert grid_heldout < default
-    assert float(params.rho()) < 20.0
+    assert float(params.rho().detach()) < 20.0
 
 
 def test_split_moves_risk_to_the_uncertain_agent_and_equalizes_margins():
@@ -133,7 +133,7 @@ def test_split_moves_risk_to_the_uncertain_agent_and_equalizes_margins():
     params = TuningParameters(2, rho=5.0, split=0.5)
     tuner = Tuner(objective, params, TuneSettings(tune_rho=False, lr=0.5, lr_decay=0.88))
     tuner.run(20)
-    s_tuned = float(params.split()[0, 1])
+    s_tuned = float(params.split()[0, 1].detach())
     s_star = equalizing_split(sigma[0], sigma[1], cfg.eps)
     assert 0.04 < s_star < 0.05
     assert s_tuned < 0.5  # eps_1 = eps (1 - s) > eps_0: risk moved to the uncertain agent

@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import warnings
 
 from torch_gpmpc.cli.cached_runs import parse_list, run_uncached
 from torch_gpmpc.errors import GpmpcError
@@ -28,7 +29,9 @@ def main(args) -> int:
     from torch_gpmpc.sim.metrics import compute_metrics
     from torch_gpmpc.sim.rollout import Rollout
 
-    cfg = config_from_args(args)
+    with warnings.catch_warnings():  # keys for one scenario only (min_separation, num_obstacles): no warning
+        warnings.simplefilter("ignore", UserWarning)
+        cfg = config_from_args(args)
     agents = parse_list(args.agents, int, "agents")
     if not agents or min(agents) < 1:
         raise GpmpcError(f"--agents: give team sizes >= 1, got {args.agents!r}")

@@ -238,8 +238,13 @@ class Config(ControllerSettings):
         return self.model_spec().position_dim
 
     def replace(self, **changes: Any) -> "Config":
-        """Return a copy with ``changes`` applied (same checks as loading)."""
-        return from_mapping({**self.to_dict(), **changes})
+        """Return a copy with ``changes`` applied (same checks as loading); of the keys a change leaves
+        ignored, only the changed ones warn (the rest warned when this configuration was built)."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            out = from_mapping({**self.to_dict(), **changes})
+        warn_ignored(out, {k: v for k, v in CONFIG_CONDITIONS.items() if k in changes}, "config key")
+        return out
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict of all keys (JSON-serializable; a :class:`ModelSpec` becomes its model table)."""

@@ -14,6 +14,7 @@ configuration layer never imports a later layer.
 from __future__ import annotations
 
 import typing
+import warnings
 from dataclasses import dataclass
 
 from torch_gpmpc.config.cost_table import TERMINAL_COSTS, CostTable
@@ -238,8 +239,13 @@ class ControllerSettings:
         warn_ignored(self, CONTROLLER_CONDITIONS, "controller setting")
 
     def replace(self, **changes: typing.Any) -> "ControllerSettings":
-        """A copy with ``changes`` applied (same checks; unknown keys name the nearest one)."""
-        return build(ControllerSettings, {**self.__dict__, **changes}, RULES)
+        """A copy with ``changes`` applied (same checks; unknown keys name the nearest one); of the keys a
+        change leaves ignored, only the changed ones warn."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            out = build(ControllerSettings, {**self.__dict__, **changes}, RULES)
+        warn_ignored(out, {k: v for k, v in CONTROLLER_CONDITIONS.items() if k in changes}, "controller setting")
+        return out
 
     def check_team(self, num_agents: int, where: str = "controller setting") -> None:
         """Refuse ``radii`` whose length is not the team size K."""

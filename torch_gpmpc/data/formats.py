@@ -70,7 +70,9 @@ def _read_npz(path: Path, src: str):
         raise source_error(src, "cannot be read as .npz (corrupt or truncated?): not a zip archive; "
                     "write it with numpy.savez")
     try:
-        with np.load(path, allow_pickle=False) as data:
+        # the file opened here, so that it is closed when numpy cannot read it (np.load leaks its own
+        # handle when the archive is corrupt)
+        with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as data:
             names = set(data.files)
             missing = [k for k in ARRAYS if k not in names]
             if missing:

@@ -159,7 +159,8 @@ class Rollout:
     def load(cls, path: str | Path) -> "Rollout":
         """Read a ``rollout.npz`` written by :meth:`save` (no pickle is ever loaded)."""
         try:
-            with np.load(path, allow_pickle=False) as data:
+            # opened here: np.load leaks its own handle when the archive is corrupt
+            with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}
             meta = json.loads(str(arrays.pop("meta_json")))
             return cls(**arrays, method=meta["method"], seed=meta["seed"],
