@@ -8,7 +8,7 @@ tracking cost over the horizon T is::
 
 (``x_0`` is measured, so its term is a constant). Without a stated cost the package uses
 ``Q = I``, ``R = alpha I`` and, by default, the LQR cost-to-go of the nominal model as ``P``
-(:func:`lqr_terminal_weight`); the paper's own cost is ``P = Q`` (:meth:`QuadraticCost.paper`).
+(:func:`lqr_terminal_weight`); the paper's own cost is ``P = Q`` (``terminal_cost = stage``).
 The input-rate term, the slack penalties and the ADMM terms are added on top by the solvers.
 """
 
@@ -141,12 +141,6 @@ class QuadraticCost:
     R: object
     P: object = None
     u_ref: object = None
-
-    @classmethod
-    def paper(cls, n: int, m: int, alpha: float) -> "QuadraticCost":
-        """The paper's cost ``||X - Xref||^2 + alpha ||U||^2``: Q = P = I (n), R = alpha I (m)."""
-        return cls(Q=torch.eye(n, dtype=torch.float64), R=alpha * torch.eye(m, dtype=torch.float64),
-                   P=torch.eye(n, dtype=torch.float64))
 
     def resolve(self, nominal, where: str = "QuadraticCost.") -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The weights for a model: ``(Q (n, n), R (m, m), P (n, n), u_ref (m,))``, float64,

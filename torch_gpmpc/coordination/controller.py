@@ -84,8 +84,6 @@ class Controller:
                              "use settings.method='nominal' for none")
         gps = None if gps is None else list(gps)
         team = team_spec([as_nominal(m).spec for m in models]) if len(models) > 1 else None
-        if isinstance(cost, tuple):
-            cost = list(cost)
         if team is not None and team.is_mixed:
             if cost is not None:
                 raise GpmpcError("Controller: cost= takes one model's sizes; a mixed team uses the settings' cost "

@@ -117,8 +117,8 @@ def stated_cost_terms(data: LocalProblemData, G: Tensor, h: Tensor, alpha: float
     err = (h - data.xref[:, 1:].reshape(batch, T * D)).view(batch, T, D)
     Werr = torch.einsum("btde,bte->btd", W, err).reshape(batch, T * D)
     dR = data.cost_R.to(G) - alpha * eye_u  # (B, Du, Du)
-    blocks = torch.block_diag(*[torch.ones(Du, Du, dtype=G.dtype, device=G.device)] * T)  # (n, n) 0/1
-    Rbar = dR.repeat(1, T, T) * blocks
+    eye_t = torch.eye(T, dtype=G.dtype, device=G.device)
+    Rbar = torch.einsum("ts,bij->btisj", eye_t, dR).reshape(batch, n, n)  # blockdiag(dR, .., dR)
     H = 2.0 * G.mT @ WG + 2.0 * Rbar
     g = 2.0 * (G.mT @ Werr[..., None])[..., 0]
     if data.u_ref is not None:

@@ -376,11 +376,12 @@ def stated_cost_parameters(data: LocalProblemData, terms: ConsensusTerms) -> lis
     B, T, D = data.xref.shape[0], data.xref.shape[1] - 1, data.xref.shape[2]
     Q, R, P = data.cost_Q.to(data.xref), data.cost_R.to(data.xref), data.cost_P.to(data.xref)
     eye = torch.eye(D, dtype=Q.dtype, device=Q.device)
-    W = horizon_weights(Q, P, T) + (terms.c_x - 1.0)[:, None, None, None] * eye
+    stage = horizon_weights(Q, P, T)  # Q_t, (B, T, D, D)
+    W = stage + (terms.c_x - 1.0)[:, None, None, None] * eye
     jitter = 1e-12 * (1.0 + W.detach().abs().amax(dim=(-2, -1), keepdim=True))
     L = torch.linalg.cholesky(W + jitter * eye)  # (B, T, D, D)
     w_own = terms.w_own.sum(dim=1)[:, 1:]  # (B, T, D)
-    linear = (horizon_weights(Q, P, T) @ data.xref[:, 1:, :, None])[..., 0] + 0.5 * w_own  # Q_t r_t + w_t / 2
+    linear = (stage @ data.xref[:, 1:, :, None])[..., 0] + 0.5 * w_own  # Q_t r_t + w_t / 2
     f_x = torch.linalg.solve_triangular(L, linear[..., None], upper=False)[..., 0]
     F = L.mT  # F_t = L^T; column e of F_t for every t
     L_R = torch.linalg.cholesky(R)

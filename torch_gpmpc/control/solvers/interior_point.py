@@ -64,7 +64,7 @@ def _stationarity_vjp(arrays: list[np.ndarray], u: np.ndarray, y: np.ndarray, zc
         u, a_u (B, n); y, a_y (B, R, D); zc, xi (B, R) (R = M T); zv, xi_v (B, Ts), Ts = T or 0.
 
     Returns:
-        The nine gradients, shaped like ``arrays``.
+        The ten gradients, shaped like ``arrays``.
     """
     G, h, c_x, _, _, _, normals, _, _, _ = arrays
     B, M, T, D = normals.shape
