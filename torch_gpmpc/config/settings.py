@@ -125,7 +125,8 @@ class ControllerSettings:
             ``propagated`` (covariance pushed open loop through the linearized dynamics) or
             ``feedback`` (pushed through them under the LQR feedback of the nominal model, as
             tube MPC does: bounded instead of growing like sqrt(tau)).
-        rho: ADMM penalty rho > 0.
+        rho: ADMM penalty rho > 0; with ``admm_coupling = planes`` the inverse of a plane's first
+            step (``c`` moves by ``(mu_lo - mu_hi) / (2 rho)``).
         rho_update: ``adaptive`` (residual balancing per edge, Boyd et al. 2011 §3.4.1: rho_e
             doubles when its primal residual ratio (residual over tolerance) exceeds 10x its
             dual one, halves in the opposite case; ``rho`` is the start, carried over by warm
@@ -143,8 +144,9 @@ class ControllerSettings:
             consensus and duals, :mod:`torch_gpmpc.coordination.acceleration`).
         admm_anderson_memory: how many past iterates the Anderson mix uses.
         admm_coupling: what neighbours agree on: ``copies`` (the paper's copies of the pair's
-            trajectories) or ``planes`` (a separating-plane offset per edge and horizon step;
-            :mod:`torch_gpmpc.coordination.planes`).
+            trajectories; a step is safe once they agree) or ``planes`` (a separating plane per
+            edge and horizon step, each agent keeping its own half: every iteration's plans are
+            jointly safe, so a step may stop at any iteration; :mod:`torch_gpmpc.coordination.planes`).
         relinearize: re-set linearization points from each ADMM iterate (Algorithm 1, step 9);
             false (default): linearize once per control step around the warm start, so ADMM
             converges on one convex problem (the paper's per-iterate rule keeps it moving).
@@ -281,7 +283,13 @@ CONTROLLER_CONDITIONS: dict[str, tuple[Applies, ...]] = {
     "admm_anderson_memory": (Applies("admm_acceleration", lambda s: s.admm_acceleration == "anderson",
                                      "it sizes the Anderson history"),),
     "admm_rel_tol": (Applies("admm_stop", lambda s: s.admm_stop == "primal-dual",
-                             "the paper's primal rule has absolute tolerances only"),),
+                             "the paper's primal rule has absolute tolerances only"),
+                     Applies("admm_coupling", lambda s: s.admm_coupling == "copies",
+                             "the planes' residual is absolute (how far a plane moves)")),
+    "rho_update": (Applies("admm_coupling", lambda s: s.admm_coupling == "copies",
+                           "the planes adapt each offset's step themselves"),),
+    "admm_dual_tol": (Applies("admm_coupling", lambda s: s.admm_coupling == "copies",
+                              "the planes have no dual residual"),),
     "solver_warm": (Applies("solver", lambda s: s.solver == "fast", "only the compiled solver keeps warm points"),),
     "admm_compiled": (Applies("solver", lambda s: s.solver == "fast", "only the compiled solver has them"),),
     "alpha": (Applies("cost", lambda s: s.cost is None or s.uncertainty == "feedback",

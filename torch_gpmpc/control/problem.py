@@ -183,6 +183,8 @@ class LocalSolution:
             not computed.
         solver_point: the solver's primal-dual points of this batch (opaque; the fast solver's),
             to pass as the next solve's ``guess`` (its warm start); ``None`` if the solver keeps none.
+        multipliers: the collision rows' multipliers, shape (B, M, T) (the fast solver's; NaN rows
+            where another solver answered); ``None`` where the solver does not report them.
 
     Example:
         >>> from torch_gpmpc import NominalModel, make_local_solver
@@ -204,6 +206,7 @@ class LocalSolution:
     failure_detail: str | None = None
     state_slack: Tensor | None = None
     solver_point: Any = None
+    multipliers: Tensor | None = None
 
 
 #: LocalProblemData fields that may be ``None``
@@ -232,7 +235,7 @@ def select_solution(solution: LocalSolution, rows: Tensor) -> LocalSolution:
     return LocalSolution(X=pick(solution.X), U=pick(solution.U), Y=pick(solution.Y), slack=pick(solution.slack),
                          slack_active=pick(solution.slack_active), ok=pick(solution.ok), cost=pick(solution.cost),
                          failure=pick(solution.failure), failure_detail=solution.failure_detail,
-                         state_slack=pick(solution.state_slack))
+                         state_slack=pick(solution.state_slack), multipliers=pick(solution.multipliers))
 
 
 def replace_rows(solution: LocalSolution, rows: Tensor, other: LocalSolution) -> LocalSolution:
@@ -245,7 +248,11 @@ def replace_rows(solution: LocalSolution, rows: Tensor, other: LocalSolution) ->
                          slack=put(solution.slack, other.slack), slack_active=put(solution.slack_active, other.slack_active),
                          ok=put(solution.ok, other.ok), cost=put(solution.cost, other.cost),
                          failure=put(solution.failure, other.failure), failure_detail=solution.failure_detail,
-                         state_slack=put(solution.state_slack, other.state_slack), solver_point=solution.solver_point)
+                         state_slack=put(solution.state_slack, other.state_slack), solver_point=solution.solver_point,
+                         multipliers=put(solution.multipliers, other.multipliers if other.multipliers is not None else
+                                         None if solution.multipliers is None else
+                                         solution.multipliers.new_full((len(rows), *solution.multipliers.shape[1:]),
+                                                                       float("nan"))))
 
 
 def planned_cost(data: LocalProblemData, X: Tensor, U: Tensor, xref: Tensor, alpha: float, beta: float) -> Tensor:

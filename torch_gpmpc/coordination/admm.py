@@ -23,9 +23,10 @@ fixed rho stops on a feasible consensus that is not yet optimal. With ``admm_acc
 anderson`` each iteration of a step starts from the Anderson mix of the last iterates' consensus
 and duals (:mod:`~torch_gpmpc.coordination.acceleration`).
 
-With ``admm_coupling = planes`` (:mod:`~torch_gpmpc.coordination.planes`) neighbours agree instead
-on one separating-plane offset per edge and horizon step: the same team problem, fewer iterations
-where many pairs are coupled, T numbers per message.
+With ``admm_coupling = planes`` (:mod:`~torch_gpmpc.coordination.planes`) neighbours share instead
+one separating plane per edge and horizon step, each keeping its own half, and move it by primal
+decomposition: the same team problem, T numbers per message, and plans that keep every pair at any
+iteration, so a capped step applies its last safe iterate rather than falling back.
 
 Messages: per iteration agent k sends its copy ``y_{e,k}`` (``2 (T+1) n`` numbers, n the
 model's state size) and, with the ``sum``/``joint`` margins, its T projected variances to each
@@ -67,8 +68,8 @@ from torch_gpmpc.coordination.mission_risk import (
     pair_risk_bounds, row_allotments, slot_risks_from_edges, starting_budgets,
 )
 from torch_gpmpc.coordination.planes import (
-    PlaneIterations, balance_plane_penalty, midpoint_planes, plane_consensus, plane_geometry, plane_offsets,
-    plane_problem, plane_residuals,
+    PlaneIterations, SafeIterates, end_multipliers, midpoint_planes, plane_geometry, plane_problem, plane_residuals, plane_update,
+    unsafe_ends,
 )
 from torch_gpmpc.coordination.penalty import (
     balance_penalty, edge_residuals, should_stop, starting_penalties, unconverged_edges,
@@ -233,7 +234,7 @@ class ADMM:
         state = initial_state(x0, s.horizon, graph, self.nominal.input_dim) if warm is None \
             else adapt_state(warm, graph)
         if state.planes is not None:  # a step's planes start from its own linearization
-            state = dataclasses.replace(state, planes=None)
+            state = dataclasses.replace(state, planes=None, plane_gradient=None, plane_rho=None)
         eps_edge = eps_obstacle = None
         if s.risk_mode == "mission":
             remaining = starting_budgets(graph.num_agents, s.risk_budget, x0) if state.risk_left is None \
@@ -318,10 +319,9 @@ class ADMM:
 
     def _iterate_planes(self, ctx: StepContext, state: ADMMState) -> tuple[ADMMState, IterationStats]:
         """:meth:`iterate` with ``admm_coupling = planes`` (:mod:`~.planes`): local solves on plane
-        halves, then each edge's plane consensus, duals and penalty. The iteration reports the
-        assembled problems (full rows: what the safety check and a centralized solve use)."""
+        halves at the agreed offsets, then each edge's plane step. The iteration reports the assembled
+        problems (full rows: what the safety check and a centralized solve use)."""
         s, graph = self.settings, ctx.graph
-        adaptive = s.rho_update == "adaptive"
         if state.planes is None:  # the step's first iteration: its rows read the step's own variances
             state = self._with_step_variances(ctx, state)
         assembled = self._assemble(ctx, state)
@@ -330,16 +330,15 @@ class ADMM:
         planes = state.planes if state.planes is not None else \
             midpoint_planes(geometry, state.plans if ctx.lin_plans is None else ctx.lin_plans, graph,
                             self.nominal.position)
-        duals = state.plane_duals if state.plane_duals is not None else planes.new_zeros(graph.num_edges, 2,
-                                                                                        planes.shape[1])
-        rho = state.rho if adaptive else ctx.rho.expand(graph.num_edges)
-        posed = plane_problem(data, geometry, planes[:, None] - duals / rho[:, None, None], rho)
+        posed = plane_problem(data, geometry, planes)
         ctx.planes_posed = (posed, geometry)
-        raw, sol, stats = self._local_solves(ctx, state, posed, assembled)
-        offsets = plane_offsets(raw, geometry, planes)
-        planes_new, duals, gaps, dual_norms = plane_consensus(offsets, planes, duals, rho)
-        res = plane_residuals(gaps, dual_norms, duals, s)
-        stop = res if ctx.tol == s.admm_tol else plane_residuals(gaps, dual_norms, duals, s, ctx.tol)
+        _, sol, stats = self._local_solves(ctx, state, posed, assembled)
+        rho = state.plane_rho if state.plane_rho is not None else ctx.rho.expand(planes.shape).clone()
+        step = plane_update(end_multipliers(sol.multipliers, sol.Y, sol.ok, geometry, planes), planes, rho,
+                            state.plane_gradient, geometry.distance, ctx.rho)
+        unsafe = unsafe_ends(sol.X, geometry, planes, s.admm_tol)
+        res = plane_residuals(step.move, unsafe, s)
+        stop = res if ctx.tol == s.admm_tol else plane_residuals(step.move, unsafe, s, ctx.tol)
         stats.primal, stats.dual = res.primal.max(), res.dual.max()
         stats.primal_ratio = float(stop.primal_ratio.max().detach())
         stats.dual_ratio = float(stop.dual_ratio.max().detach())
@@ -347,9 +346,9 @@ class ADMM:
         pvar = state.pvar
         if assembled.own_variance is not None:
             pvar = edge_variances(assembled.own_variance, graph, state.pvar)
-        nxt = ADMMState(sol.X, sol.U, graph.edges, state.z, state.lam, pvar,
-                        balance_plane_penalty(rho, res) if adaptive else None, state.risk_left,
-                        solver_point=sol.solver_point, planes=planes_new, plane_duals=duals)
+        nxt = ADMMState(sol.X, sol.U, graph.edges, state.z, state.lam, pvar, state.rho, state.risk_left,
+                        solver_point=sol.solver_point, planes=step.planes, plane_gradient=step.gradient,
+                        plane_rho=step.rho)
         return nxt, stats
 
     def _with_step_variances(self, ctx: StepContext, state: ADMMState) -> ADMMState:
@@ -399,6 +398,8 @@ class ADMM:
         result = StepResult(plans=state.plans, inputs=state.inputs, state=state, iterations=0, converged=False)
         accelerator = AndersonAcceleration(s.admm_anderson_memory) if s.admm_acceleration == "anderson" else None
         steady: SteadyIterations | None = None
+        planes = s.admm_coupling == "planes" and graph.num_edges
+        safe = SafeIterates()  # with planes, the iterates whose halves held near
         for it in range(max_iter):
             previous = state
             if steady is not None and it < max_iter - 1:
@@ -408,11 +409,14 @@ class ADMM:
                     result.record_counts(fast.primal, fast.dual, fast.unconverged_edges, fast.infeasible_solves,
                                          time.perf_counter() - t0)
                     state = fast.state
+                    safe.record(fast.dual_ratio, state.plans, state.inputs)
                     continue
                 # the step's last iteration (and anything unusual) goes through the torch path,
                 # which reports the solution, the problems and the failures
             state, stats = self.iterate(ctx, state)
             result.record(stats)
+            if planes:
+                safe.record(stats.dual_ratio, state.plans, state.inputs)
             if should_stop(stats.primal_ratio, stats.dual_ratio, s):
                 result.converged = True
                 break
@@ -423,8 +427,14 @@ class ADMM:
                 steady = self._steady_iterations(ctx, state, stats, accelerator)
             if accelerator is not None and it < max_iter - 1:  # a capped step keeps its plain iterate
                 state = accelerator.next_input(previous, state)
+        applied = safe.best() if planes else None
+        if applied is not None:
+            state = dataclasses.replace(state, plans=applied[0], inputs=applied[1])
         if graph.num_edges and result.iterations:
-            state = self._check_safety(state, result.problem, graph, ctx.layer, result, safety_fallback)
+            # with planes every iterate whose halves held is jointly safe: only a step without one re-plans
+            unsafe_stop = applied is None if planes else not result.converged
+            state = self._check_safety(state, result.problem, graph, ctx.layer, result,
+                                       safety_fallback and unsafe_stop)
         if result.iterations:
             state = self._account_risk(state, result, graph, ctx)
         result.plans, result.inputs, result.state = state.plans, state.inputs, state
@@ -456,15 +466,15 @@ class ADMM:
 
     def _check_safety(self, state: ADMMState, data, graph: Graph, layer, result: StepResult,
                       fallback: bool) -> ADMMState:
-        """Judge the applied plans at tau = 1 (own plans, not copies); after an unconverged stop,
-        re-plan (:func:`~.fallback.fallback_problem`) every cell agent
+        """Judge the applied plans at tau = 1 (own plans, not copies); with ``fallback`` (a stop on
+        plans not known to be safe), re-plan (:func:`~.fallback.fallback_problem`) every cell agent
         (:func:`~.fallback.cell_agents`) whose plan leaves its buffered Voronoi cell at tau = 1,
         and every other agent in a pair unsafe at tau = 1."""
         bounds = data.bounds[:, :, 0].detach()
         position = self.nominal.position
         unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.settings.admm_tol, position)
         replan = torch.zeros_like(unsafe)
-        if fallback and not result.converged:
+        if fallback:
             replan, cells = fallback_agents(state.plans.detach(), graph, bounds, self.settings.admm_tol, position,
                                             self.nominal.momentum(graph.num_agents), unsafe,
                                             self.settings.safety_fallback)

@@ -559,7 +559,9 @@ def fall_back_to_previous(sol: LocalSolution, state: ADMMState, graph: Graph) ->
                          failure_detail=sol.failure_detail,
                          state_slack=None if sol.state_slack is None else
                          torch.where(bad[:, None], torch.zeros_like(sol.state_slack), sol.state_slack),
-                         solver_point=sol.solver_point)
+                         solver_point=sol.solver_point,
+                         multipliers=None if sol.multipliers is None else
+                         torch.where(bad[:, None, None], float("nan"), sol.multipliers))
 
 
 def edge_copies(sol: LocalSolution, graph: Graph) -> Tensor:

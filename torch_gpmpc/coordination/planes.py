@@ -1,32 +1,28 @@
-"""Plane coupling: neighbours agree on a separating plane per edge and horizon step, not on copies
-of each other's trajectories (``admm_coupling = planes``).
+"""Plane coupling: neighbours share one separating plane per edge and horizon step, each keeping its
+own half, instead of agreeing on copies of each other's trajectories (``admm_coupling = planes``).
 
 With the step's frozen linearization, edge ``e = (lo, hi)``'s collision row at horizon step tau is
 ``n^T (p_lo - p_hi) >= d`` (``n`` the unit normal from hi towards lo, ``d`` the pair's distance plus
-margins). It holds exactly when some offset ``w`` splits it::
+margins). It holds whenever both ends keep their halves of one offset ``c``::
 
-    n^T p_lo >= w + d / 2      (lo's half, in lo's problem)
-    n^T p_hi <= w - d / 2      (hi's half, in hi's problem)
+    n^T p_lo >= c + d / 2      (lo's half, in lo's problem)
+    n^T p_hi <= c - d / 2      (hi's half, in hi's problem)
 
-so the team's problem is the agents' local problems, each with its own halves, coupled only by
-one scalar ``w_{e,tau}`` per edge and step. Consensus ADMM on those scalars (Boyd et al. 2011,
-§7.1): each end solves its local problem with its copy ``w_{e,a}`` pulled towards
-``zeta_e - mu_{e,a} / rho_e``; then ``zeta_e = mean_a (w_{e,a} + mu_{e,a} / rho_e)`` and
-``mu_{e,a} += rho_e (w_{e,a} - zeta_e)`` (unscaled duals, as :mod:`~.penalty` keeps them). The
-optimum is the copies' (the same team problem: :func:`~.centralized.solve_centralized`); a
-message is T numbers per neighbour instead of ``2 (T+1) n``.
+so the team's problem is the agents' local problems with their halves, coupled only by ``c_{e,tau}``,
+and the same as the copies' (:func:`~.centralized.solve_centralized`). One iteration (primal
+decomposition): every agent solves with its halves at the current offsets (:func:`plane_problem`),
+reports its halves' multipliers (:func:`end_multipliers`; T numbers per neighbour), and both ends move
+each offset against the team cost's derivative ``mu_lo - mu_hi`` (:func:`plane_update`).
 
-Why: with copies, each agent's copy of a neighbour is free of the neighbour's dynamics and input
-bound, and the neighbour's own plan is pulled towards the average of its neighbours' copies; in
-a crowd an edge's residual then contracts slowly (README "Scale"). Here each agent enforces its
-own half on its own plan, and the only thing averaged is where the plane lies. Measured on the
-random-transition benchmark's first steps (N = 20, all 190 pairs coupled, one step replayed
-from each state, steps 0-7): 26-73 iterations against 35-221 with copies, to the same plan cost.
+Why: every iterate's plans keep every pair's row wherever their halves held, whatever the iteration,
+so a control step may stop at any budget and apply its last such iterate (:class:`SafeIterates`,
+graded by :func:`unsafe_ends`); the safety fallback is left for a step without one. Consensus on
+copies is safe only once it has converged, which a crowd's steps rarely do within a budget.
 
-The local problems are the copy formulation's with their neighbour copies re-read: the copy
-``Y_{e,a}`` is pulled towards ``c n`` (``c`` the target offset), its row bound is ``d / 2``, and
-its offset is ``w = n^T Y`` (the row only sees ``Y`` along ``n``); the own-copy term is off. So
-every local solver serves both couplings unchanged.
+The local problems are the copy formulation's with each neighbour copy pinned to the plane: the
+copy ``Y_{e,a}`` is held at ``c n`` by the weight :data:`PLANE_PIN`, its row bound is ``d / 2`` (the
+row only sees ``Y`` along ``n``), and the own-copy term is off. So every local solver serves both
+couplings unchanged.
 """
 
 from __future__ import annotations
@@ -38,12 +34,10 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.config.settings import ControllerSettings
-from torch_gpmpc.control.problem import LocalProblemData, LocalSolution
+from torch_gpmpc.control.problem import LocalProblemData
 from torch_gpmpc.control.solvers.repeated import RepeatedSolve
 from torch_gpmpc.coordination.graph import Graph
-from torch_gpmpc.coordination.penalty import (
-    DUAL_TOL_FACTOR, EdgeResiduals, balance_penalty, unconverged_edges,
-)
+from torch_gpmpc.coordination.penalty import RHO_BOUNDS, EdgeResiduals, unconverged_edges
 from torch_gpmpc.coordination.state import ADMMState
 from torch_gpmpc.coordination.steady import SteadyResult, solve_or_hand_back
 
@@ -97,17 +91,6 @@ def agent_rows(geometry: PlaneGeometry, k: int) -> PlaneGeometry:
                                edge=geometry.edge[own], side=geometry.side[own], sign=geometry.sign[own])
 
 
-def lost_end_offsets(geometry: PlaneGeometry, plan: Tensor, edge: int, side: int, position: list[int]) -> Tensor:
-    """The offsets (T,) a lost neighbour votes on edge ``edge`` at its end ``side``: where its half
-    of the plane touches its last shared plan (T+1, n), which it is taken to follow as an obstacle
-    (lo: ``n^T p - d / 2``; hi: ``n^T p + d / 2``)."""
-    p = torch.zeros_like(plan[1:])
-    p[..., position] = plan[1:][..., position]
-    offset = (geometry.normals[edge] * p).sum(-1)
-    half = geometry.distance[edge] / 2
-    return offset - half if side == 0 else offset + half
-
-
 def midpoint_planes(geometry: PlaneGeometry, plans: Tensor, graph: Graph, position: list[int]) -> Tensor:
     """Offsets (E, T) of the planes halfway between the pair's linearization plans (K, T+1, n) at
     tau = 1..T along each edge's normal (the start of a step's consensus)."""
@@ -117,16 +100,20 @@ def midpoint_planes(geometry: PlaneGeometry, plans: Tensor, graph: Graph, positi
     return (geometry.normals * middle).sum(dim=-1)
 
 
-def plane_problem(data: LocalProblemData, geometry: PlaneGeometry, targets: Tensor, rho: Tensor) -> LocalProblemData:
-    """The local problems with plane halves: each active slot's row bound ``d / 2`` on the edge's
-    normal (negated for hi), its copy pulled towards ``targets`` along the normal with weight
-    ``rho``, no own-copy term.
+#: The weight that pins each end's copy to the agreed offset: a half whose multiplier is ``mu``
+#: moves its copy by ``mu / PLANE_PIN``, so the halves hold to micrometres.
+PLANE_PIN = 1e6
+
+
+def plane_problem(data: LocalProblemData, geometry: PlaneGeometry, planes: Tensor) -> LocalProblemData:
+    """The local problems with plane halves at the agreed offsets: each active slot's row bound
+    ``d / 2`` on the edge's normal (negated for hi), its copy pinned to ``planes`` along the normal
+    (weight :data:`PLANE_PIN`), no own-copy term.
 
     Args:
         data: the assembled problems (batch K; their dynamics, costs and margins are kept).
         geometry: the step's :class:`PlaneGeometry`.
-        targets: (E, 2, T) each end's target offset in lo's frame.
-        rho: (E,) each edge's weight on its ends' copies.
+        planes: (E, T) each edge's offset in lo's frame.
     """
     g = geometry
     normals = torch.zeros_like(data.normals).index_put((g.agent, g.slot), g.sign[:, None, None] * g.normals[g.edge])
@@ -134,8 +121,9 @@ def plane_problem(data: LocalProblemData, geometry: PlaneGeometry, targets: Tens
     along = along_normals(g)
     pull = torch.zeros_like(data.z_nbr)
     pull = pull.index_put((g.agent, g.slot), torch.cat([torch.zeros_like(along[:, :1]),
-                                                        targets[g.edge, g.side][..., None] * along], dim=1))
-    weight = data.bounds.new_zeros(data.active.shape).index_put((g.agent, g.slot), rho[g.edge])
+                                                        planes[g.edge][..., None] * along], dim=1))
+    weight = data.bounds.new_zeros(data.active.shape).index_put(
+        (g.agent, g.slot), data.bounds.new_full(g.agent.shape, PLANE_PIN))
     zero = torch.zeros_like(data.z_own)
     return dataclasses.replace(data, normals=normals, bounds=bounds, rho=data.bounds.new_zeros(()),
                                rho_nbr=weight, z_own=zero, lam_own=zero, z_nbr=pull, lam_nbr=zero)
@@ -148,72 +136,153 @@ def along_normals(geometry: PlaneGeometry) -> Tensor:
     return normals / normals.square().sum(-1, keepdim=True).clamp_min(1e-300)
 
 
-def plane_offsets(solution: LocalSolution, geometry: PlaneGeometry, fallback: Tensor) -> Tensor:
-    """Each end's offset ``w_{e,a} = n^T Y`` (E, 2, T) in lo's frame from the local solutions; ends
-    whose solve failed vote ``fallback`` (E, T), the current consensus."""
+def end_multipliers(multipliers: Tensor | None, copies: Tensor, ok: Tensor | None, geometry: PlaneGeometry,
+                    planes: Tensor) -> Tensor:
+    """(E, 2, T) each end's multiplier of its half at every step: the solver's row multipliers, or
+    read off the pinned copies (a half that binds holds its copy ``mu / PLANE_PIN`` off the agreed
+    offset) where the solver reports none (the cvxpylayers reference) or gradients are wanted (the
+    copies carry them); 0 for an end whose solve failed. The two readings agree to the solver's
+    tolerance times PLANE_PIN; the solver's keeps the batched and the distributed agents' steps equal
+    to rounding.
+
+    Args:
+        multipliers: (K, M, T) the solves' collision-row multipliers, or ``None``.
+        copies: (K, M, T+1, n) the solves' copies ``Y``. ok: (K,) bool, or ``None``: all accepted.
+        geometry: the step's :class:`PlaneGeometry`. planes: (E, T) the offsets the solves were pinned to.
+    """
     g = geometry
-    offsets = (g.normals[g.edge] * solution.Y[g.agent, g.slot, 1:]).sum(-1)
-    if solution.ok is not None:
-        offsets = torch.where(solution.ok[g.agent, None], offsets, fallback[g.edge])
-    return fallback.new_zeros(fallback.shape[0], 2, fallback.shape[1]).index_put((g.edge, g.side), offsets)
+    offsets = (g.normals[g.edge] * copies[g.agent, g.slot, 1:]).sum(-1)
+    pinned = PLANE_PIN * (g.sign[:, None] * (planes[g.edge] - offsets)).clamp_min(0.0)
+    if multipliers is None or copies.requires_grad:  # the solver's multipliers carry no gradient
+        mu = pinned
+    else:
+        mu = torch.where(torch.isnan(multipliers[g.agent, g.slot]), pinned, multipliers[g.agent, g.slot])
+    if ok is not None:
+        mu = torch.where(ok[g.agent, None], mu, torch.zeros_like(mu))
+    return mu.new_zeros(planes.shape[0], 2, planes.shape[1]).index_put((g.edge, g.side), mu)
 
 
-def plane_consensus(offsets: Tensor, planes: Tensor, duals: Tensor, rho: Tensor
-                    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Consensus and dual updates of every edge's plane.
+@dataclass
+class PlaneUpdate:
+    """One iteration's new planes (:func:`plane_update`).
+
+    Attributes:
+        planes: (E, T) the next offsets. gradient: (E, T) this iteration's ``mu_lo - mu_hi``.
+        rho: (E, T) the step penalties of the move.
+        move: (E,) each edge's largest move over the horizon at the starting penalty (the stopping
+            residual).
+    """
+
+    planes: Tensor
+    gradient: Tensor
+    rho: Tensor
+    move: Tensor
+
+
+#: How a coordinate's step penalty changes: times PLANE_BACKOFF where its gradient changed sign (the
+#: last move overshot), divided by PLANE_SPEEDUP where it kept its sign.
+PLANE_BACKOFF, PLANE_SPEEDUP = 2.0, 1.25
+#: A gradient below this is the solver's tolerance, not a direction: it does not turn a step.
+GRADIENT_FLOOR = 1e-9
+#: The largest move of an offset in one iteration, as a fraction of its pair's distance.
+PLANE_MAX_MOVE = 0.25
+
+
+def plane_update(multipliers: Tensor, planes: Tensor, rho: Tensor, previous_gradient: Tensor | None,
+                 distance: Tensor, start_rho: Tensor) -> PlaneUpdate:
+    """The planes' primal-decomposition step: every offset moves against the team cost's derivative
+    ``mu_lo - mu_hi``, towards the end whose half costs less, ``c <- c - (mu_lo - mu_hi) / (2 rho)``.
+
+    Each coordinate's ``rho`` (its inverse step) adapts: times :data:`PLANE_BACKOFF` where the
+    gradient changed sign since the last iteration (the move overshot), eased back towards the
+    starting rho where it kept it (never below: a step never grows past the starting one); the
+    factor is detached, so gradients reach the starting rho.
+    No offset moves more than :data:`PLANE_MAX_MOVE` of its pair's distance in one iteration: a half
+    that needs slack prices its row at the slack penalty, which would fling the plane.
 
     Args:
-        offsets: (E, 2, T) both ends' offsets. planes: (E, T) the previous consensus.
-        duals: (E, 2, T) unscaled duals. rho: (E,) penalties.
-
-    Returns:
-        ``(planes_new (E, T), duals_new (E, 2, T), primal (E, 2), dual (E,))`` with
-        ``primal[e, a] = max_tau |w_{e,a} - zeta_e|`` and ``dual[e] = rho_e ||zeta_e - zeta_e_prev||``.
+        multipliers: (E, 2, T) both ends' multipliers (:func:`end_multipliers`). planes: (E, T) the
+            offsets the solves were pinned to. rho: (E, T) the penalties of the last move.
+        previous_gradient: (E, T) the last iteration's gradient, or ``None`` at a step's first.
+        distance: (E, T) the pairs' distances (:attr:`PlaneGeometry.distance`).
+        start_rho: 0-d, the step's starting penalty: the stopping residual is the move it would make,
+            ``max_tau |mu_lo - mu_hi| / (2 start_rho)`` (a grown ``rho`` would stop a step early).
     """
-    r = rho[:, None, None]
-    new = (offsets + duals / r).mean(dim=1)
-    gap = offsets - new[:, None]
-    return new, duals + r * gap, gap.abs().amax(dim=2), rho * (new - planes).norm(dim=1)
+    gradient = multipliers[:, 0] - multipliers[:, 1]
+    if previous_gradient is not None:
+        with torch.no_grad():
+            turn = torch.where(gradient.abs() > GRADIENT_FLOOR, gradient, 0.0) * previous_gradient
+            factor = torch.where(turn < 0, PLANE_BACKOFF, torch.where(turn > 0, 1 / PLANE_SPEEDUP, 1.0))
+            factor = (rho.detach() * factor).clamp(min=start_rho.detach(), max=RHO_BOUNDS[1]) / rho.detach()
+        rho = rho * factor
+    limit = PLANE_MAX_MOVE * distance
+    step = torch.minimum(torch.maximum(-gradient / (2 * rho), -limit), limit)
+    return PlaneUpdate(planes + step, gradient, rho, gradient.detach().abs().amax(dim=1) / (2 * start_rho.detach()))
 
 
-def plane_residuals(primal: Tensor, dual: Tensor, duals: Tensor, cfg: ControllerSettings,
-                    tol: float | None = None) -> EdgeResiduals:
-    """The planes' stopping residuals (the copies' are :func:`~.penalty.edge_residuals`).
+class SafeIterates:
+    """A step's plans to apply: the latest iterate whose halves held at tau = 1 and 2
+    (:data:`SAFE`), else the latest that held them at tau = 1 (:data:`SAFE_NOW`), else none (the
+    safety fallback re-plans). Each iterate's plans are jointly safe at the levels it kept, whatever
+    the iteration, so the step may stop anywhere. A distributed agent keeps its own plan's."""
 
-    The primal test is absolute and per horizon step: every end's offset within ``tol / 2`` of the
-    consensus (``tol`` default ``admm_tol``), so the two halves of a pair overlap by at most ``tol``
-    and the pair keeps its distance less ``tol`` (``pair_buffer = admm_tol`` keeps all of it). An
-    offset's size depends on where the origin is, so there is no relative part. The dual test is the
-    copies' (:mod:`~.penalty`).
+    def __init__(self) -> None:
+        self.latest: dict[float, tuple[Tensor, Tensor]] = {}
 
-    Args:
-        primal: (E, 2) each end's largest ``|w_{e,a} - zeta_e|``. dual: (E,) ``rho_e ||zeta_e - zeta_e_prev||``.
-        duals: (E, 2, T) the duals after the update.
-        cfg: ``admm_tol``, ``admm_dual_tol``, ``admm_rel_tol``, ``admm_stop``.
-    """
+    def record(self, level: float, plans: Tensor, inputs: Tensor) -> None:
+        """Note an iterate of team ``level`` (the largest :func:`unsafe_ends` level) and its plans."""
+        if level < UNSAFE:
+            self.latest[level] = (plans, inputs)
+
+    def best(self) -> tuple[Tensor, Tensor] | None:
+        """``(plans, inputs)`` to apply, or ``None``."""
+        return self.latest.get(SAFE, self.latest.get(SAFE_NOW))
+
+
+def plane_residuals(move: Tensor, unsafe: Tensor, cfg: ControllerSettings, tol: float | None = None) -> EdgeResiduals:
+    """The planes' stopping residuals: each edge's largest move of its offsets at the step's starting
+    penalty (E,) against ``tol / 2`` (``tol`` default ``admm_tol``), and as its dual residual its
+    :func:`unsafe_ends` level (E,) against 1: a step does not stop on an iterate whose applied step
+    may not keep its pairs. Every other iterate's plans are jointly safe, so stopping early costs
+    cost, never safety."""
     tol = cfg.admm_tol if tol is None else tol
-    rel = cfg.admm_rel_tol if cfg.admm_stop == "primal-dual" else 0.0
-    dual_abs = cfg.admm_dual_tol if cfg.admm_dual_tol is not None else DUAL_TOL_FACTOR * tol
-    with torch.no_grad():
-        eps_primal = torch.full_like(dual, tol / 2)
-        eps_dual = dual_abs + rel * duals[:, 0].norm(dim=1)
-    return EdgeResiduals(primal.amax(dim=1), dual, eps_primal, eps_dual)
+    return EdgeResiduals(move, unsafe.to(move.dtype), torch.full_like(move, tol / 2), torch.ones_like(move))
 
 
-def balance_plane_penalty(rho: Tensor, residuals: EdgeResiduals) -> Tensor:
-    """(E,) the edges' next penalties: residual balancing with settled edges relaxed
-    (:func:`~.penalty.balance_penalty`'s ``relax_settled``; their residuals are round-off)."""
-    return balance_penalty(rho, residuals, relax_settled=True)
+#: How unsafe an edge's end leaves an iterate (:func:`unsafe_ends`): it keeps its halves at tau = 1
+#: and 2; only at tau = 1 (the step applied is safe, but the next step's first planes, halfway
+#: between these plans shifted, may not be); not at tau = 1.
+SAFE, SAFE_NOW, UNSAFE = 0.0, 0.5, 1.0
+
+
+def unsafe_ends(plans: Tensor, geometry: PlaneGeometry, planes: Tensor, tol: float) -> Tensor:
+    """(E,) each edge's :data:`UNSAFE` level: whether an end's plan leaves its half at tau = 1, or at
+    tau = 2 only, by more than ``tol / 2``, so that the pair may be closer than its distance less
+    ``tol`` (the safety check's allowance): a half the solve softened, a copy the pin let go under a
+    large multiplier, or a failed solve's kept plan, which met the last planes, not these. Later
+    steps are left to the next control steps, which plan them again.
+
+    Args:
+        plans: (K, T+1, n) the plans (a failed solve's kept plan); only the agents ``geometry``
+            poses are read. geometry: the step's :class:`PlaneGeometry`. planes: (E, T) the offsets
+            the plans were pinned to. tol: the allowance.
+    """
+    g = geometry
+    near = min(2, planes.shape[1])
+    height = (g.normals[g.edge, :near] * plans[g.agent, 1:near + 1]).sum(-1)
+    short = g.sign[:, None] * (planes[g.edge, :near] - height) + g.distance[g.edge, :near] / 2 > tol / 2
+    level = torch.where(short[:, 0], UNSAFE, torch.where(short.any(dim=1), SAFE_NOW, SAFE)).to(planes.dtype)
+    return planes.new_zeros(planes.shape[0]).scatter_reduce(0, g.edge, level, "amax")
 
 
 class PlaneTerms:
-    """The copies' terms of kept plane problems, written in place for each new set of targets.
+    """The copies' targets of kept plane problems, written in place for each new set of planes.
 
     A :class:`~torch_gpmpc.control.solvers.repeated.RepeatedSolve` starts with the posed problems'
-    terms; of them only the active slots' weights and targets change between a step's iterations (the
-    own terms stay 0, the copies' tau = 0 points 0, inactive slots neutral). :meth:`write` writes
-    them as :func:`plane_problem` and :func:`~torch_gpmpc.control.solvers.canonical.canonicalize`
-    would (the same bits).
+    terms; of them only the active slots' targets change between a step's iterations (the weights
+    stay :data:`PLANE_PIN`, the own terms 0, the copies' tau = 0 points 0, inactive slots neutral).
+    :meth:`write` writes them as :func:`plane_problem` and
+    :func:`~torch_gpmpc.control.solvers.canonical.canonicalize` would (the same bits).
 
     Args:
         geometry: the slots to write: a :class:`PlaneGeometry` whose ``agent`` indexes the kept batch.
@@ -225,23 +294,19 @@ class PlaneTerms:
         self.along = along_normals(geometry)
         self.agent, self.slot = geometry.agent.numpy(), geometry.slot.numpy()
 
-    def write(self, rho: Tensor, targets: Tensor) -> None:
-        """Write each slot's weight ``rho`` (E,) and target offsets ``targets`` (E, 2, T)."""
+    def write(self, planes: Tensor) -> None:
+        """Write each slot's target offsets ``planes`` (E, T)."""
         g, buf = self.geometry, self.solve.buffers
-        weight = rho[g.edge]
-        buf.rho_y[self.agent, self.slot] = weight.numpy()
-        pull = targets[g.edge, g.side][..., None] * self.along
-        buf.w_y[self.agent, self.slot] = (weight[:, None, None] * pull).numpy()
+        buf.w_y[self.agent, self.slot] = (PLANE_PIN * (planes[g.edge][..., None] * self.along)).numpy()
 
 
 class PlaneIterations:
     """A control step's later plane iterations on the kept problems (the planes' form of
-    :class:`~.steady.SteadyIterations`): only the copies' targets and weights change, so each
-    iteration writes their terms (as :func:`~torch_gpmpc.control.solvers.canonical.canonicalize`
-    computes them from :func:`plane_problem`) into a
-    :class:`~torch_gpmpc.control.solvers.repeated.RepeatedSolve` and solves warm; the plans, planes,
-    duals and penalties are the torch path's bit for bit. ``None`` from :meth:`iterate` hands the
-    iteration to the torch path (as :class:`~.steady.SteadyIterations` does).
+    :class:`~.steady.SteadyIterations`): only the copies' targets change, so each iteration writes
+    them (:class:`PlaneTerms`) into a :class:`~torch_gpmpc.control.solvers.repeated.RepeatedSolve`
+    and solves warm; the plans, planes and penalties are the torch path's bit for bit. ``None`` from
+    :meth:`iterate` hands the iteration to the torch path (as :class:`~.steady.SteadyIterations`
+    does).
 
     Args:
         settings: the controller settings. graph: the step's graph.
@@ -249,30 +314,28 @@ class PlaneIterations:
         rho: the step's penalty, 0-d (every edge's with ``rho_update = fixed``).
         tol: the stopping test's absolute primal tolerance.
         solve: the plane problems as last posed (batch K), as a :class:`RepeatedSolve`: only their
-            copies' targets and weights change.
+            copies' targets change.
     """
 
     def __init__(self, settings: ControllerSettings, graph: Graph, geometry: PlaneGeometry, rho: Tensor,
                  tol: float, solve: RepeatedSolve) -> None:
         self.settings, self.graph, self.geometry = settings, graph, geometry
-        self.adaptive = settings.rho_update == "adaptive"
         self.rho, self.tol, self.solve = rho, tol, solve
         self.terms = PlaneTerms(geometry, solve)
 
     def iterate(self, state: ADMMState) -> SteadyResult | None:
         """One iteration from ``state`` (the step's previous iterate), or ``None``."""
         g, s = self.geometry, self.settings
-        rho = state.rho if self.adaptive else self.rho.expand(self.graph.num_edges)
-        self.terms.write(rho, state.planes[:, None] - state.plane_duals / rho[:, None, None])
+        self.terms.write(state.planes)
         sol = solve_or_hand_back(self.solve, state.solver_point)
         if sol is None:
             return None
-        offsets = plane_offsets(LocalSolution(sol.X, sol.U, sol.Y, sol.slack, None, None, None), g, state.planes)
-        planes, duals, gaps, dual_norms = plane_consensus(offsets, state.planes, state.plane_duals, rho)
-        res = plane_residuals(gaps, dual_norms, duals, s)
-        stop = res if self.tol == s.admm_tol else plane_residuals(gaps, dual_norms, duals, s, self.tol)
-        rho_next = balance_plane_penalty(rho, res) if self.adaptive else None
-        nxt = dataclasses.replace(state, plans=sol.X, inputs=sol.U, solver_point=sol.point, planes=planes,
-                                  plane_duals=duals, rho=rho_next)
+        mu = end_multipliers(sol.multipliers, sol.Y, None, g, state.planes)
+        step = plane_update(mu, state.planes, state.plane_rho, state.plane_gradient, g.distance, self.rho)
+        unsafe = unsafe_ends(sol.X, g, state.planes, self.settings.admm_tol)
+        res = plane_residuals(step.move, unsafe, s)
+        stop = res if self.tol == s.admm_tol else plane_residuals(step.move, unsafe, s, self.tol)
+        nxt = dataclasses.replace(state, plans=sol.X, inputs=sol.U, solver_point=sol.point, planes=step.planes,
+                                  plane_gradient=step.gradient, plane_rho=step.rho)
         return SteadyResult(nxt, float(res.primal.max()), float(res.dual.max()), float(stop.primal_ratio.max()),
                             float(stop.dual_ratio.max()), unconverged_edges(stop, s), sol.slack_active)

@@ -44,8 +44,11 @@ class ADMMState:
         planes: (E, T) each edge's agreed plane offset per horizon step with ``admm_coupling =
             planes`` (:mod:`~torch_gpmpc.coordination.planes`); ``None`` at a step's start (the first
             iteration starts from the planes halfway between the linearization plans) or with copies.
-        plane_duals: (E, 2, T) each end's dual of its plane offset (unscaled); carried over to the
-            next step (shifted), zero for new edges; ``None`` with copies or before any.
+        plane_gradient: (E, T) the team cost's derivative in each plane offset at the step's last
+            iteration (:func:`~torch_gpmpc.coordination.planes.plane_gradient`); ``None`` at a step's
+            start or with copies.
+        plane_rho: (E, T) each plane coordinate's step penalty (its inverse step size), adapted within
+            a step; ``None`` at a step's start or with copies.
 
     Example:
         >>> import torch
@@ -70,7 +73,8 @@ class ADMMState:
     applied: Tensor | None = None
     solver_point: Any = None
     planes: Tensor | None = None
-    plane_duals: Tensor | None = None
+    plane_gradient: Tensor | None = None
+    plane_rho: Tensor | None = None
 
     def detached(self) -> "ADMMState":
         """The same iterate with every tensor detached from the autograd graph."""
@@ -80,12 +84,13 @@ class ADMMState:
                          None if self.risk_left is None else self.risk_left.detach(),
                          None if self.applied is None else self.applied.detach(), self.solver_point,
                          None if self.planes is None else self.planes.detach(),
-                         None if self.plane_duals is None else self.plane_duals.detach())
+                         None if self.plane_gradient is None else self.plane_gradient.detach(),
+                         None if self.plane_rho is None else self.plane_rho.detach())
 
     def shifted(self) -> "ADMMState":
         """Shift everything one step forward in time (drop the first point, hold the last); the
         dropped first inputs become ``applied``; the planes are found again from the next step's
-        linearization (their duals are kept)."""
+        linearization (each edge keeps its penalty)."""
         return ADMMState(
             plans=shift_in_time(self.plans, dim=1),
             inputs=shift_in_time(self.inputs, dim=1),
@@ -97,7 +102,6 @@ class ADMMState:
             risk_left=self.risk_left,
             applied=self.inputs[:, 0],
             solver_point=self.solver_point,
-            plane_duals=None if self.plane_duals is None else shift_in_time(self.plane_duals, dim=2),
         )
 
 
@@ -265,16 +269,14 @@ def initial_state(x0: Tensor, horizon: int, graph: Graph, input_dim: int | None 
 
 
 def adapt_state(state: ADMMState, graph: Graph) -> ADMMState:
-    """Carry ``z``/``lam`` (and the plane duals) over to a new graph: kept edges keep theirs, new
-    edges start from the current plans with zero duals."""
+    """Carry ``z``/``lam`` (and the penalties and variances) over to a new graph: kept edges keep
+    theirs, new edges start from the current plans with zero duals."""
     if torch.equal(state.edges, graph.edges):
         return state
     old = {tuple(e.tolist()): i for i, e in enumerate(state.edges)}
     z = state.plans[graph.edges].clone() if graph.num_edges else state.z[:0]
     lam = state.lam.new_zeros(graph.num_edges, *state.lam.shape[1:])
-    pvar = rho = plane_duals = None
-    if state.plane_duals is not None:
-        plane_duals = state.plane_duals.new_zeros(graph.num_edges, *state.plane_duals.shape[1:])
+    pvar = rho = None
     if state.rho is not None:
         rho = state.rho.new_full((graph.num_edges,), float("nan"))
     if state.pvar is not None:
@@ -285,9 +287,7 @@ def adapt_state(state: ADMMState, graph: Graph) -> ADMMState:
             lam[i] = state.lam[old[tuple(e)]]
             if pvar is not None:
                 pvar[i] = state.pvar[old[tuple(e)]]
-            if plane_duals is not None:
-                plane_duals[i] = state.plane_duals[old[tuple(e)]]
             if rho is not None:
                 rho = rho.index_put((torch.tensor(i),), state.rho[old[tuple(e)]])
     return ADMMState(state.plans, state.inputs, graph.edges, z, lam, pvar, rho, state.risk_left, state.applied,
-                     state.solver_point, plane_duals=plane_duals)
+                     state.solver_point)

@@ -56,7 +56,8 @@ def merge_solutions(parts: list[LocalSolution], members: list[Tensor]) -> LocalS
     detail = next((p.failure_detail for p in parts if p.failure_detail), None)
     return LocalSolution(X=merged("X"), U=merged("U"), Y=merged("Y"), slack=merged("slack"),
                          slack_active=merged("slack_active"), ok=merged("ok"), cost=merged("cost"),
-                         failure=merged("failure"), failure_detail=detail, state_slack=merged("state_slack"))
+                         failure=merged("failure"), failure_detail=detail, state_slack=merged("state_slack"),
+                         multipliers=merged("multipliers"))
 
 
 class TeamLayer:

@@ -123,7 +123,8 @@ def with_warm_starts(admm: ADMM, instances: Sequence[TuneInstance], rho: float =
     Returns:
         New instances with ``warm`` set.
     """
-    solver = admm.with_settings(admm_tol=tol, admm_dual_tol=tol, admm_max_iter=max_iter)
+    dual = {"admm_dual_tol": tol} if admm.settings.admm_coupling == "copies" else {}  # the planes have none
+    solver = admm.with_settings(admm_tol=tol, admm_max_iter=max_iter, **dual)
     cfg, nominal = solver.settings, admm.nominal
     out = []
     with torch.no_grad():

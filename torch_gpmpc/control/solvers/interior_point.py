@@ -24,7 +24,7 @@ from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.control.numpy_views import as_array
 from torch_gpmpc.control.solvers import ipm_threads
 from torch_gpmpc.control.solvers.ipm_batch import (
-    KernelLimits, StructureCache, batched_mv, kernel_arrays, point_outputs, solve_points,
+    KernelLimits, StructureCache, batched_mv, kernel_arrays, point_outputs, row_multipliers, solve_points,
 )
 from torch_gpmpc.control.solvers.repeated import KernelSettings, RepeatedSolve
 from torch_gpmpc.control.solvers.canonical import (  # noqa: F401 (condense_dynamics: re-exported)
@@ -328,7 +328,8 @@ class InteriorPointMPC(nn.Module):
         cost = planned_cost(data, X, U, xref, self.alpha, beta)
         state_slack = self.constraints.state_violation(X, data.halfspace_normals, data.halfspace_bounds)
         return LocalSolution(X=X, U=U, Y=Y, slack=slack, slack_active=slack_active, ok=ok, cost=cost,
-                             failure=failure, state_slack=state_slack, solver_point=stats["point"])
+                             failure=failure, state_slack=state_slack, solver_point=stats["point"],
+                             multipliers=row_multipliers(stats["point"], M, T))
 
     def repeated(self, data: LocalProblemData) -> RepeatedSolve | None:
         """``data``'s problems kept for solves with new consensus terms only (ADMM's later iterations

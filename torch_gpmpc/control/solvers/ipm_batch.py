@@ -74,6 +74,13 @@ class KernelPoint:
         return KernelPoint(self.u.copy(), self.y.copy(), self.w.copy(), self.z.copy())
 
 
+def row_multipliers(point: KernelPoint, num_neighbors: int, horizon: int) -> Tensor:
+    """(B, M, T) the collision rows' multipliers of the kernel's ``point`` (its first ``M T`` rows,
+    slot-major: :mod:`~.ipm_kernel`)."""
+    z = point.z[:, :num_neighbors * horizon]
+    return torch.from_numpy(z.copy()).view(z.shape[0], num_neighbors, horizon)
+
+
 def where_rows(rows: np.ndarray, a: KernelPoint, b: KernelPoint) -> KernelPoint:
     """Per batch row (B,), ``a`` where ``rows`` else ``b`` (``a`` or ``b`` itself when ``rows`` is
     uniform)."""

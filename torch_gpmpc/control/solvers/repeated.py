@@ -27,7 +27,9 @@ from torch import Tensor
 from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.control.problem import SLACK_ACTIVE_TOL, AcceptanceCheck, LocalProblemData
 from torch_gpmpc.control.solvers.canonical import CanonicalData
-from torch_gpmpc.control.solvers.ipm_batch import KernelLimits, batched_mv, kernel_arrays, point_outputs, solve_points
+from torch_gpmpc.control.solvers.ipm_batch import (
+    KernelLimits, batched_mv, kernel_arrays, point_outputs, row_multipliers, solve_points,
+)
 
 
 @dataclass
@@ -67,6 +69,7 @@ class RepeatedSolution:
         X: (B, T+1, D). U: (B, T, Du). Y: (B, M, T+1, D). slack: (B, M, T).
         point: the kernel's points (the next solve's warm start).
         slack_active: how many problems softened a collision row of an active slot.
+        multipliers: (B, M, T) the collision rows' multipliers.
     """
 
     X: Tensor
@@ -75,6 +78,7 @@ class RepeatedSolution:
     slack: Tensor
     point: object
     slack_active: int
+    multipliers: Tensor
 
 
 class RepeatedSolve:
@@ -142,4 +146,5 @@ class RepeatedSolve:
             return None
         used = slack.numpy() * self.active[:, :, None]
         softened = int((used > SLACK_ACTIVE_TOL).reshape(B, -1).any(axis=1).sum())
-        return RepeatedSolution(X=X, U=U, Y=Y, slack=slack, point=stats["point"], slack_active=softened)
+        return RepeatedSolution(X=X, U=U, Y=Y, slack=slack, point=stats["point"], slack_active=softened,
+                                multipliers=row_multipliers(stats["point"], M, T))

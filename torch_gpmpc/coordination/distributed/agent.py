@@ -46,8 +46,8 @@ from torch_gpmpc.coordination.controller import make_agent_step
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
 from torch_gpmpc.coordination.graph import graph_from_edges
 from torch_gpmpc.coordination.planes import (
-    PlaneTerms, agent_rows, balance_plane_penalty, lost_end_offsets, midpoint_planes, plane_consensus, plane_offsets,
-    plane_problem, plane_residuals, rows_geometry,
+    PlaneTerms, agent_rows, end_multipliers, midpoint_planes, plane_problem, plane_residuals, plane_update,
+    SafeIterates, rows_geometry, unsafe_ends,
 )
 from torch_gpmpc.coordination.state import ADMMState, StepResult, adapt_state, initial_state
 from torch_gpmpc.coordination.steady import repeatable, solve_or_hand_back
@@ -176,7 +176,7 @@ class AgentController:
         else:
             self.state = ADMMState(self.state.plans.clone(), self.state.inputs, self.state.edges,
                                    self.state.z, self.state.lam, self.state.pvar, self.state.rho,
-                                   solver_point=self.state.solver_point, plane_duals=self.state.plane_duals)
+                                   solver_point=self.state.solver_point)
         self.known[k] = True
         self._next_nbrs = sorted(int(j) for j in nbr_ids if int(j) != k)
         return [j for j in self._next_nbrs if j not in self.nbrs]
@@ -217,6 +217,7 @@ class AgentController:
         self.slot_a = self.graph.slot_side[k, m]
         self.geometry = self.own_rows = None  # the step's planes (admm_coupling = planes), by take_plane_rows
         self.plane_terms: PlaneTerms | None = None  # the step's kept plane problem (compiled solves), if any
+        self._safe = SafeIterates()  # the iterates whose halves held near (planes)
         self.kept_rows: tuple = (None, None)  # its half-space rows (the plans' state slack)
         self.anderson = None  # this step's share of the Anderson mix (admm_acceleration = anderson)
         self._rho_seen: Tensor | None = None
@@ -372,8 +373,8 @@ class AgentController:
 
     def take_plane_rows(self, received: dict[int, Tensor | None]) -> None:
         """The step's planes from both ends' rows (a lost neighbour's: this agent's, mirrored): their
-        :class:`~torch_gpmpc.coordination.planes.PlaneGeometry`, the starting offsets halfway between
-        the linearization plans, and the duals carried by edge (zero on new edges)."""
+        :class:`~torch_gpmpc.coordination.planes.PlaneGeometry` and the starting offsets halfway
+        between the linearization plans."""
         data, graph, k, T = self.assembled.data, self.graph, self.k, self.cfg.horizon
         if not graph.num_edges:
             return
@@ -390,48 +391,41 @@ class AgentController:
         self.geometry = rows_geometry(normals, bounds, graph)
         self.own_rows = agent_rows(self.geometry, k)
         planes = midpoint_planes(self.geometry, self.frozen[0], graph, self.local.nominal.position)
-        duals = self.state.plane_duals if self.state.plane_duals is not None else \
-            planes.new_zeros(graph.num_edges, 2, T)
-        self.state = dataclasses.replace(self.state, planes=planes, plane_duals=duals)
-
-    def _plane_rho(self) -> Tensor:
-        """(E,) the edges' penalties."""
-        return self.state.rho if self.adaptive else self.rho.expand(self.graph.num_edges)
+        self.state = dataclasses.replace(self.state, planes=planes, plane_gradient=None, plane_rho=None)
 
     def plane_solve(self) -> dict[int, Tensor]:
-        """The local solve on this agent's plane halves; returns its offsets ``w_{e,k}`` (T,) per
-        neighbour (:func:`~torch_gpmpc.coordination.planes.plane_offsets`).
+        """The local solve on this agent's plane halves; returns its multiplier of each half (T,) per
+        neighbour (:func:`~torch_gpmpc.coordination.planes.end_multipliers`).
 
-        The step's rows are fixed, so after its first solve only the copies' targets and weights
-        change: later solves write them into the kept problem and solve it warm (compiled, as the
+        The step's rows are fixed, so after its first solve only the copies' targets change: later solves write them into the kept problem and solve it warm (compiled, as the
         in-process :class:`~torch_gpmpc.coordination.planes.PlaneIterations` do; the same bits), and
         anything unusual goes through the torch path."""
         state = self.state
         if not self.graph.num_edges:
             self._solve_local(self._assemble().data)
             return {}
-        rho = self._plane_rho()
-        targets = state.planes[:, None] - state.plane_duals / rho[:, None, None]
-        raw = self._solve_kept(rho, targets) if self.plane_terms is not None else None
+        raw = self._solve_kept(state.planes) if self.plane_terms is not None else None
         if raw is None:
-            # the step's rows, as plane_rows assembled them (their penalties are plane_problem's own)
-            posed = plane_problem(self.assembled.data, self.own_rows, targets, rho)
+            # the step's rows, as plane_rows assembled them (their weights are plane_problem's own)
+            posed = plane_problem(self.assembled.data, self.own_rows, state.planes)
             failed = self.result.failed_solves
             raw = self._solve_local(posed)
             if self.plane_terms is None and self.result.failed_solves == failed and self.cfg.admm_compiled \
-                    and repeatable(self.layer, (state.plans, state.plane_duals, rho)):
+                    and repeatable(self.layer, (state.plans, state.planes)):
                 kept = self.layer.repeated(posed)
                 self.plane_terms = None if kept is None else PlaneTerms(self.own_rows, kept)
                 self.kept_rows = (posed.halfspace_normals, posed.halfspace_bounds)  # for the plans' state slack
-        self.offsets = plane_offsets(raw, self.own_rows, state.planes)
-        return {j: self.offsets[self.slot_e[m], self.slot_a[m]] for m, j in enumerate(self.nbrs)}
+        sol, k = self.solution, self.k
+        self.multipliers = end_multipliers(None if sol.multipliers is None else sol.multipliers[k:k + 1],
+                                           sol.Y[k:k + 1], sol.ok[k:k + 1], self.own_rows, state.planes)
+        return {j: self.multipliers[self.slot_e[m], self.slot_a[m]] for m, j in enumerate(self.nbrs)}
 
-    def _solve_kept(self, rho: Tensor, targets: Tensor) -> LocalSolution | None:
-        """The kept plane problem solved with new targets (compiled), accounted as :meth:`_solve_local`
-        accounts a solve; ``None`` hands the solve to the torch path."""
+    def _solve_kept(self, planes: Tensor) -> LocalSolution | None:
+        """The kept plane problem solved at new offsets ``planes`` (E, T) (compiled), accounted as
+        :meth:`_solve_local` accounts a solve; ``None`` hands the solve to the torch path."""
         k, state, kept = self.k, self.state, self.plane_terms.solve
         t0 = time.perf_counter()
-        self.plane_terms.write(rho, targets)
+        self.plane_terms.write(planes)
         sol = solve_or_hand_back(kept, state.solver_point)
         self.result.solve_time_s += time.perf_counter() - t0
         if sol is None:
@@ -440,14 +434,14 @@ class AgentController:
                             slack_active=torch.tensor([sol.slack_active > 0]), ok=torch.ones(1, dtype=torch.bool),
                             cost=sol.X.new_full((1,), float("nan")),  # not computed here; nothing reads it
                             state_slack=self.layer.constraints.state_violation(sol.X, *self.kept_rows),
-                            solver_point=sol.point)
+                            solver_point=sol.point, multipliers=sol.multipliers)
         self.solution = embed_row(raw, k, state)
         self.result.infeasible_solves += int(sol.slack_active > 0)
         return raw
 
     def plane_update(self, received: dict[int, Tensor | None]) -> tuple[float, float, float, float]:
-        """Each own edge's plane consensus, duals and penalty from both ends' offsets (a lost
-        neighbour votes where its half touches its last shared plan); both ends compute the same.
+        """Each own edge's plane step from both ends' multipliers (a lost neighbour's plane stays where
+        it is: its last shared plan keeps its half); both ends compute the same.
 
         Returns:
             ``(primal, dual, primal ratio, dual ratio)`` over this agent's edges (both ends), as
@@ -456,28 +450,41 @@ class AgentController:
         k, state, sol = self.k, self.state, self.solution
         inputs = state.inputs.clone()
         inputs[k] = sol.U[k]
-        rho_next = None
+        rho_next, planes, gradient = state.plane_rho, state.planes, state.plane_gradient
+        out = (0.0, 0.0, 0.0, 0.0)
         if self.graph.num_edges:
-            offsets = self.offsets.clone()
+            mu = self.multipliers.clone()
             for m, j in enumerate(self.nbrs):
                 e, a = self.slot_e[m], self.slot_a[m]
                 msg = received.get(j)
-                offsets[e, 1 - a] = msg if msg is not None else \
-                    lost_end_offsets(self.geometry, state.plans[j], e, 1 - a, self.local.nominal.position)
-            rho = self._plane_rho()
-            planes, duals, gaps, dual_norms = plane_consensus(offsets, state.planes, state.plane_duals, rho)
-            res = plane_residuals(gaps, dual_norms, duals, self.cfg)
+                mu[e, 1 - a] = msg if msg is not None else mu[e, a]  # a lost neighbour's plane stays
+            rho = state.plane_rho if state.plane_rho is not None else self.rho.expand(state.planes.shape).clone()
+            step = plane_update(mu, state.planes, rho, state.plane_gradient, self.geometry.distance, self.rho)
+            unsafe = unsafe_ends(sol.X[k:k + 1], self.own_rows, state.planes, self.cfg.admm_tol)
+            res = plane_residuals(step.move, unsafe, self.cfg)
             out = (float(res.primal.max()), float(res.dual.max()), float(res.primal_ratio.max()),
                    float(res.dual_ratio.max()))
-            if self.adaptive:
-                rho_next = balance_plane_penalty(rho, res)
-        else:
-            planes, duals, out = state.planes, state.plane_duals, (0.0, 0.0, 0.0, 0.0)
-        self.state = dataclasses.replace(state, plans=sol.X.clone(), inputs=inputs, rho=rho_next,
-                                         solver_point=sol.solver_point, planes=planes, plane_duals=duals)
+            planes, gradient, rho_next = step.planes, step.gradient, step.rho
+        self.state = dataclasses.replace(state, plans=sol.X.clone(), inputs=inputs, solver_point=sol.solver_point,
+                                         planes=planes, plane_gradient=gradient, plane_rho=rho_next)
         self.result.iterations += 1
         self.counters["iterations_total"] += 1
         return out
+
+    def keep_safe_plan(self, decision: Tensor) -> None:
+        """With planes, the world's decision on the iteration :meth:`plane_update` just ran: note this
+        agent's plan under the team's safety level (its dual residual, the largest over the team), and
+        at the stop apply the plan :class:`~torch_gpmpc.coordination.planes.SafeIterates` picks (the
+        in-process :meth:`~torch_gpmpc.coordination.admm.ADMM.solve_step`'s rule)."""
+        if not self.planes or not self.graph.num_edges:
+            return
+        k = self.k
+        self._safe.record(float(decision[1]), self.state.plans[k].clone(), self.state.inputs[k].clone())
+        best = self._safe.best()
+        if float(decision[2]) > 0.5 and best is not None:
+            plans, inputs = self.state.plans.clone(), self.state.inputs.clone()
+            plans[k], inputs[k] = best
+            self.state = dataclasses.replace(self.state, plans=plans, inputs=inputs)
 
     def take_final_plans(self, received: dict[int, Tensor | None]) -> None:
         """With planes, the neighbours' plans (T+1, D) at the step's last iteration (what the safety
@@ -541,7 +548,8 @@ class AgentController:
         full_bounds[k] = bounds[0]
         unsafe, _, _ = pair_safety(state.plans, self.graph, full_bounds, tol, position)
         replan = torch.zeros_like(unsafe)
-        if not converged:
+        # with planes every iterate whose halves held is jointly safe: only a step without one re-plans
+        if (self._safe.best() is None) if self.planes else not converged:
             replan, cells = fallback_agents(state.plans, self.graph, full_bounds, tol, position,
                                             self.team_nominal.momentum(self.num_agents), unsafe,
                                             self.cfg.safety_fallback)

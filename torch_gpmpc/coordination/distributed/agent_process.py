@@ -170,6 +170,7 @@ class AgentHost:
             comm_time += time.perf_counter() - t0
             for k, decision in zip(self.agents, decisions):
                 self.controllers[k].accelerate(decision)
+                self.controllers[k].keep_safe_plan(decision)
             stop = float(decisions[0][2])
             if stop > 0.5:
                 if self.cfg.admm_coupling == "planes":  # the neighbours' last plans, for the safety check
