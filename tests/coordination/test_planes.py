@@ -292,3 +292,15 @@ def test_a_capped_crossing_on_planes_needs_no_fallback():
     assert m["converged_fraction"] < 0.9 and m["fallback_steps"] <= 4
     assert m["violations"] == 0 and m["min_pair_distance"] >= cfg.r_safe
     assert all(a is not None for a in m["arrival_steps"])
+
+
+def test_a_time_budget_stops_every_step_early_and_its_plans_stay_safe():
+    """``admm_time_budget_ms``: a budget the first iteration already spends stops every step at its
+    second (the last goes through the torch path); with planes the plans still keep every pair."""
+    cfg = Config(noise_std=0.0, admm_coupling="planes", admm_time_budget_ms=1e-6, gp_iters=20)
+    out = simulate(cfg)
+    m = compute_metrics(out)
+    assert int(np.max(out.admm_iterations)) == 2
+    assert m["violations"] == 0 and m["arrival_step_max"] is not None
+    with pytest.raises(GpmpcError, match="admm_time_budget_ms"):
+        Config(admm_time_budget_ms=0)

@@ -65,6 +65,7 @@ CONTROLLER_RANGES: dict[str, tuple[typing.Callable[[typing.Any], bool], str]] = 
     "admm_dual_tol": (lambda v: v is None or v > 0, "a number > 0 or null"),
     "admm_rel_tol": (lambda v: 0 <= v < 1, "a number in [0, 1)"),
     "admm_max_iter": (lambda v: 1 <= v <= 100_000, "an integer in [1, 100000]"),
+    "admm_time_budget_ms": (lambda v: v is None or v > 0, "a number of milliseconds > 0, or null"),
     "admm_anderson_memory": (lambda v: 1 <= v <= 50, "an integer in [1, 50]"),
     "comm_radius": (lambda v: v is None or v > 0, "a number > 0 or null (all pairs)"),
     "slack_penalty": (lambda v: v > 0, "a number > 0"),
@@ -140,6 +141,10 @@ class ControllerSettings:
         admm_stop: ``primal-dual`` (both residuals, Boyd et al. 2011 §3.3.1) or ``primal`` (the
             paper's rule: a consensus that is feasible, not necessarily optimal).
         admm_max_iter: ADMM iteration cap per time step.
+        admm_time_budget_ms: also stop a step's iterations once they have taken this many
+            milliseconds of wall time (``null``: no time limit). Meant for ``admm_coupling =
+            planes``, whose every iterate is safe (with copies an early stop falls back); a run
+            with a time budget depends on the machine's speed, so it is not reproducible.
         admm_acceleration: ``off`` or ``anderson`` (type-II Anderson acceleration of each step's
             consensus and duals, :mod:`torch_gpmpc.coordination.acceleration`).
         admm_anderson_memory: how many past iterates the Anderson mix uses.
@@ -210,6 +215,7 @@ class ControllerSettings:
     admm_rel_tol: float = 1e-4
     admm_stop: str = "primal-dual"
     admm_max_iter: int = 100
+    admm_time_budget_ms: float | None = None
     admm_acceleration: str = "off"
     admm_anderson_memory: int = 5
     admm_coupling: str = "copies"

@@ -400,9 +400,12 @@ class ADMM:
         steady: SteadyIterations | None = None
         planes = s.admm_coupling == "planes" and graph.num_edges
         safe = SafeIterates()  # with planes, the iterates whose halves held near
+        deadline = None if s.admm_time_budget_ms is None else time.perf_counter() + s.admm_time_budget_ms / 1000
         for it in range(max_iter):
+            # the step's last iteration goes through the torch path, which reports the solution
+            last = it == max_iter - 1 or (deadline is not None and it > 0 and time.perf_counter() > deadline)
             previous = state
-            if steady is not None and it < max_iter - 1:
+            if steady is not None and not last:
                 t0 = time.perf_counter()
                 fast = steady.iterate(state)
                 if fast is not None and not should_stop(fast.primal_ratio, fast.dual_ratio, s):
@@ -411,14 +414,15 @@ class ADMM:
                     state = fast.state
                     safe.record(fast.dual_ratio, state.plans, state.inputs)
                     continue
-                # the step's last iteration (and anything unusual) goes through the torch path,
-                # which reports the solution, the problems and the failures
+                # anything unusual goes through the torch path too, which reports the failures
             state, stats = self.iterate(ctx, state)
             result.record(stats)
             if planes:
                 safe.record(stats.dual_ratio, state.plans, state.inputs)
             if should_stop(stats.primal_ratio, stats.dual_ratio, s):
                 result.converged = True
+                break
+            if last:
                 break
             # the problems change only in their consensus terms from the second iteration on (from the
             # first where no variances are exchanged, the margins then not reading the neighbours', or

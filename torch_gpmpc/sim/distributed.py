@@ -211,6 +211,7 @@ class RemotePlanner:
         res = StepResult(plans=self.last_plan, inputs=torch.zeros(K, T, cfg.input_dim, dtype=DTYPE), state=None,
                          iterations=0, converged=False)
         mixer = AndersonWorld(cfg.admm_anderson_memory) if cfg.admm_acceleration == "anderson" else None
+        deadline = None if cfg.admm_time_budget_ms is None else time.perf_counter() + cfg.admm_time_budget_ms / 1000
         for it in range(1, cfg.admm_max_iter + 1):
             self._mark_lost(t)
             got = self.net.exchange([], [((residual_size(cfg),), rank_of(k, self.per), tag(Kind.RESID, k))
@@ -224,7 +225,8 @@ class RemotePlanner:
             res.dual_residuals.append(dual)
             res.iterations = it
             res.converged = should_stop(*ratios, cfg)
-            stop = 2.0 if res.converged else (1.0 if it == cfg.admm_max_iter else 0.0)
+            out_of_time = deadline is not None and time.perf_counter() > deadline
+            stop = 2.0 if res.converged else (1.0 if it == cfg.admm_max_iter or out_of_time else 0.0)
             decision = [primal, dual, stop] + ([] if mixer is None else mixer.decide(vals, stop > 0))
             self.net.exchange([(torch.tensor(decision, dtype=DTYPE), rank_of(k, self.per),
                                 tag(Kind.DECIDE, 0, k)) for k in self._live()], [], self.timeout_s)
