@@ -142,9 +142,11 @@ class ControllerSettings:
             paper's rule: a consensus that is feasible, not necessarily optimal).
         admm_max_iter: ADMM iteration cap per time step.
         admm_time_budget_ms: also stop a step's iterations once they have taken this many
-            milliseconds of wall time (``null``: no time limit). Meant for ``admm_coupling =
-            planes``, whose every iterate is safe (with copies an early stop falls back); a run
-            with a time budget depends on the machine's speed, so it is not reproducible.
+            milliseconds of wall time (``null``: no time limit): the iteration that starts after
+            the budget is spent is the last, so a step runs at least two. Meant for
+            ``admm_coupling = planes``, whose iterates are safe (with copies an early stop falls
+            back); a run with a time budget depends on the machine's speed, so it is not
+            reproducible.
         admm_acceleration: ``off`` or ``anderson`` (type-II Anderson acceleration of each step's
             consensus and duals, :mod:`torch_gpmpc.coordination.acceleration`).
         admm_anderson_memory: how many past iterates the Anderson mix uses.
@@ -294,6 +296,8 @@ CONTROLLER_CONDITIONS: dict[str, tuple[Applies, ...]] = {
                              "the planes' residual is absolute (how far a plane moves)")),
     "rho_update": (Applies("admm_coupling", lambda s: s.admm_coupling == "copies",
                            "the planes adapt each offset's step themselves"),),
+    "admm_stop": (Applies("admm_coupling", lambda s: s.admm_coupling == "copies",
+                          "the planes stop when no plane moves and the iterate is safe"),),
     "admm_dual_tol": (Applies("admm_coupling", lambda s: s.admm_coupling == "copies",
                               "the planes have no dual residual"),),
     "solver_warm": (Applies("solver", lambda s: s.solver == "fast", "only the compiled solver keeps warm points"),),

@@ -66,9 +66,10 @@ class EdgeResiduals:
 
 
 def checks_dual(cfg: ControllerSettings) -> bool:
-    """Whether the stopping rule tests the dual residual: always for ``primal-dual``; for the
-    paper's ``primal`` rule only when ``admm_dual_tol`` is set."""
-    return cfg.admm_stop == "primal-dual" or cfg.admm_dual_tol is not None
+    """Whether the stopping rule tests the dual residual: always for ``primal-dual`` and for the
+    planes (whose dual residual is their safety grade); for the paper's ``primal`` rule only when
+    ``admm_dual_tol`` is set."""
+    return cfg.admm_stop == "primal-dual" or cfg.admm_dual_tol is not None or cfg.admm_coupling == "planes"
 
 
 def edge_residuals(copies: Tensor, z_new: Tensor, lam_norm: Tensor, primal: Tensor, dual: Tensor, cfg: ControllerSettings,
