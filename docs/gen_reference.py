@@ -3,33 +3,16 @@ the command-line reference from the argument parser, and the changelog from CHAN
 
 from __future__ import annotations
 
-import dataclasses
 import re
 from pathlib import Path
 
 import mkdocs_gen_files
 
 from torch_gpmpc.cli.parser import build_parser
-from torch_gpmpc.config.schema import CONFIG_CONDITIONS, RULES, Config
-from torch_gpmpc.config.settings import ControllerSettings
+from torch_gpmpc.config.reference import config_keys
+from torch_gpmpc.config.schema import RULES
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def attribute_docs(cls: type) -> dict[str, str]:
-    """``name -> text`` of a class docstring's ``Attributes:`` entries (Google style)."""
-    doc = cls.__doc__ or ""
-    block = doc.split("Attributes:", 1)[1].split("\n    Example", 1)[0] if "Attributes:" in doc else ""
-    entries: dict[str, list[str]] = {}
-    current = None
-    for line in block.split("\n"):
-        m = re.match(r"^        ([a-z_0-9]+): (.*)$", line)
-        if m:
-            current = m.group(1)
-            entries[current] = [m.group(2)]
-        elif current is not None and line.strip():
-            entries[current].append(line.strip())
-    return {k: " ".join(v) for k, v in entries.items()}
 
 
 def cell(text: str) -> str:
@@ -37,39 +20,22 @@ def cell(text: str) -> str:
     return text.replace("``", "`").replace("|", "\\|").replace("\n", " ")
 
 
-def type_name(field: dataclasses.Field) -> str:
-    return str(field.type).replace("typing.", "").replace("torch_gpmpc.config.", "")
-
-
-def allowed(name: str) -> str:
-    if name in RULES.choices:
-        return ", ".join(f"`{c}`" for c in RULES.choices[name])
-    if name in RULES.ranges:
-        return RULES.ranges[name][1]
-    return ""
-
-
-def applies(name: str) -> str:
-    rules = CONFIG_CONDITIONS.get(name, ())
-    return "; ".join(f"depends on `{r.by}` (else ignored, with a warning: {r.why})" for r in rules) or "always"
-
-
 def config_page() -> str:
-    docs = {**attribute_docs(Config), **attribute_docs(ControllerSettings)}
-    controller = set(ControllerSettings.__dataclass_fields__)
+    keys = config_keys()
     lines = ["# Configuration keys", "",
-             "Every key of a run, generated from the schema (`torch_gpmpc.config`). Keys are flat and the same in",
-             "a TOML/JSON/YAML file (`gpmpc run --config FILE`) and on the command line (`--set NAME=VALUE`);",
-             "an unknown key fails with the nearest valid one. A key that matters only under another key's value",
-             "says so in the last column; set while it does not apply, it warns, naming the key that decides.", ""]
-    for title, keys in (("Controller keys (also `ControllerSettings`)", [f for f in dataclasses.fields(Config)
-                                                                          if f.name in controller]),
-                        ("Run keys (`Config` only)", [f for f in dataclasses.fields(Config) if f.name not in controller])):
+             "Every key of a run, generated from the schema (`torch_gpmpc.config`; `gpmpc keys` prints the same",
+             "in a terminal). Keys are flat and the same in a TOML/JSON/YAML file (`gpmpc run --config FILE`) and",
+             "on the command line (`--set NAME=VALUE`); an unknown key fails with the nearest valid one. A key that",
+             "matters only under another key's value says so in the last column; set while it does not apply, it",
+             "warns, naming the key that decides.", ""]
+    for title, group in (("Controller keys (also `ControllerSettings`)", [k for k in keys if k.controller]),
+                         ("Run keys (`Config` only)", [k for k in keys if not k.controller])):
         lines += [f"## {title}", "", "| key | type | default | allowed | applies | meaning |", "|---|---|---|---|---|---|"]
-        for f in keys:
-            default = f.default if f.default is not dataclasses.MISSING else ""
-            lines.append(f"| `{f.name}` | `{cell(type_name(f))}` | `{default!r}` | {cell(allowed(f.name))} | "
-                         f"{cell(applies(f.name))} | {cell(docs.get(f.name, ''))} |")
+        for k in group:
+            default = repr(k.default)
+            choices = ", ".join(f"`{c}`" for c in RULES.choices[k.name]) if k.name in RULES.choices else k.allowed
+            lines.append(f"| `{k.name}` | `{cell(k.type)}` | `{default}` | {cell(choices)} | {cell(k.applies)} | "
+                         f"{cell(k.meaning)} |")
         lines.append("")
     return "\n".join(lines)
 

@@ -28,6 +28,7 @@ _COMMANDS = {
     "bench": "torch_gpmpc.cli.bench",
     "calibrate": "torch_gpmpc.cli.calibrate",
     "benchmark": "torch_gpmpc.cli.benchmark",
+    "keys": "torch_gpmpc.cli.keys",
 }
 
 

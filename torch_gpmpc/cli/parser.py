@@ -100,8 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="One closed-loop run (default: the paper scenario, 3 agents, the proposed gp-chance "
                     "method): DIR/metrics.json, DIR/rollout.npz, DIR/figures/ and TensorBoard logs in DIR/tb/. "
                     "Every config key works as --set NAME=VALUE (e.g. --set scenario=circle --set num_agents=8 "
-                    "for another team size); the keys, their defaults and ranges are listed in the docs' "
-                    "configuration reference (docs/reference/config.md).")
+                    "for another team size); `gpmpc keys` lists the keys with their defaults and ranges, as does "
+                    "the docs' configuration reference.")
     _add_config_args(p)
     p.add_argument("--scenario", help="scenario file (JSON/TOML with starts, targets[, reference]); default: the "
                                       "config key scenario")
@@ -166,4 +166,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/bench", help="output directory (bench.json, figures/)")
     p.add_argument("--sections", default="gp,local,scale,run", help="comma-separated: gp, local, scale, run")
     p.add_argument("--quick", action="store_true", help="fewer repetitions (for CI smoke runs)")
+
+    p = sub.add_parser("keys", help="the config keys: defaults, allowed values, what each means",
+                       description="Every config key (for --set NAME=VALUE and config files) with its default, "
+                                   "allowed values, when it applies and what it means.")
+    p.add_argument("word", nargs="?", help="show only keys whose name or meaning contains WORD (e.g. admm); "
+                                           "default: every key")
     return parser

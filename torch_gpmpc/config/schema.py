@@ -85,17 +85,19 @@ class Config(ControllerSettings):
             or ``rotorpy`` (simulated multirotors tracking the plans,
             :mod:`~torch_gpmpc.dynamics.rotorpy_plant`; needs a 3D double-integrator model).
         plant_vehicle: RotorPy's ``crazyflie`` or ``hummingbird`` parameters.
-        plant_wind: ``none``, ``constant``, ``sine`` or ``dryden``; ``plant_wind_speed`` is its
-            velocity [wx, wy, wz] in m/s (the amplitude of ``sine``, the mean of ``dryden``).
+        plant_wind: ``none``, ``constant``, ``sine`` or ``dryden``.
+        plant_wind_speed: the wind's velocity [wx, wy, wz] in m/s (the amplitude of ``sine``, the
+            mean of ``dryden``).
         plant_rate_hz: the rate of RotorPy's tracking controller and simulator.
         plant_sensor_noise: standard deviation of the measured position (m) and velocity (m/s).
         wind_change_step: the control step from which the plant's wind (RotorPy's, or the model
             plant's vortex) is turned 90 degrees about the vertical axis (null: never).
         gp_online: each agent adds its own observed transitions to its GP during the run
-            (:mod:`~torch_gpmpc.gp.online`); ``gp_online_budget`` points per agent (the oldest
-            leave first), hyperparameters re-fitted every ``gp_online_refit_every`` steps (0: never);
-            with ``gp_online_max_input_change`` only transitions whose input changed by at most that
-            (norm, input units) since the agent's previous step are added (null: all).
+            (:mod:`~torch_gpmpc.gp.online`).
+        gp_online_budget: the online points each agent keeps (the oldest leave first).
+        gp_online_refit_every: re-fit the online GPs' hyperparameters every this many steps (0: never).
+        gp_online_max_input_change: add only transitions whose input changed by at most this (norm,
+            input units) since the agent's previous step (null: all).
     Example:
         >>> from torch_gpmpc import Config
         >>> cfg = Config(model="double-integrator", dim=3, scenario="circle", num_agents=6)

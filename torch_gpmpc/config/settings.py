@@ -152,8 +152,9 @@ class ControllerSettings:
         admm_anderson_memory: how many past iterates the Anderson mix uses.
         admm_coupling: what neighbours agree on: ``copies`` (the paper's copies of the pair's
             trajectories; a step is safe once they agree) or ``planes`` (a separating plane per
-            edge and horizon step, each agent keeping its own half: every iteration's plans are
-            jointly safe, so a step may stop at any iteration; :mod:`torch_gpmpc.coordination.planes`).
+            edge and horizon step, each agent keeping its own half: an iteration whose halves held
+            has jointly safe plans, so a step may stop early and apply its last such iterate; see
+            the docs' Plane coupling).
         relinearize: re-set linearization points from each ADMM iterate (Algorithm 1, step 9);
             false (default): linearize once per control step around the warm start, so ADMM
             converges on one convex problem (the paper's per-iterate rule keeps it moving).
