@@ -68,8 +68,8 @@ from torch_gpmpc.coordination.mission_risk import (
     pair_risk_bounds, row_allotments, slot_risks_from_edges, starting_budgets,
 )
 from torch_gpmpc.coordination.planes import (
-    PlaneIterations, SafeIterates, end_multipliers, midpoint_planes, plane_geometry, plane_problem, plane_residuals, plane_update,
-    unsafe_ends,
+    PlaneIterations, SafeIterates, end_multipliers, midpoint_planes, plane_geometry, plane_problem, plane_residuals,
+    plane_update, unsafe_ends,
 )
 from torch_gpmpc.coordination.penalty import (
     balance_penalty, edge_residuals, should_stop, starting_penalties, unconverged_edges,

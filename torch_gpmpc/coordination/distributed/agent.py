@@ -14,9 +14,9 @@ shared plan: its missing copy is replaced by ``[own plan; last shared plan]``.
 
 With ``admm_coupling = planes`` an agent agrees with its neighbours once per step on the step's
 variances and collision rows (:meth:`AgentController.step_variances`,
-:meth:`AgentController.plane_rows`), sends T plane offsets per iteration, and its plan after the
-stop decision; both ends of an edge compute its consensus, both duals and its penalty from the
-same two offsets, as :mod:`~torch_gpmpc.coordination.planes` does for the whole team.
+:meth:`AgentController.plane_rows`), sends the T multipliers of its half per iteration, and its
+plan after the stop decision; both ends of an edge compute the plane's step from the same two
+multipliers, as :mod:`~torch_gpmpc.coordination.planes` does for the whole team.
 
 In a mixed team (config key ``models``) an agent plans with its own model's step, lifted to the
 team's state size (:mod:`~torch_gpmpc.coordination.team_step`): the rows it solves are the ones
@@ -397,7 +397,8 @@ class AgentController:
         """The local solve on this agent's plane halves; returns its multiplier of each half (T,) per
         neighbour (:func:`~torch_gpmpc.coordination.planes.end_multipliers`).
 
-        The step's rows are fixed, so after its first solve only the copies' targets change: later solves write them into the kept problem and solve it warm (compiled, as the
+        The step's rows are fixed, so after its first solve only the copies' targets change: later
+        solves write them into the kept problem and solve it warm (compiled, as the
         in-process :class:`~torch_gpmpc.coordination.planes.PlaneIterations` do; the same bits), and
         anything unusual goes through the torch path."""
         state = self.state
