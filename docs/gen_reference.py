@@ -3,21 +3,19 @@ the command-line reference from the argument parser, and the changelog from CHAN
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import mkdocs_gen_files
 
 from torch_gpmpc.cli.parser import build_parser
-from torch_gpmpc.config.reference import config_keys
+from torch_gpmpc.config.reference import config_keys, strip_roles
 from torch_gpmpc.config.schema import RULES
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def cell(text: str) -> str:
-    text = re.sub(r":(?:class|meth|func|mod|data|attr):`~?([^`]*)`", lambda m: f"`{m.group(1).rsplit('.', 1)[-1]}`", text)
-    return text.replace("``", "`").replace("|", "\\|").replace("\n", " ")
+    return strip_roles(text, "`").replace("``", "`").replace("|", "\\|").replace("\n", " ")
 
 
 def config_page() -> str:

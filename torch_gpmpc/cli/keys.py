@@ -4,11 +4,10 @@ and what it means (:func:`~torch_gpmpc.config.reference.config_keys`), in the te
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 import textwrap
 
-from torch_gpmpc.config.reference import ConfigKey, config_keys
+from torch_gpmpc.config.reference import ConfigKey, config_keys, strip_roles
 
 
 def main(args: argparse.Namespace) -> int:
@@ -40,5 +39,4 @@ def describe(key: ConfigKey, width: int = 100) -> str:
 
 def plain(text: str) -> str:
     """Docstring markup as plain text: double backquotes and Sphinx roles dropped."""
-    text = re.sub(r":(?:class|meth|func|mod|data|attr):`~?([^`]*)`", lambda m: m.group(1).rsplit(".", 1)[-1], text)
-    return text.replace("``", "")
+    return strip_roles(text).replace("``", "")

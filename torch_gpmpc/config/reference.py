@@ -71,6 +71,12 @@ def attribute_docs(cls: type) -> dict[str, str]:
     return {k: " ".join(v) for k, v in entries.items()}
 
 
+def strip_roles(text: str, quote: str = "") -> str:
+    """``text`` with its Sphinx roles (``:class:`~a.b.C```) as their last name, between ``quote``s."""
+    return re.sub(r":(?:class|meth|func|mod|data|attr):`~?([^`]*)`",
+                  lambda m: f"{quote}{m.group(1).rsplit('.', 1)[-1]}{quote}", text)
+
+
 def allowed(name: str) -> str:
     """The key's choices or range as text, or "" where the type alone decides."""
     if name in RULES.choices:

@@ -249,10 +249,16 @@ def replace_rows(solution: LocalSolution, rows: Tensor, other: LocalSolution) ->
                          ok=put(solution.ok, other.ok), cost=put(solution.cost, other.cost),
                          failure=put(solution.failure, other.failure), failure_detail=solution.failure_detail,
                          state_slack=put(solution.state_slack, other.state_slack), solver_point=solution.solver_point,
-                         multipliers=put(solution.multipliers, other.multipliers if other.multipliers is not None else
-                                         None if solution.multipliers is None else
-                                         solution.multipliers.new_full((len(rows), *solution.multipliers.shape[1:]),
-                                                                       float("nan"))))
+                         multipliers=put(solution.multipliers, unreported_as_nan(other.multipliers, solution.multipliers,
+                                                                                 len(rows))))
+
+
+def unreported_as_nan(theirs: Tensor | None, mine: Tensor | None, rows: int) -> Tensor | None:
+    """``theirs``, or NaN rows shaped as ``mine``'s where another solver reported no multipliers (so
+    the replaced rows do not keep the first solver's)."""
+    if theirs is not None or mine is None:
+        return theirs
+    return mine.new_full((rows, *mine.shape[1:]), float("nan"))
 
 
 def planned_cost(data: LocalProblemData, X: Tensor, U: Tensor, xref: Tensor, alpha: float, beta: float) -> Tensor:

@@ -68,8 +68,7 @@ from torch_gpmpc.coordination.mission_risk import (
     pair_risk_bounds, row_allotments, slot_risks_from_edges, starting_budgets,
 )
 from torch_gpmpc.coordination.planes import (
-    PlaneIterations, SafeIterates, end_multipliers, midpoint_planes, plane_geometry, plane_problem, plane_residuals,
-    plane_update, unsafe_ends,
+    PlaneIterations, SafeIterates, end_multipliers, midpoint_planes, plane_geometry, plane_iteration, plane_problem,
 )
 from torch_gpmpc.coordination.penalty import (
     balance_penalty, edge_residuals, should_stop, starting_penalties, unconverged_edges,
@@ -333,12 +332,9 @@ class ADMM:
         posed = plane_problem(data, geometry, planes)
         ctx.planes_posed = (posed, geometry)
         _, sol, stats = self._local_solves(ctx, state, posed, assembled)
-        rho = state.plane_rho if state.plane_rho is not None else ctx.rho.expand(planes.shape).clone()
-        step = plane_update(end_multipliers(sol.multipliers, sol.Y, sol.ok, geometry, planes), planes, rho,
-                            state.plane_gradient, geometry.distance, ctx.rho)
-        unsafe = unsafe_ends(sol.X, geometry, planes, s.admm_tol)
-        res = plane_residuals(step.move, unsafe, s)
-        stop = res if ctx.tol == s.admm_tol else plane_residuals(step.move, unsafe, s, ctx.tol)
+        mu = end_multipliers(sol.multipliers, sol.Y, sol.ok, geometry, planes)
+        step, res, stop = plane_iteration(mu, sol.X, geometry, planes, state.plane_rho, state.plane_gradient, ctx.rho,
+                                          s, ctx.tol)
         stats.primal, stats.dual = res.primal.max(), res.dual.max()
         stats.primal_ratio = float(stop.primal_ratio.max().detach())
         stats.dual_ratio = float(stop.dual_ratio.max().detach())

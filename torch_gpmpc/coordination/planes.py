@@ -188,7 +188,7 @@ GRADIENT_FLOOR = 1e-9
 PLANE_MAX_MOVE = 0.25
 
 
-def plane_update(multipliers: Tensor, planes: Tensor, rho: Tensor, previous_gradient: Tensor | None,
+def plane_update(multipliers: Tensor, planes: Tensor, rho: Tensor | None, previous_gradient: Tensor | None,
                  distance: Tensor, start_rho: Tensor) -> PlaneUpdate:
     """The planes' primal-decomposition step: every offset moves against the team cost's derivative
     ``mu_lo - mu_hi``, towards the end whose half costs less, ``c <- c - (mu_lo - mu_hi) / (2 rho)``.
@@ -202,13 +202,16 @@ def plane_update(multipliers: Tensor, planes: Tensor, rho: Tensor, previous_grad
 
     Args:
         multipliers: (E, 2, T) both ends' multipliers (:func:`end_multipliers`). planes: (E, T) the
-            offsets the solves were pinned to. rho: (E, T) the penalties of the last move.
+            offsets the solves were pinned to. rho: (E, T) the penalties of the last move, or ``None``
+            at a step's first iteration (``start_rho`` everywhere).
         previous_gradient: (E, T) the last iteration's gradient, or ``None`` at a step's first.
         distance: (E, T) the pairs' distances (:attr:`PlaneGeometry.distance`).
         start_rho: 0-d, the step's starting penalty: the stopping residual is the move it would make,
             ``max_tau |mu_lo - mu_hi| / (2 start_rho)`` (a grown ``rho`` would stop a step early).
     """
     gradient = multipliers[:, 0] - multipliers[:, 1]
+    if rho is None:
+        rho = start_rho.expand(planes.shape)
     if previous_gradient is not None:
         with torch.no_grad():
             turn = torch.where(gradient.abs() > GRADIENT_FLOOR, gradient, 0.0) * previous_gradient
@@ -218,6 +221,32 @@ def plane_update(multipliers: Tensor, planes: Tensor, rho: Tensor, previous_grad
     limit = PLANE_MAX_MOVE * distance
     step = torch.minimum(torch.maximum(-gradient / (2 * rho), -limit), limit)
     return PlaneUpdate(planes + step, gradient, rho, gradient.detach().abs().amax(dim=1) / (2 * start_rho.detach()))
+
+
+def plane_iteration(multipliers: Tensor, plans: Tensor, geometry: PlaneGeometry, planes: Tensor,
+                    rho: Tensor | None, previous_gradient: Tensor | None, start_rho: Tensor,
+                    cfg: ControllerSettings, tol: float | None = None
+                    ) -> tuple[PlaneUpdate, EdgeResiduals, EdgeResiduals]:
+    """What one iteration makes of its solves, the same on every path (the torch path, the compiled
+    :class:`PlaneIterations`, a distributed agent): the plane step (:func:`plane_update`), the
+    iterate's safety grade (:func:`unsafe_ends`) and the residuals of :func:`plane_residuals`.
+
+    Args:
+        multipliers: (E, 2, T) both ends' multipliers. plans: (K, T+1, n) the plans the solves gave
+            (only the agents ``geometry`` poses are graded: a distributed agent grades its own ends).
+        geometry: the step's :class:`PlaneGeometry`. planes: (E, T) the offsets the solves were pinned to.
+        rho, previous_gradient, start_rho: as :func:`plane_update` takes them.
+        cfg: the settings (``admm_tol`` grades and balances). tol: the stopping test's tolerance
+            (default ``admm_tol``).
+
+    Returns:
+        ``(step, residuals at admm_tol, residuals of the stopping test)``.
+    """
+    step = plane_update(multipliers, planes, rho, previous_gradient, geometry.distance, start_rho)
+    unsafe = unsafe_ends(plans, geometry, planes, cfg.admm_tol)
+    res = plane_residuals(step.move, unsafe, cfg)
+    stop = res if tol is None or tol == cfg.admm_tol else plane_residuals(step.move, unsafe, cfg, tol)
+    return step, res, stop
 
 
 class SafeIterates:
@@ -331,10 +360,8 @@ class PlaneIterations:
         if sol is None:
             return None
         mu = end_multipliers(sol.multipliers, sol.Y, None, g, state.planes)
-        step = plane_update(mu, state.planes, state.plane_rho, state.plane_gradient, g.distance, self.rho)
-        unsafe = unsafe_ends(sol.X, g, state.planes, self.settings.admm_tol)
-        res = plane_residuals(step.move, unsafe, s)
-        stop = res if self.tol == s.admm_tol else plane_residuals(step.move, unsafe, s, self.tol)
+        step, res, stop = plane_iteration(mu, sol.X, g, state.planes, state.plane_rho, state.plane_gradient, self.rho,
+                                          s, self.tol)
         nxt = dataclasses.replace(state, plans=sol.X, inputs=sol.U, solver_point=sol.point, planes=step.planes,
                                   plane_gradient=step.gradient, plane_rho=step.rho)
         return SteadyResult(nxt, float(res.primal.max()), float(res.dual.max()), float(stop.primal_ratio.max()),

@@ -46,8 +46,8 @@ from torch_gpmpc.coordination.controller import make_agent_step
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
 from torch_gpmpc.coordination.graph import graph_from_edges
 from torch_gpmpc.coordination.planes import (
-    PlaneTerms, agent_rows, end_multipliers, midpoint_planes, plane_problem, plane_residuals, plane_update,
-    SafeIterates, rows_geometry, unsafe_ends,
+    PlaneTerms, SafeIterates, agent_rows, end_multipliers, midpoint_planes, plane_iteration, plane_problem,
+    rows_geometry,
 )
 from torch_gpmpc.coordination.state import ADMMState, StepResult, adapt_state, initial_state
 from torch_gpmpc.coordination.steady import repeatable, solve_or_hand_back
@@ -459,10 +459,8 @@ class AgentController:
                 e, a = self.slot_e[m], self.slot_a[m]
                 msg = received.get(j)
                 mu[e, 1 - a] = msg if msg is not None else mu[e, a]  # a lost neighbour's plane stays
-            rho = state.plane_rho if state.plane_rho is not None else self.rho.expand(state.planes.shape).clone()
-            step = plane_update(mu, state.planes, rho, state.plane_gradient, self.geometry.distance, self.rho)
-            unsafe = unsafe_ends(sol.X[k:k + 1], self.own_rows, state.planes, self.cfg.admm_tol)
-            res = plane_residuals(step.move, unsafe, self.cfg)
+            step, res, _ = plane_iteration(mu, sol.X[k:k + 1], self.own_rows, state.planes, state.plane_rho,
+                                           state.plane_gradient, self.rho, self.cfg)
             out = (float(res.primal.max()), float(res.dual.max()), float(res.primal_ratio.max()),
                    float(res.dual_ratio.max()))
             planes, gradient, rho_next = step.planes, step.gradient, step.rho
