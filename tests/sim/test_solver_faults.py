@@ -114,7 +114,8 @@ ADMM_VARIANTS = {"off": {}, "anderson": {"admm_acceleration": "anderson"}, "plan
 def test_solver_fault_falls_back_and_the_run_finishes_in_process(model, fault, acceleration, tmp_path, monkeypatch,
                                                                   caplog):
     """(Also with Anderson acceleration: the failed agent's previous plan enters the mix's history;
-    and with plane coupling: the failed agent's ends vote the current planes.)"""
+    and with plane coupling: the failed agent's ends report no multiplier and its edges grade the
+    iterate unsafe, so the step applies an earlier safe one.)"""
     import torch_gpmpc.coordination.agent_step as agent_step
 
     cfg = Config(**{**SHORT, **MODELS[model]}, **ADMM_VARIANTS[acceleration])
@@ -161,7 +162,7 @@ def test_solver_fault_in_a_mixed_team_fails_only_that_models_agents(fault, tmp_p
 def test_solver_fault_falls_back_and_the_run_finishes_distributed(model, fault, acceleration, tmp_path, monkeypatch):
     """Each agent process's own solver fails at its third call: each agent falls back once (also
     with Anderson acceleration, whose sums then carry the fallen-back agent's share, and with plane
-    coupling, where the fallen-back agent's ends vote the current planes)."""
+    coupling, where the fallen-back agent's ends report no multiplier and grade the iterate unsafe)."""
     hook = tmp_path / "hook"
     hook.mkdir()
     load_faults(hook)
