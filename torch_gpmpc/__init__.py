@@ -2,7 +2,7 @@
 
 Public API. Build a controller from tensors: ``ModelSpec`` (the agent model),
 ``ResidualGP`` (``fit_residual_gp``, ``ResidualGP.from_gpytorch`` for your own GPyTorch models;
-the ``ResidualModel`` protocol), ``ControllerSettings``, ``Controller`` (``step``). Its parts:
+the ``ResidualModel`` protocol; ``OffsetCorrected`` for offset-free tracking), ``ControllerSettings``, ``Controller`` (``step``). Its parts:
 ``LocalStep`` (the per-agent step), ``ADMM`` (``prepare``/``iterate``/``solve_step``),
 ``make_local_solver`` with the ``LocalProblemData`` -> ``LocalSolution`` contract and the
 backends ``InteriorPointMPC`` (default, compiled) and ``CvxpyLayerMPC`` (reference; ``LocalMPC`` is
@@ -41,6 +41,7 @@ _EXPORTS = {
     "ModelSpec": "config.model_spec",
     "ResidualModel": "gp.protocol",
     "GPyTorchResidual": "gp.gpytorch_models",
+    "OffsetCorrected": "gp.offset",
     "simulate": "sim.closed_loop",
     "Rollout": "sim.rollout",
     "compute_metrics": "sim.metrics",

@@ -29,6 +29,8 @@ from torch_gpmpc.sim.scenarios import make_scenario
 from torch_gpmpc.dynamics.systems import clip_norm
 from torch_gpmpc.sim.closed_loop import noise_sequence, simulate
 from torch_gpmpc.dynamics.systems import make_system
+from torch_gpmpc.gp.offset import offset_corrected
+from torch_gpmpc.gp.online import OnlineLearning
 
 QUICK = {"method": "gp-chance", "max_steps": 3, "admm_max_iter": 5, "gp_iters": 5}
 
@@ -166,17 +168,20 @@ def test_agent_controllers_reproduce_the_plane_admm(admm_max_iter):
     rows with its neighbours once, then sends T multipliers per iteration, and its final plan: the
     in-process plane steps' residuals and inputs (the fast solver: batch 1 against batch 4 rounds
     differently in the last bits), uncapped and capped at 3 iterations (the last safe plans, the
-    safety check on the final plans)."""
+    safety check on the final plans); every agent with its offset estimate, updated from its own
+    measurements as the in-process OnlineLearning updates them all."""
     from torch_gpmpc.gp import fit_agent_gps
 
     cfg = load_config(None, {"method": "gp-chance", "scenario": "circle", "num_agents": 4, "circle_radius": 1.5,
                              "admm_coupling": "planes", "admm_max_iter": admm_max_iter, "gp_samples": 30,
-                             "gp_iters": 5, "max_steps": 8})
+                             "gp_iters": 5, "max_steps": 8, "disturbance_drift": 0.01})
     sc = make_scenario(cfg)
     K = sc.num_agents
     system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
     gps = fit_agent_gps(cfg, system, K)
-    admm = ADMM(LocalStep(cfg, system.nominal, cfg.method, None, gps))
+    corrected = offset_corrected(gps, cfg.offset_drift)  # each agent's offset estimate, in process
+    learning = OnlineLearning(corrected, system.nominal, online=False)
+    admm = ADMM(LocalStep(cfg, system.nominal, cfg.method, None, corrected))
     agents = [AgentController(k, K, cfg, sc.reference_path()[k], gps[k]) for k in range(K)]
     noise = noise_sequence(cfg, K)
     kept = []  # the solves each agent made on its kept problem (compiled) rather than through torch
@@ -220,7 +225,8 @@ def test_agent_controllers_reproduce_the_plane_admm(admm_max_iter):
             u = torch.stack([a.end_step().u for a in agents])
             assert torch.allclose(u, res.inputs[:, 0], rtol=0, atol=1e-10)
             iterations.append(res.iterations)
-            x = system.step(x, clip_norm(u, cfg.u_max), noise=noise[t])
+            x_prev, x = x, system.step(x, clip_norm(u, cfg.u_max), noise=noise[t])
+            learning.observe(x_prev, clip_norm(u, cfg.u_max), x)
     assert max(iterations) > 10 if admm_max_iter == 40 else set(iterations) == {3}
     assert len(kept) == K * sum(n - 1 for n in iterations) and all(kept)  # every later solve compiled
 

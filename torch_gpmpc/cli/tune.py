@@ -70,6 +70,9 @@ def main(args) -> int:
                          "split to tune; set --set tune.tune_split=false (rho still tunes), or risk_mode=pair_step")
     if not Method.parse(cfg.method).chance and settings.tune_split:
         log.warning("method %s has no chance margins: the risk split gets no gradient", cfg.method)
+    if cfg.offset_drift > 0:
+        log.warning("disturbance_drift: the gradient objective plans from recorded states without the agents' "
+                    "offset estimates (they need a run's history); the closed-loop evaluation uses them")
 
     started = time.perf_counter()
     scenario = make_scenario(cfg)

@@ -98,6 +98,10 @@ class Config(ControllerSettings):
         gp_online_refit_every: re-fit the online GPs' hyperparameters every this many steps (0: never).
         gp_online_max_input_change: add only transitions whose input changed by at most this (norm,
             input units) since the agent's previous step (null: all).
+        disturbance_drift: offset-free tracking: each agent estimates a constant disturbance on
+            its residual rows from its own one-step prediction errors, a Kalman filter of a random
+            walk of this standard deviation per step (raw units; :mod:`~torch_gpmpc.gp.offset`).
+            0: no estimate.
     Example:
         >>> from torch_gpmpc import Config
         >>> cfg = Config(model="double-integrator", dim=3, scenario="circle", num_agents=6)
@@ -142,6 +146,7 @@ class Config(ControllerSettings):
     gp_online_budget: int = 200
     gp_online_refit_every: int = 0
     gp_online_max_input_change: float | None = None
+    disturbance_drift: float = 0.0
 
     def __new__(cls, *args: Any, **kwargs: Any) -> "Config":
         """Refuse a misspelt keyword with the nearest valid key, as config files and ``--set`` do (the
@@ -220,6 +225,12 @@ class Config(ControllerSettings):
                              self.r_safe, self.forest_gap)[0]
 
     @property
+    def offset_drift(self) -> float:
+        """The ``disturbance_drift`` in effect: 0 for a method whose predictions do not use the GP
+        mean (``nominal*``, ``nonlinear*``), which has no residual mean to correct."""
+        return self.disturbance_drift if _predicts_with_gp(self) else 0.0
+
+    @property
     def uncertainty_mode(self) -> str:
         """The covariance model in use: ``uncertainty`` with ``auto`` resolved (see above)."""
         return resolve_uncertainty(self.uncertainty, self.model_spec())
@@ -270,6 +281,10 @@ def _needs_gp(cfg) -> bool:
     return cfg.method not in ("nominal", "nonlinear")
 
 
+def _predicts_with_gp(cfg) -> bool:
+    return cfg.method in ("gp", "gp-chance")
+
+
 _MODEL_RULE = Applies("model", _builtin_model, "the model defines its own state, sampling time and input bound")
 _PLANT_RULE = Applies("plant", lambda c: c.plant == "rotorpy", "it configures the RotorPy plant")
 _GP_DATA_RULE = Applies("method", _needs_gp, "this method learns no residual GP")
@@ -288,6 +303,7 @@ CONFIG_CONDITIONS: dict[str, tuple[Applies, ...]] = {
                                        "plant_sensor_noise")},
     "wind_scale": (Applies("plant", lambda c: c.plant == "model", "RotorPy's wind is plant_wind"),),
     **{key: (_GP_DATA_RULE,) for key in ("gp_samples", "gp_iters", "gp_optimizer", "gp_box")},
+    "disturbance_drift": (Applies("method", _predicts_with_gp, "this method's predictions use no GP mean"),),
     **{key: (_ONLINE_RULE,) for key in ("gp_online_budget", "gp_online_refit_every", "gp_online_max_input_change")},
     **{key: (Applies("scenario", lambda c: c.scenario == "forest", "it shapes the forest"),)
        for key in ("num_obstacles", "forest_gap")},
@@ -337,6 +353,7 @@ _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "gp_online_budget": (lambda v: 2 <= v <= 5000, "an integer in [2, 5000]"),
     "gp_online_refit_every": (lambda v: v >= 0, "an integer >= 0 (0: never re-fit)"),
     "gp_online_max_input_change": (lambda v: v is None or v > 0, "a number > 0 or null (add every transition)"),
+    "disturbance_drift": (lambda v: 0 <= v <= 10, "a number in [0, 10] (0: no offset estimate)"),
 }
 
 

@@ -34,6 +34,7 @@ from torch_gpmpc.gp.cache import PredictionCache, squared_distances
 from torch_gpmpc.gp.cholesky_update import cholesky_append, cholesky_drop_first, cholesky_rank_one
 from torch_gpmpc.gp.fit import refit_hyperparameters
 from torch_gpmpc.gp.model import ResidualGP, check_training_data
+from torch_gpmpc.gp.offset import OffsetCorrected
 from torch_gpmpc.gp.sparse import sparse_posterior
 
 #: L-BFGS steps of a periodic hyperparameter refit.
@@ -215,7 +216,10 @@ class OnlineLearning:
 
     def observe(self, x: Tensor, u: Tensor, x_next: Tensor) -> tuple[Tensor, Tensor]:
         """One step of every agent: measured states x (K, D), inputs u (K, Du), next measured
-        states (K, D). Returns prediction errors and predictive variances, each (K, R)."""
+        states (K, D). Returns prediction errors and predictive variances, each (K, R).
+
+        An agent's :class:`~torch_gpmpc.gp.offset.OffsetCorrected` model then updates its offset
+        from the error its model (after any online update) makes on this transition."""
         inputs, y = self.nominal.gp_targets(x, u, x_next)
         if isinstance(inputs, Tensor):  # one model: (K, Din); a mixed team's: one (1, Din_k) per agent
             inputs = [inputs[k:k + 1] for k in range(inputs.shape[0])]
@@ -233,6 +237,11 @@ class OnlineLearning:
                 else:
                     self.skipped[k] += 1
                 gp.end_step()
+        for k, gp in enumerate(self.gps):
+            if isinstance(gp, OffsetCorrected):
+                # the innovation of the model the next plan uses: after an online update the GP has
+                # learnt what the offset did not explain (OffsetCorrected.add), near noise level here
+                gp.observe(y[k] - gp.predict(inputs[k])[0][0] if self.online else errors[k])
         self.update_seconds.append(time.perf_counter() - start if self.online else 0.0)
         return torch.stack(errors), torch.stack(variances)
 

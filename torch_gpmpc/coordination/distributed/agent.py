@@ -43,6 +43,7 @@ from torch_gpmpc.coordination.bodies import slot_distances
 from torch_gpmpc.coordination.agent_step import edge_copies, fall_back_to_previous, slot_risks
 from torch_gpmpc.coordination.fallback import fallback_agents, fallback_problem, pair_safety
 from torch_gpmpc.coordination.controller import make_agent_step
+from torch_gpmpc.gp.offset import OffsetCorrected, offset_corrected
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
 from torch_gpmpc.coordination.graph import graph_from_edges
 from torch_gpmpc.coordination.planes import (
@@ -125,8 +126,10 @@ class AgentController:
         self.k, self.num_agents, self.cfg = k, num_agents, cfg
         self.reference = torch.as_tensor(reference, dtype=DTYPE)
         system = team_system_from_config(cfg)
+        #: this agent's residual model, with its own offset estimate where ``disturbance_drift`` > 0
+        self.gp = None if gp is None else offset_corrected([gp], cfg.offset_drift)[0]
         # indexed by agent id; this process holds only its own GP
-        gps = None if gp is None else [gp if j == k else None for j in range(self.num_agents)]
+        gps = None if self.gp is None else [self.gp if j == k else None for j in range(self.num_agents)]
         step = make_agent_step(cfg, system, gps)
         #: the team's known models (a mixed team's :class:`~torch_gpmpc.dynamics.team.TeamNominal`):
         #: which neighbours can stop at once (the fallback rule) depends on their models
@@ -157,8 +160,9 @@ class AgentController:
                 detours); ``None``: the window of the agent's own reference path.
         """
         cfg, k, K = self.cfg, self.k, self.num_agents
-        self.x0 = x0
         nominal = self.local.nominal
+        self._observe_offset(x0)
+        self.x0 = x0
         if xref is None:
             xref = nominal.reference_states(reference_window(self.reference, t, cfg.horizon))
         self.xref = xref[None]
@@ -180,6 +184,17 @@ class AgentController:
         self.known[k] = True
         self._next_nbrs = sorted(int(j) for j in nbr_ids if int(j) != k)
         return [j for j in self._next_nbrs if j not in self.nbrs]
+
+    def _observe_offset(self, x0: Tensor) -> None:
+        """Update this agent's offset estimate from the transition it just made (x0 (D,), its measured
+        state, after the input it applied last from the state of the step before), as the in-process
+        :class:`~torch_gpmpc.gp.online.OnlineLearning` does for every agent."""
+        if not isinstance(self.gp, OffsetCorrected) or self.state is None or self.state.applied is None:
+            return
+        nominal = self.local.nominal
+        u = nominal.project(self.state.applied[self.k:self.k + 1])
+        inputs, y = nominal.gp_targets(self.x0[None], u, x0[None])
+        self.gp.observe(y[0] - self.gp.predict(inputs)[0][0])
 
     def own_plan(self) -> Tensor:
         """The warm-start plan sent to new neighbours, shape (T+1, D)."""

@@ -1,0 +1,140 @@
+"""Offset-free tracking: each agent estimates what its residual model misses, as a disturbance.
+
+A residual GP that is wrong by ``b`` at an agent's goal (few training points there, a wind the
+data never saw) makes the MPC hold the agent where its *model* says it stays: a steady offset of
+``b`` over the controller's feedback gain, which can exceed ``goal_tol`` for good. Offset-free
+MPC (Pannocchia and Rawlings 2003; Maeder, Borrelli and Morari 2009) adds a disturbance ``d`` to
+the prediction model and estimates it from the measurements; at a steady state the estimate
+matches the plant, so the tracked target is where the plant really stays.
+
+Here ``d`` lives on the model's residual rows, the predictions use ``mu(zeta) + d_hat`` along the
+whole horizon, and ``d_hat`` is the Kalman filter of a random walk (drift variance ``q`` per
+step) measured through each transition's residual error::
+
+    e = y - (mu(zeta) + d_hat)            the one-step prediction error (the innovation)
+    r = max(s_gp^2, mean of recent e^2)   the measurement noise
+    P <- P + q;  k = P / (P + r);  d_hat <- d_hat + k e;  P <- (1 - k) P
+
+``s_gp^2`` is the residual model's learned noise; the errors' own running mean square (about 20
+steps' memory, ``ERROR_MEMORY``) takes over where they are larger: innovation-based adaptive
+estimation of the measurement noise (Mehra 1972), conservative here since the innovations' variance
+also holds ``P``. Without it a vehicle whose one-step errors are mostly its tracking lag (a
+quadrotor whose commands jump) chased that lag as a disturbance and flew worse than without an
+estimate. Where the data are noiseless the gain is near 1 and the estimate follows the last
+errors; under noise ``s`` it is ``~sqrt(q) / s`` and the estimate averages the noise away.
+The chance margins add ``P`` to the residual's variance: the estimate's own uncertainty.
+
+Shapes: n query points, Din GP inputs, R residual rows.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torch_gpmpc.errors import GpmpcError
+
+
+#: the weight of the newest squared error in the measured error variance (about 20 steps' memory)
+ERROR_MEMORY = 0.05
+
+
+class OffsetCorrected:
+    """A residual model plus an estimated constant disturbance (the
+    :class:`~torch_gpmpc.gp.protocol.ResidualModel` protocol, so the controller uses it as is).
+
+    Args:
+        model: the agent's residual model (a :class:`~torch_gpmpc.gp.model.ResidualGP`, an
+            :class:`~torch_gpmpc.gp.online.OnlineGP`, any ``ResidualModel`` with ``predict``).
+        drift: the disturbance's random-walk standard deviation per step, raw units (> 0).
+
+    Attributes:
+        offset: (R,) the disturbance estimate ``d_hat`` (starts at 0).
+        variance: (R,) its variance ``P`` (starts at ``drift**2``).
+        error_variance: (R,) the errors' running mean square (starts at the model's noise).
+
+    Example:
+        >>> import torch
+        >>> from torch_gpmpc import OffsetCorrected, ResidualGP
+        >>> x = torch.linspace(-2, 2, 10, dtype=torch.float64)[:, None]
+        >>> gp = ResidualGP(x, torch.sin(x))
+        >>> model = OffsetCorrected(gp, drift=0.1)
+        >>> z = torch.tensor([[0.3]], dtype=torch.float64)
+        >>> truth, _ = gp.predict(z)          # the plant's residual: the GP's mean plus a constant 0.05
+        >>> for _ in range(50):
+        ...     predicted, _ = model.predict(z)
+        ...     model.observe((truth + 0.05 - predicted).squeeze(0))
+        >>> round(float(model.offset[0]), 3)
+        0.05
+    """
+
+    def __init__(self, model, drift: float) -> None:
+        if not drift > 0:
+            raise GpmpcError(f"disturbance_drift must be > 0 to estimate an offset, got {drift}")
+        self.model, self.drift = model, float(drift)
+        noise = torch.as_tensor(model.noise, dtype=torch.float64).detach().reshape(-1)
+        self.offset = torch.zeros_like(noise)
+        self.variance = torch.full_like(noise, self.drift ** 2)
+        self.error_variance = noise.clone()
+
+    @property
+    def input_dim(self) -> int:
+        """Din."""
+        return self.model.input_dim
+
+    @property
+    def output_dim(self) -> int:
+        """R."""
+        return self.model.output_dim
+
+    @property
+    def noise(self) -> Tensor:
+        """(R,) the model's observation-noise variances, raw units."""
+        return self.model.noise
+
+    def linearize(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The model's mean plus the offset (n, R), its Jacobian (n, R, Din) and its latent
+        variance plus the estimate's (n, R), at ``x`` (n, Din)."""
+        mean, jac, var = self.model.linearize(x)
+        return mean + self.offset.to(mean), jac, var + self.variance.to(var)
+
+    def predict(self, x: Tensor, include_noise: bool = False) -> tuple[Tensor, Tensor]:
+        """Mean and variance (n, R) at ``x`` (n, Din), offset included."""
+        mean, var = self.model.predict(x, include_noise=include_noise)
+        return mean + self.offset.to(mean), var + self.variance.to(var)
+
+    def observe(self, error: Tensor) -> None:
+        """One Kalman step from a transition's one-step prediction error ``error`` (R,): the
+        measured residual minus :meth:`predict`'s mean at that transition's GP input."""
+        # a filter state, never part of a gradient: detached, or every later step would differentiate
+        # through the whole history
+        error = torch.as_tensor(error, dtype=self.offset.dtype).detach().reshape(-1)
+        if error.shape != self.offset.shape:
+            raise GpmpcError(f"offset error has {error.shape[0]} entries, expected R = {self.offset.shape[0]}")
+        prior = self.variance + self.drift ** 2
+        self.error_variance = (1 - ERROR_MEMORY) * self.error_variance + ERROR_MEMORY * error ** 2
+        model_noise = torch.as_tensor(self.noise, dtype=prior.dtype).detach().reshape(-1)
+        noise = torch.maximum(model_noise, self.error_variance)
+        gain = prior / (prior + noise)
+        self.offset = self.offset + gain * error
+        self.variance = (1 - gain) * prior
+
+    # the learning of an online model passes through
+    def add(self, inputs: Tensor, y: Tensor) -> None:
+        """Add rows ``inputs`` (n, Din), residuals ``y`` (n, R) to the wrapped online model
+        (:meth:`OnlineGP.add <torch_gpmpc.gp.online.OnlineGP.add>`), less the offset: the model learns
+        what the offset does not explain, so the two never count the same error twice."""
+        self.model.add(inputs, y - self.offset.to(y))
+
+    def end_step(self) -> bool:
+        """Count a step of the wrapped online model (:meth:`OnlineGP.end_step <torch_gpmpc.gp.online.OnlineGP.end_step>`)."""
+        return self.model.end_step()
+
+
+def offset_corrected(gps: list, drift: float) -> list:
+    """Each agent's model wrapped in its own :class:`OffsetCorrected` (``drift > 0``), or ``gps``
+    unchanged (``drift == 0``: no offset estimate). One model shared by several agents gets one
+    wrapper per agent: every agent estimates its own offset. A model already wrapped stays as it is."""
+    if drift == 0:
+        return gps
+    return [gp if isinstance(gp, OffsetCorrected) else OffsetCorrected(gp, drift) for gp in gps]
