@@ -1,5 +1,6 @@
 """Pages generated when the docs build (mkdocs-gen-files): the configuration reference from the schema,
-the command-line reference from the argument parser, and the changelog from CHANGELOG.md."""
+the command-line reference from the argument parser, the benchmark pages from the JSON and CSV files the
+commands wrote (docs/benchmarks/data), and the changelog from CHANGELOG.md."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from pathlib import Path
 
 import mkdocs_gen_files
 
+from torch_gpmpc.cli.bench import format_value, section_tables
 from torch_gpmpc.cli.parser import build_parser
 from torch_gpmpc.config.reference import config_keys, strip_roles
 from torch_gpmpc.config.schema import RULES
@@ -89,6 +91,36 @@ def transitions_page() -> str:
     return "\n".join(lines)
 
 
+BENCH_COMMAND = "gpmpc bench --sections gp,local,run --out DIR"
+
+
+def bench_page() -> str:
+    """Today's ``gpmpc bench`` tables, from the bench.json the command wrote (docs/benchmarks/data)."""
+    import json
+
+    data = json.loads((ROOT / "docs" / "benchmarks" / "data" / "bench.json").read_text())
+    machine = data["machine"]
+    lines = ["# Today's `gpmpc bench`", "",
+             "Every table `gpmpc bench` printed, generated from the `bench.json` it wrote",
+             "(`docs/benchmarks/data/bench.json`), on this project's 2-core CPU machine, alone on it",
+             f"(`{machine['platform']}`, torch {machine['torch']}, {machine['threads']} torch thread). Ratios are",
+             "same-run; absolute times move by about 20 % between runs. What each table measures, and why the",
+             "solver is built as it is: [Performance](performance.md). The `scale` section (whole 100-agent",
+             "runs, about half an hour) is on [Scale](scale.md).", "",
+             "```bash", BENCH_COMMAND, "```", ""]
+    for name, section in data["sections"].items():
+        lines += [f"## `{name}` ({section.get('section_wall_s', 0):.0f} s)", ""]
+        for title, rows in section_tables(name, section):
+            keys = list(dict.fromkeys(k for r in rows for k in r))
+            lines += [f"**{title}**", "", "| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+            lines += ["| " + " | ".join("–" if r.get(k) is None else cell(format_value(r[k])) for k in keys) + " |"
+                      for r in rows]
+            lines.append("")
+    return "\n".join(lines)
+
+
+with mkdocs_gen_files.open("benchmarks/bench.md", "w") as f:
+    f.write(bench_page())
 with mkdocs_gen_files.open("benchmarks/transitions.md", "w") as f:
     f.write(transitions_page())
 with mkdocs_gen_files.open("reference/config.md", "w") as f:

@@ -1,8 +1,9 @@
 """``gpmpc bench``: performance workloads with ratios against baselines measured in the same run.
 
-Each section lives in its own module ``eval/bench_<name>.py`` exposing
-``run(quick: bool) -> dict`` (JSON-serializable, with a ``"table"`` list of rows
-``{"workload": str, ...numbers...}`` for printing). Results go to ``DIR/bench.json``.
+Each section lives in its own module ``torch_gpmpc/bench/<name>.py`` exposing
+``run(quick: bool, out: Path) -> dict`` (JSON-serializable, with a ``"table"`` list of rows
+``{"workload": str, ...numbers...}`` and optional sub-tables, :func:`section_tables`). Results go to
+``DIR/bench.json``; the docs' benchmark page renders the same tables from a committed copy.
 """
 
 from __future__ import annotations
@@ -23,24 +24,36 @@ ALIASES = {"fast": "local"}
 
 
 def _print_table(name: str, rows: list[dict]) -> None:
-    if not rows:
-        return
     keys = list(rows[0])
-    widths = {k: max(len(k), *(len(_fmt(r.get(k))) for r in rows)) for k in keys}
+    widths = {k: max(len(k), *(len(format_value(r.get(k))) for r in rows)) for k in keys}
     print(f"\n[{name}]")
     print("  ".join(k.ljust(widths[k]) for k in keys))
     for r in rows:
-        print("  ".join(_fmt(r.get(k)).ljust(widths[k]) for k in keys))
+        print("  ".join(format_value(r.get(k)).ljust(widths[k]) for k in keys))
 
 
-def _sub_table(section: dict, key: str) -> list[dict]:
-    """The rows of a section's sub-table ``key`` (a dict with a ``table``), else none: sections may use
-    the same key for a number (``gp``'s ``threads`` is its thread count, ``scale``'s a table)."""
-    value = section.get(key)
-    return value.get("table", []) if isinstance(value, dict) else []
+#: A section's sub-tables beyond its ``table``: (key, title). ``threads``, ``transitions`` and
+#: ``families`` are dicts holding a ``table`` (sections may use the same key for a number: ``gp``'s
+#: ``threads`` is its thread count, ``scale``'s a table); the others are lists of rows.
+SUB_TABLES = (("models", "agent models"), ("default_stopping", "default ADMM stopping"),
+              ("whole_runs", "whole runs of a crowd"), ("threads", "one thread vs every core"),
+              ("transitions", "random 3D transitions"), ("families", "constraint families"),
+              ("warm_start", "warm active-set solves vs cold"))
 
 
-def _fmt(v) -> str:
+def section_tables(name: str, section: dict) -> list[tuple[str, list[dict]]]:
+    """A ``bench.json`` section's non-empty tables as ``(title, rows)``: its ``table`` titled ``name``,
+    then its sub-tables (:data:`SUB_TABLES`) titled ``name: title``."""
+    tables = [(name, section.get("table", []))]
+    for key, title in SUB_TABLES:
+        value = section.get(key)
+        rows = value.get("table", []) if isinstance(value, dict) else value if isinstance(value, list) else []
+        tables.append((f"{name}: {title}", rows))
+    return [(title, rows) for title, rows in tables if rows]
+
+
+def format_value(v) -> str:
+    """A table cell: floats to 4 significant digits."""
     if isinstance(v, float):
         return f"{v:.4g}"
     return str(v)
@@ -65,14 +78,8 @@ def main(args) -> int:
         section = module.run(quick=args.quick, out=out)
         section["section_wall_s"] = time.perf_counter() - t0
         result["sections"][name] = section
-        _print_table(name, section.get("table", []))
-        _print_table(f"{name}: agent models", section.get("models", []))
-        _print_table(f"{name}: default ADMM stopping", section.get("default_stopping", []))
-        _print_table(f"{name}: whole runs of a crowd", section.get("whole_runs", []))
-        _print_table(f"{name}: one thread vs every core", _sub_table(section, "threads"))
-        _print_table(f"{name}: random 3D transitions", _sub_table(section, "transitions"))
-        _print_table(f"{name}: constraint families", _sub_table(section, "families"))
-        _print_table(f"{name}: warm active-set solves vs cold", section.get("warm_start", []))
+        for title, rows in section_tables(name, section):
+            _print_table(title, rows)
     write_json(out / "bench.json", result)
     print(f"\nwrote {out / 'bench.json'}")
     return 0
