@@ -104,19 +104,41 @@ def bench_page() -> str:
              "Every table `gpmpc bench` printed, generated from the `bench.json` it wrote",
              "(`docs/benchmarks/data/bench.json`), on this project's 2-core CPU machine, alone on it",
              f"(`{machine['platform']}`, torch {machine['torch']}, {machine['threads']} torch thread). Ratios are",
-             "same-run; absolute times move by about 20 % between runs. What each table measures, and why the",
+             "same-run; absolute times move by about 20 % between runs. Times are ms unless a column says `_s`;",
+             "`speedup_*` and `ratio` are how many times faster than the named baseline. What each table measures, and why the",
              "solver is built as it is: [Performance](performance.md). The `scale` section (whole 100-agent",
              "runs, about half an hour) is on [Scale](scale.md).", "",
              "```bash", BENCH_COMMAND, "```", ""]
     for name, section in data["sections"].items():
         lines += [f"## `{name}` ({section.get('section_wall_s', 0):.0f} s)", ""]
-        for title, rows in section_tables(name, section):
+        notes = section.get("notes") or section.get("note")
+        if isinstance(notes, str):
+            lines += [f"*{cell(notes)}*", ""]
+        tables = section_tables(name, section)
+        if isinstance(section.get("checks"), list):  # accuracy against the reference paths
+            tables.append((f"{name}: accuracy checks", [_flat(r) for r in section["checks"]]))
+        if isinstance(section.get("targets"), dict):
+            tables.append((f"{name}: targets", [{"target": k, **v} for k, v in section["targets"].items()]))
+        for title, rows in tables:
             keys = list(dict.fromkeys(k for r in rows for k in r))
-            lines += [f"**{title}**", "", "| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+            if title != name:
+                lines += [f"**{title}**", ""]
+            lines += ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
             lines += ["| " + " | ".join("–" if r.get(k) is None else cell(format_value(r[k])) for k in keys) + " |"
                       for r in rows]
             lines.append("")
     return "\n".join(lines)
+
+
+def _flat(row: dict, prefix: str = "") -> dict:
+    """A row with nested dicts as ``outer.inner`` columns."""
+    out = {}
+    for k, v in row.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
 
 
 with mkdocs_gen_files.open("benchmarks/bench.md", "w") as f:

@@ -10,6 +10,8 @@ _ROLE = re.compile(r":(?:class|meth|func|mod|data|attr|obj|exc):<code>(~?)([^<]*
 
 def _name(match: re.Match) -> str:
     tilde, target = match.group(1), match.group(2)
+    if " &lt;" in target:  # :meth:`shown text <full.target>`: the shown text
+        return f"<code>{target.split(' &lt;', 1)[0]}</code>"
     return f"<code>{target.rsplit('.', 1)[-1] if tilde else target}</code>"
 
 

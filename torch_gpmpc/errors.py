@@ -12,7 +12,7 @@ class GpmpcError(ValueError):
 
     The message names the field and says how to fix it.
 
-    Example:
+    Examples:
         >>> from torch_gpmpc import Config, GpmpcError
         >>> try:
         ...     Config().replace(horizn=10)

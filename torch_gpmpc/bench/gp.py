@@ -98,7 +98,7 @@ def _default_threads_row(gp: ResidualGP, xq: torch.Tensor, quick: bool, default_
         t_base, _ = _median_time(lambda: gpytorch_linearize(gp, xq), reps_base)
     finally:
         torch.set_num_threads(threads)
-    return {"workload": f"linearize {NUM_POINTS} pts, N=100, {default_threads} threads",
+    return {"workload": f"linearize {NUM_POINTS} pts, N=100, {default_threads} thread{'s' if default_threads != 1 else ''}",
             "ours_ms": 1e3 * t_ours, "gpytorch_ms": 1e3 * t_base, "ratio": t_base / t_ours,
             "max_abs_diff": None}
 

@@ -43,7 +43,7 @@ class CostTable:
     """A stated cost's weights as plain numbers (see the module docstring); ``P`` and ``u_ref`` may be
     ``None`` (the terminal weight from ``terminal_cost``; no input reference).
 
-    Example:
+    Examples:
         >>> CostTable.parse({"Q": [1, 1, 0.1, 0.1], "R": 0.01}).Q
         (1.0, 1.0, 0.1, 0.1)
     """

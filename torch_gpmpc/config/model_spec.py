@@ -70,7 +70,7 @@ class ModelSpec:
             ``lower <= x[idx] <= upper`` (entries may be infinite: one-sided), or ``None``.
         state_rows_G, state_rows_h: optional general rows ``G x <= h`` ((r, n) and (r,)), or ``None``.
 
-    Example:
+    Examples:
         >>> from torch_gpmpc import ModelSpec
         >>> m = ModelSpec.from_table({"A": [[1.0, 0.1], [0.0, 1.0]], "B": [[0.005], [0.1]],
         ...                           "position": [0], "residual": [1], "input_bound": {"box": [2.0]}})
@@ -119,7 +119,7 @@ class ModelSpec:
     def double_integrator(cls, dim: int = 2, dt: float = 0.1, u_max: float = 2.0) -> "ModelSpec":
         """State ``[p, v]`` (2 dim), input acceleration (dim), ``||u|| <= u_max``.
 
-        Example:
+        Examples:
             >>> from torch_gpmpc import ModelSpec
             >>> m = ModelSpec.double_integrator(dim=3, dt=0.1, u_max=2.0)
             >>> m.state_dim, m.input_dim, m.position, m.residual

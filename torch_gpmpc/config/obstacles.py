@@ -100,7 +100,7 @@ class Obstacle:
 class ObstacleField:
     """The static obstacles of a run (a tuple of :class:`Obstacle`).
 
-    Example:
+    Examples:
         >>> field = ObstacleField.parse([{"center": [0, 0], "radius": 1}, {"min": [2, 2], "max": [3, 4]}])
         >>> [o.kind for o in field.obstacles]
         ['sphere', 'box']

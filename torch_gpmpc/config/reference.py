@@ -36,7 +36,7 @@ class ConfigKey:
 def config_keys() -> list[ConfigKey]:
     """Every key of :class:`~torch_gpmpc.config.schema.Config`, in declaration order.
 
-    Example:
+    Examples:
         >>> keys = {k.name: k for k in config_keys()}
         >>> keys["admm_coupling"].default, keys["admm_coupling"].allowed
         ('copies', 'copies, planes')

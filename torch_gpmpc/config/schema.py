@@ -102,7 +102,7 @@ class Config(ControllerSettings):
             its residual rows from its own one-step prediction errors, a Kalman filter of a random
             walk of this standard deviation per step (raw units; :mod:`~torch_gpmpc.gp.offset`).
             0: no estimate.
-    Example:
+    Examples:
         >>> from torch_gpmpc import Config
         >>> cfg = Config(model="double-integrator", dim=3, scenario="circle", num_agents=6)
         >>> cfg.state_dim, cfg.input_dim, cfg.uncertainty_mode

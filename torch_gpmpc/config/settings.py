@@ -186,7 +186,7 @@ class ControllerSettings:
             stop at once, among neighbours that can too, re-plan inside buffered Voronoi cells;
             agents with momentum against their neighbours' plans as fixed obstacles) or
             ``obstacles`` (every agent of a pair unsafe at tau = 1 against its neighbours' plans).
-    Example:
+    Examples:
         >>> from torch_gpmpc import ControllerSettings
         >>> s = ControllerSettings(horizon=10, eps=0.05)
         >>> s.horizon, s.pair_margin, s.solver
@@ -389,7 +389,7 @@ class GPFitSettings:
             the scenario's ``circle_radius``).
         seed: the run seed (data stream ``2 seed + 1``, fit of agent k ``seed + k``).
 
-    Example:
+    Examples:
         >>> from torch_gpmpc.config import Config
         >>> Config(circle_radius=6.0).gp_fit_settings().box
         6.0

@@ -31,7 +31,7 @@ from torch_gpmpc.errors import GpmpcError
 def lift_spec(spec: ModelSpec, n: int, m: int) -> ModelSpec:
     """``spec`` padded to n states and m inputs (zero rows and columns; a padded input's box is 1).
 
-    Example:
+    Examples:
         >>> from torch_gpmpc import ModelSpec
         >>> si = lift_spec(ModelSpec.single_integrator(2), 4, 2)
         >>> si.state_dim, si.A[2], si.B[0], si.position, si.residual
@@ -58,7 +58,7 @@ class TeamSpec:
         group_of: agent k's index into ``models``, length K.
         own_dims: each model's own ``(n_k, m_k)`` before lifting (same order as ``models``).
 
-    Example:
+    Examples:
         >>> from torch_gpmpc import ModelSpec
         >>> di, si = ModelSpec.double_integrator(2), ModelSpec.single_integrator(2)
         >>> team = team_spec([di, di, si])

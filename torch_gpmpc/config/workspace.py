@@ -17,7 +17,7 @@ from torch_gpmpc.errors import GpmpcError
 class Workspace:
     """A box ``lower <= p <= upper`` on the position coordinates (length P each).
 
-    Example:
+    Examples:
         >>> from torch_gpmpc.config.workspace import Workspace
         >>> Workspace.parse({"min": [-5, -5, 0], "max": [5, 5, 3]}).upper
         (5.0, 5.0, 3.0)

@@ -52,7 +52,7 @@ class LocalConstraints:
         norm_indices: state indices of the soft norm bound, or ``None``.
         norm_bound: ``v`` of ``||x[norm_indices]|| <= v``, or ``None``.
 
-    Example:
+    Examples:
         >>> from torch_gpmpc import ModelSpec
         >>> from torch_gpmpc.config.workspace import Workspace
         >>> c = LocalConstraints.of(ModelSpec.double_integrator(dim=2), workspace=Workspace((-1.0, -2.0), (1.0, 2.0)))

@@ -104,7 +104,7 @@ def lqr_terminal_weight(A: Tensor, B: Tensor, Q: Tensor, R: Tensor) -> Tensor:
     Raises:
         GpmpcError: when R is singular or the pair (A, B) admits no stabilizing solution.
 
-    Example:
+    Examples:
         >>> import torch
         >>> P = lqr_terminal_weight(torch.eye(1), 0.1 * torch.eye(1), torch.eye(1), 1e-3 * torch.eye(1))
         >>> round(float(P), 6)  # p^2 - p - 0.1 = 0
@@ -127,7 +127,7 @@ class QuadraticCost:
     Tensors that require grad keep it: the compiled solver differentiates the plans with respect
     to Q, R, P and u_ref.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc import ModelSpec, NominalModel
         >>> model = NominalModel(ModelSpec.double_integrator(2, dt=0.1, u_max=2.0))

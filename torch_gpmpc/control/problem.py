@@ -74,7 +74,7 @@ class LocalProblemData:
             R (B, Du, Du), terminal weight P (B, D, D), input reference u_ref (B, Du)) that replaces
             ``||X - Xref||^2 + alpha ||U||^2``; give Q, R and P together; all ``None`` = that default.
 
-    Example:
+    Examples:
         >>> from torch_gpmpc.control.examples import crossing_instance
         >>> data = crossing_instance(batch=3, num_neighbors=2, method="nominal").problem_data()
         >>> tuple(data.x0.shape), tuple(data.normals.shape), tuple(data.bounds.shape)
@@ -186,7 +186,7 @@ class LocalSolution:
         multipliers: the collision rows' multipliers, shape (B, M, T) (the fast solver's; NaN rows
             where another solver answered); ``None`` where the solver does not report them.
 
-    Example:
+    Examples:
         >>> from torch_gpmpc import NominalModel, make_local_solver
         >>> from torch_gpmpc.control.examples import crossing_instance
         >>> data = crossing_instance(batch=2, num_neighbors=1, method="nominal").problem_data()

@@ -51,7 +51,7 @@ def anderson_mix(images: list[Tensor], points: list[Tensor], regularization: flo
     Returns:
         (d,) ``F(v_k) - dF gamma``; with a single pair, ``F(v_k)`` (plain iteration).
 
-    Example:
+    Examples:
         >>> import torch
         >>> v = [torch.tensor([0.0]), torch.tensor([1.0])]                 # F(v) = 0.5 v + 1, affine:
         >>> anderson_mix([0.5 * x + 1 for x in v], v, regularization=0.0)  # one mix is its fixed point

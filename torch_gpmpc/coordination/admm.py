@@ -177,7 +177,7 @@ class ADMM:
             :class:`~.team_step.TeamStep`), which knows the model, the method, the GPs, the cost and
             the settings.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc import ADMM, ControllerSettings, LocalStep, ModelSpec
         >>> from torch_gpmpc.coordination.graph import communication_graph

@@ -265,7 +265,7 @@ class LocalStep:
             R = alpha I, with the terminal weight of ``settings.terminal_cost`` (``lqr``: the model's
             LQR cost-to-go; ``stage``: P = Q, the paper's cost, solved as ``||X - Xref||^2 + alpha ||U||^2``).
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc import ControllerSettings, LocalStep, ModelSpec
         >>> step = LocalStep(ControllerSettings(method="nominal"), ModelSpec.double_integrator(dim=3))

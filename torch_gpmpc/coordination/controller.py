@@ -56,7 +56,7 @@ class Controller:
         warm: the state the next :meth:`step` warm-starts from (``None``: cold start); save and
             restore it to evaluate a step twice from the same point.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc import Controller, ControllerSettings, ModelSpec
         >>> model = ModelSpec.double_integrator(dim=2, dt=0.1, u_max=2.0)
@@ -210,7 +210,7 @@ class Controller:
         Returns:
             The :class:`~torch_gpmpc.coordination.state.StepResult`; differentiate its ``plans`` or ``inputs``.
 
-        Example:
+        Examples:
             >>> import torch
             >>> from torch_gpmpc import Controller, ControllerSettings, ModelSpec
             >>> ctrl = Controller(ModelSpec.double_integrator(2), settings=ControllerSettings(method="nominal",

@@ -50,7 +50,7 @@ class ADMMState:
         plane_rho: (E, T) each plane coordinate's step penalty (its inverse step size), adapted within
             a step; ``None`` at a step's start or with copies.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc.coordination.graph import communication_graph
         >>> from torch_gpmpc.coordination.state import initial_state
@@ -149,7 +149,7 @@ class StepResult:
         problem: the agents' local problems of the last iteration (its convexification; what
             :func:`~torch_gpmpc.coordination.centralized.solve_centralized` solves jointly).
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc import Controller, ControllerSettings, ModelSpec
         >>> ctrl = Controller(ModelSpec.single_integrator(2), settings=ControllerSettings(method="nominal"))

@@ -94,7 +94,7 @@ class TeamStep:
         nominal: the team's models (:class:`~torch_gpmpc.dynamics.team.TeamNominal`).
         uncertainty: agent 0's covariance model (each model resolves ``auto`` for itself).
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc import ADMM, ControllerSettings, ModelSpec
         >>> from torch_gpmpc.config.team import team_spec

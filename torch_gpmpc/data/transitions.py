@@ -63,7 +63,7 @@ class Transitions:
         agent: agent ids, shape (N,), int64, or ``None``.
         source: where the data came from (used in error messages).
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc import NominalModel, Transitions
         >>> x = torch.tensor([[0.0, 0.0], [1.0, 0.5]], dtype=torch.float64)

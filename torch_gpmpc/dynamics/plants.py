@@ -31,7 +31,7 @@ class Plant(Protocol):
         nominal: the planning model (its ``dt`` is the plant's step).
         true_states: the vehicles' true planning states now, (K, D).
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc.dynamics.plants import ModelPlant, Plant
         >>> from torch_gpmpc.dynamics.systems import make_system

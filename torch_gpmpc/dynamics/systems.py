@@ -59,7 +59,7 @@ class NominalModel(SpecSizes):
         dim, a, b: the single integrator ``A = a I``, ``B = b I`` in ``dim`` dimensions (when
             ``spec`` is not given; the paper: a = 1, b = 0.1).
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc import ModelSpec, NominalModel
         >>> f = NominalModel(ModelSpec.double_integrator(dim=2, dt=0.1))
@@ -189,7 +189,7 @@ class VortexWind:
     Attributes:
         scale: amplitude (paper: 0.1).
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc import VortexWind
         >>> VortexWind(0.1)(torch.zeros(1, 2, dtype=torch.float64)).tolist()   # [0.1 sin(0), 0.1 cos(0)]
@@ -253,7 +253,7 @@ class TrueSystem:
         turned: the wind turned 90 degrees about the vertical axis, ``(g_1, g_2, g_3) ->
             (-g_2, g_1, g_3)`` (``wind_change_step``; :class:`~torch_gpmpc.dynamics.plants.ModelPlant`).
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc import NominalModel, TrueSystem, VortexWind
         >>> plant = TrueSystem(NominalModel(2), VortexWind(0.1), noise_std=0.0)

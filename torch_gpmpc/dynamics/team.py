@@ -42,7 +42,7 @@ class TeamNominal(SpecSizes):
         models: one :class:`NominalModel` per distinct (lifted) model.
         members: the agents of each model, int64 tensors.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc import ModelSpec
         >>> from torch_gpmpc.config.team import team_spec

@@ -32,7 +32,7 @@ class GPyTorchResidual(torch.nn.Module):
             inputs of shape (N_r, Din) (the same Din for all).
         likelihoods: R ``GaussianLikelihood`` (their ``noise`` is the predictive noise).
 
-    Example:
+    Examples:
         >>> import gpytorch, torch
         >>> from torch_gpmpc import ResidualGP
         >>> class Exact(gpytorch.models.ExactGP):

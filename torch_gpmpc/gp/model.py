@@ -88,7 +88,7 @@ class ResidualGP(torch.nn.Module):
     :class:`~torch_gpmpc.gp.protocol.ResidualModel` protocol). Bring your own GPyTorch
     models with :meth:`from_gpytorch`.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc import ResidualGP
         >>> x = torch.linspace(-3, 3, 30, dtype=torch.float64)[:, None]

@@ -53,7 +53,7 @@ class OffsetCorrected:
         variance: (R,) its variance ``P`` (starts at ``drift**2``).
         error_variance: (R,) the errors' running mean square (starts at the model's noise).
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc import OffsetCorrected, ResidualGP
         >>> x = torch.linspace(-2, 2, 10, dtype=torch.float64)[:, None]
@@ -79,12 +79,12 @@ class OffsetCorrected:
 
     @property
     def input_dim(self) -> int:
-        """Din."""
+        """Din, the number of GP inputs."""
         return self.model.input_dim
 
     @property
     def output_dim(self) -> int:
-        """R."""
+        """R, the number of residual rows."""
         return self.model.output_dim
 
     @property

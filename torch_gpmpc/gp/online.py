@@ -51,7 +51,7 @@ class OnlineGP:
         refit_every: re-optimize the hyperparameters every this many calls of :meth:`end_step`
             (0: never).
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc import ResidualGP
         >>> from torch_gpmpc.gp.online import OnlineGP

@@ -27,7 +27,7 @@ class ResidualModel(Protocol):
         output_dim: R, the number of residual rows.
         noise: (R,) observation-noise variances (added to ``var`` for the predictive variance).
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc.gp.protocol import ResidualModel
         >>> class Zero:                       # no residual, a constant variance

@@ -275,7 +275,7 @@ def trajectory_metrics(states: Any, targets: Any, r_safe: float = 0.5, goal_tol:
     Raises:
         GpmpcError: shapes that do not fit, or non-finite values, naming the argument.
 
-    Example:
+    Examples:
         >>> import torch
         >>> s = torch.tensor([[[0.0, 0.0], [1.0, 0.0]], [[0.5, 0.0], [0.6, 0.0]]], dtype=torch.float64)
         >>> m = trajectory_metrics(s, targets=s[-1], r_safe=0.5, goal_tol=0.1)

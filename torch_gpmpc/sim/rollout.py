@@ -71,7 +71,7 @@ class Rollout:
             backend the coordinator's wait for the agents' step, messages included), shape (S,)
             (``None`` in files written before it was recorded).
 
-    Example:
+    Examples:
         >>> from torch_gpmpc import Config, compute_metrics, simulate
         >>> rollout = simulate(Config(method="nominal", max_steps=2))
         >>> rollout.states.shape, compute_metrics(rollout)["steps"]

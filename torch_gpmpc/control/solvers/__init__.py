@@ -47,7 +47,7 @@ def make_local_solver(
     building one takes about a second, so keep it). Each call builds a new module, owned by the
     caller (a :class:`~torch_gpmpc.coordination.agent_step.LocalStep` keeps one per slot count).
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torch_gpmpc import make_local_solver, NominalModel
         >>> from torch_gpmpc.control.examples import crossing_instance

@@ -69,7 +69,7 @@ class CvxpyLayerMPC(nn.Module):
                     n_{j,tau}^T (X_tau - Y_{j,tau}) + s_{j,tau} >= bound_{j,tau}   tau = 1..T
                     s >= 0
                     + the soft state constraints (state box and rows, workspace, the data's
-                      half-spaces, state norm bound; :func:`state_constraints`)
+                      half-spaces, state norm bound: state_constraints)
 
     Agent k's copy of edge (k, j) is ``y_kj,k = [X; Y_j]`` with consensus value
     ``z_kj = [z_own_j; z_nbr_j]`` and multiplier ``[lam_own_j; lam_nbr_j]``;
@@ -108,7 +108,7 @@ class CvxpyLayerMPC(nn.Module):
         num_halfspaces: L, the per-problem half-space rows the data carries.
         input_rate_weight: beta (``U_{-1}`` is ``data.u_prev``; 0: no such term).
 
-    Example:
+    Examples:
         >>> from torch_gpmpc import CvxpyLayerMPC, NominalModel
         >>> from torch_gpmpc.control.examples import crossing_instance
         >>> layer = CvxpyLayerMPC(13, 2, 1, NominalModel(2), 2.0, 1e-3, solver="clarabel")

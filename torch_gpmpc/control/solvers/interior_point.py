@@ -221,7 +221,7 @@ class InteriorPointMPC(nn.Module):
             active-set method of :mod:`~torch_gpmpc.control.solvers.ipm_active` from it, and cold
             only what that does not solve; ``False``: every problem cold (the earlier path).
 
-    Example:
+    Examples:
         >>> from torch_gpmpc import InteriorPointMPC, NominalModel
         >>> from torch_gpmpc.control.examples import crossing_instance
         >>> layer = InteriorPointMPC(13, 2, 2, NominalModel(2), 2.0, 1e-3)
