@@ -105,8 +105,8 @@ def bench_page() -> str:
              "(`docs/benchmarks/data/bench.json`), on this project's 2-core CPU machine, alone on it",
              f"(`{machine['platform']}`, torch {machine['torch']}, {machine['threads']} torch thread). Ratios are",
              "same-run; absolute times move by about 20 % between runs. Times are ms unless a column says `_s`;",
-             "`speedup_*` and `ratio` are how many times faster than the named baseline. What each table measures, and why the",
-             "solver is built as it is: [Performance](performance.md). The `scale` section (whole 100-agent",
+             "`speedup_*` and `ratio` are how many times faster than the named baseline. What each table",
+             "measures, and why the solver is built as it is: [Performance](performance.md). The `scale` section (whole 100-agent",
              "runs, about half an hour) is on [Scale](scale.md).", "",
              "```bash", BENCH_COMMAND, "```", ""]
     for name, section in data["sections"].items():

@@ -2,7 +2,8 @@
 
 Public API. Build a controller from tensors: ``ModelSpec`` (the agent model),
 ``ResidualGP`` (``fit_residual_gp``, ``ResidualGP.from_gpytorch`` for your own GPyTorch models;
-the ``ResidualModel`` protocol; ``OffsetCorrected`` for offset-free tracking), ``ControllerSettings``, ``Controller`` (``step``). Its parts:
+the ``ResidualModel`` protocol; ``OffsetCorrected`` for offset-free tracking),
+``ControllerSettings``, ``Controller`` (``step``). Its parts:
 ``LocalStep`` (the per-agent step), ``ADMM`` (``prepare``/``iterate``/``solve_step``),
 ``make_local_solver`` with the ``LocalProblemData`` -> ``LocalSolution`` contract and the
 backends ``InteriorPointMPC`` (default, compiled) and ``CvxpyLayerMPC`` (reference; ``LocalMPC`` is

@@ -127,7 +127,8 @@ class OffsetCorrected:
         self.model.add(inputs, y - self.offset.to(y))
 
     def end_step(self) -> bool:
-        """Count a step of the wrapped online model (:meth:`OnlineGP.end_step <torch_gpmpc.gp.online.OnlineGP.end_step>`)."""
+        """Count a step of the wrapped online model
+        (:meth:`OnlineGP.end_step <torch_gpmpc.gp.online.OnlineGP.end_step>`)."""
         return self.model.end_step()
 
 
