@@ -150,7 +150,7 @@ def test_a_known_constant_bias_is_estimated_and_the_agent_settles_on_its_goal():
     """A noiseless single integrator whose plant adds a constant b per step that nothing in its data
     shows. At rest on the goal the true residual there is ``g(goal) + b``, so the estimate must
     end at ``g(goal) + b - mu(goal)`` (the vortex and the GP's mean, both known here) and the agent
-    on its goal (to 3e-4: the input cost still trades a little distance for a smaller holding
+    on its goal (to 4e-4: the input cost still trades a little distance for a smaller holding
     input); without the estimate it holds ``b`` over its feedback gain away."""
     bias = torch.tensor([[0.09, -0.06]], dtype=F64)
     cfg = Config(scenario="circle", num_agents=1, noise_std=0.0, goal_tol=1e-6, max_steps=80, gp_samples=30,
