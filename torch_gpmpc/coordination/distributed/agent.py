@@ -44,6 +44,7 @@ from torch_gpmpc.coordination.agent_step import edge_copies, fall_back_to_previo
 from torch_gpmpc.coordination.fallback import fallback_agents, fallback_problem, pair_safety
 from torch_gpmpc.coordination.controller import make_agent_step
 from torch_gpmpc.gp.offset import OffsetCorrected, offset_corrected
+from torch_gpmpc.gp.online import OnlineLearning
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
 from torch_gpmpc.coordination.graph import graph_from_edges
 from torch_gpmpc.coordination.planes import (
@@ -137,6 +138,9 @@ class AgentController:
         #: this agent's per-agent step (the same object the in-process ADMM iterates; in a mixed
         #: team its model's step, as the in-process TeamStep uses for its rows)
         self.local = step.groups[step.team.group_of[k]] if isinstance(step, TeamStep) else step
+        #: the offset estimate's updates, as the in-process loop makes them for every agent
+        self.learning = OnlineLearning([self.gp], self.local.nominal, online=False) \
+            if isinstance(self.gp, OffsetCorrected) else None
         self.rho = torch.as_tensor(cfg.rho, dtype=DTYPE)
         #: neighbours agree on separating planes (admm_coupling = planes), not on copies
         self.planes = cfg.admm_coupling == "planes"
@@ -187,14 +191,12 @@ class AgentController:
 
     def _observe_offset(self, x0: Tensor) -> None:
         """Update this agent's offset estimate from the transition it just made (x0 (D,), its measured
-        state, after the input it applied last from the state of the step before), as the in-process
-        :class:`~torch_gpmpc.gp.online.OnlineLearning` does for every agent."""
-        if not isinstance(self.gp, OffsetCorrected) or self.state is None or self.state.applied is None:
+        state, after the input it applied last from the state of the step before) through
+        :class:`~torch_gpmpc.gp.online.OnlineLearning`, as the in-process loop does for every agent."""
+        if self.learning is None or self.state is None or self.state.applied is None:
             return
-        nominal = self.local.nominal
-        u = nominal.project(self.state.applied[self.k:self.k + 1])
-        inputs, y = nominal.gp_targets(self.x0[None], u, x0[None])
-        self.gp.observe(y[0] - self.gp.predict(inputs)[0][0])
+        u = self.local.nominal.project(self.state.applied[self.k:self.k + 1])
+        self.learning.observe(self.x0[None], u, x0[None])
 
     def own_plan(self) -> Tensor:
         """The warm-start plan sent to new neighbours, shape (T+1, D)."""
