@@ -1,11 +1,12 @@
-"""Research script: consensus ADMM against the centralized solve, noiseless, per scenario.
+"""Research script: consensus ADMM on copies (``admm_coupling = copies``) against the centralized
+solve, noiseless, per scenario.
 
 For each scenario it runs, with the proposed method and the package's default models:
 
 * ``centralized``: the joint problem solved centrally every step, re-linearized 3 times
   (:class:`~torch_gpmpc.coordination.centralized.CentralizedPlanner`);
 * ``paper rule``: rho 20 fixed, primal-only stop, re-linearized every iterate (the paper);
-* ``defaults``: the package defaults (adaptive rho from 20, primal-dual stop);
+* ``defaults``: the copies' defaults (adaptive rho from 20, primal-dual stop);
 * ``from rho 1`` and ``from rho 100``: the defaults started at another rho.
 
 and writes ``OUT/admm_table.json`` and ``OUT/admm_table.md`` (arrival step of the last
@@ -47,7 +48,7 @@ VARIANTS = {
 
 def run_case(scenario: dict, variant: dict | None) -> dict:
     """One noiseless closed-loop run; its metrics."""
-    cfg = load_config(None, {**scenario, **(variant or {}), "noise_std": 0.0})
+    cfg = load_config(None, {**scenario, "admm_coupling": "copies", **(variant or {}), "noise_std": 0.0})
     system = system_from_config(cfg)
     controller = Controller.for_run(cfg, system, fit_agent_gps(cfg, system, cfg.num_agents))
     planner = CentralizedPlanner(controller.agent_step) if variant is None else ADMMPlanner(controller)

@@ -85,7 +85,9 @@ def run(steps: int = 50, gradient_step: int = 14, agents: int = 4, horizon: int 
     starts = torch.stack([2 * torch.cos(angles), 2 * torch.sin(angles), 0.2 * torch.arange(K) - 0.3], dim=1)
     targets = -starts  # antipodal swap through the centre
     gps = learn_residuals(plant, K, samples=samples, generator=gen)
-    settings = ControllerSettings(horizon=horizon, eps=0.1, rho=20.0)
+    # consensus on copies, whose penalty rho weighs every consensus term (the default plane coupling's rho
+    # only sizes the planes' capped moves: this plan's gradient to it is 6e-12)
+    settings = ControllerSettings(horizon=horizon, eps=0.1, rho=20.0, admm_coupling="copies")
     ctrl = Controller(model, gps=gps, settings=settings)
     print(f"message size {ctrl.message_size} numbers, uncertainty {ctrl.uncertainty}")
 

@@ -481,8 +481,10 @@ def _gp_bad_query(a: Assets):
 
 
 API_CASES = [
-    ("api-config-misspelt-keyword", lambda a: Config(admm_acceleraton="anderson"),
-     "unknown config key 'admm_acceleraton'; did you mean 'admm_acceleration'?"),
+    ("api-config-misspelt-keyword", lambda a: Config(admm_couplng="copies"),
+     "unknown config key 'admm_couplng'; did you mean 'admm_coupling'?"),
+    ("api-config-removed-keyword", lambda a: Config(admm_acceleration="anderson"),
+     "config key 'admm_acceleration': Anderson acceleration was removed: it gained nothing in a crowd"),
     ("api-transitions-nan", lambda a: Transitions(*with_value(np.nan).values()), "non-finite"),
     ("api-transitions-shape", lambda a: Transitions(np.zeros((4, 2)), np.zeros((3, 2)), np.zeros((4, 2))),
      "shape mismatch"),
@@ -923,7 +925,7 @@ def _start_run(out: Path) -> subprocess.Popen:
             "from torch_gpmpc.cli import main; sys.exit(main(sys.argv[1:]))")
     return subprocess.Popen(
         [sys.executable, "-c", code, "run", "--method", "nominal", "--out", str(out), "--no-figures",
-         "--set", "max_steps=150", "--set", "horizon=13"],
+         "--set", "max_steps=150", "--set", "horizon=13", "--set", "admm_coupling=copies"],  # long enough to kill
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
 

@@ -52,7 +52,7 @@ def test_admm_tail_counts_the_edges_that_hold_each_step(tmp_path):
 
     out = subprocess.run([sys.executable, str(ROOT / "eval" / "admm_tail.py"), "--steps", "4", "--set", "method=nominal",
                           "--set", "scenario=circle", "--set", "num_agents=4", "--set", "circle_radius=1",
-                          "--set", "admm_max_iter=12", "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT)
+                          "--set", "admm_max_iter=12", "--set", "admm_coupling=copies", "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 0, out.stderr[-2000:]
     rows = json.loads((tmp_path / "admm_tail.json").read_text())["rows"]
     assert len(rows) == 4

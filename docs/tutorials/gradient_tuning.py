@@ -5,6 +5,10 @@
 # operations, so a plan's cost has gradients with respect to the ADMM penalty rho, the risk split and
 # the weights of your cost. `Controller.differentiable_step` sets what gradients need: a fixed number of
 # ADMM iterations (a stopping test would make the map jump), no safety fallback, cold local solves.
+#
+# This page runs the paper's coupling, consensus on trajectory copies, where rho weighs every consensus
+# term. Under the default plane coupling rho only sizes the planes' moves, which are capped at a quarter
+# of the pair's distance: where every move is at its cap the plans do not depend on rho at all.
 
 # %%
 import torch
@@ -13,7 +17,8 @@ from torch_gpmpc import Controller, ControllerSettings, ModelSpec, QuadraticCost
 
 model = ModelSpec.double_integrator(dim=2, dt=0.1, u_max=2.0)
 q = torch.tensor([1.0, 1.0, 0.1, 0.1], dtype=torch.float64, requires_grad=True)
-ctrl = Controller(model, settings=ControllerSettings(method="nominal", horizon=10), cost=QuadraticCost(Q=q, R=0.01))
+settings = ControllerSettings(method="nominal", horizon=10, admm_coupling="copies")
+ctrl = Controller(model, settings=settings, cost=QuadraticCost(Q=q, R=0.01))
 x0 = ctrl.model.states_at(torch.tensor([[-1.0, 0.05], [1.0, -0.05]], dtype=torch.float64))
 xref = x0.flip(0)[:, None].expand(2, 11, 4)  # swap places
 

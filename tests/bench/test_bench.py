@@ -84,8 +84,8 @@ def test_bench_cli_scale_short(tmp_path, monkeypatch):
     [row] = cores["table"]
     assert row["same_plans"] and row["s_per_step_1_thread"] > 0 and row["s_per_step"] > 0
     transitions = result["sections"]["scale"]["transitions"]
-    assert [r["workload"].split(", ", 1)[1] for r in transitions["table"]][:2] == ["copies, 1 thread (default)",
-                                                                                  "planes, 1 thread"]
+    assert [r["workload"].split(", ", 1)[1] for r in transitions["table"]][:2] == ["copies, 1 thread",
+                                                                                  "planes, 1 thread (default)"]
     assert transitions["met"] is None and transitions["table"][0]["speedup_vs_default"] == 1.0
     assert all(r["compute_ms_per_agent_step"] > 0 and 0 <= r["success"] <= 1 for r in transitions["table"])
     assert (tmp_path / "figures" / "bench_scale.png").stat().st_size > 0
@@ -117,15 +117,17 @@ def test_bench_run_short_breakdown_times_every_iteration_once():
     rows = {r["part"]: r for r in result["table"]}
     assert result["steps"] == 10 and result["admm_iterations"] >= 10
     # the timers saw the rollout's own ADMM iterations: each through the torch path (one solve, one
-    # assembly, one canonicalization; each step's first two and its last) or as a compiled iteration
-    # (which also computes a step's last iteration once before the torch path repeats it, and its
-    # problems are canonicalized once per step); one ADMM step per closed-loop step; fit 1 time;
-    # every solve after the first starts warm (one warm kernel call), and the cold kernel (the
-    # solve with its polish, one call) runs only for what the warm one leaves
+    # assembly, one canonicalization; each step's first and its last; a step with edges assembles once
+    # more for its variances, which the planes agree on first) or as a compiled iteration (which also
+    # computes a step's last iteration once before the torch path repeats it, and its problems are
+    # canonicalized once per step); one ADMM step per closed-loop step; fit 1 time; every solve after
+    # the first starts warm (one warm kernel call), and the cold kernel (the solve with its polish, one
+    # call) runs only for what the warm one leaves
     calls = result["calls"]
     iterations, torch_path, compiled = result["admm_iterations"], calls["solve"], calls["compiled"]
-    assert calls["assembly"] == torch_path and torch_path <= calls["canonicalize"] <= torch_path + result["steps"]
-    assert torch_path < iterations <= torch_path + compiled <= iterations + result["steps"]
+    assert torch_path <= calls["assembly"] <= torch_path + result["steps"]
+    assert torch_path <= calls["canonicalize"] <= torch_path + result["steps"]
+    assert torch_path <= iterations <= torch_path + compiled <= iterations + result["steps"]
     assert calls["kernel_warm"] + calls["kernel_warm@compiled"] == torch_path + compiled - 1
     assert 1 <= calls["kernel"] + calls["kernel@compiled"] <= torch_path + compiled
     # the linearization points are held within a step (relinearize=false): one linearization per step

@@ -23,7 +23,7 @@ def test_keys_are_every_config_field_with_its_default_and_rules():
 def test_gpmpc_keys_prints_a_named_key_a_word_or_says_none_matches(capsys):
     assert main(["keys", "admm_coupling"]) == 0
     out = capsys.readouterr().out
-    assert out.startswith("admm_coupling = 'copies'  (str)") and "allowed: copies, planes" in out
+    assert out.startswith("admm_coupling = 'planes'  (str)") and "allowed: copies, planes" in out
     assert out.count(" = ") == 1  # only the key named
     assert main(["keys", "admm"]) == 0
     assert capsys.readouterr().out.count("\n\n") >= 5

@@ -20,8 +20,8 @@ def test_defaults_are_the_paper_scenario():
 def test_file_then_overrides(tmp_path):
     f = tmp_path / "c.toml"
     f.write_text('rho = 5\nmethod = "nominal"\ncomm_radius = 3.0\n')
-    c = load_config(f, parse_overrides(["rho=7.5", "admm_dual_tol=1e-3"]))
-    assert (c.rho, c.method, c.comm_radius, c.admm_dual_tol) == (7.5, "nominal", 3.0, 1e-3)
+    c = load_config(f, parse_overrides(["rho=7.5", "admm_tol=1e-4"]))
+    assert (c.rho, c.method, c.comm_radius, c.admm_tol) == (7.5, "nominal", 3.0, 1e-4)
     j = tmp_path / "c.json"
     j.write_text(json.dumps({"horizon": 5}))
     assert load_config(j).horizon == 5

@@ -98,7 +98,7 @@ def test_admm_matches_centralized_solution(method, pair_margin):
     Phi^-1(1 - eps) sqrt(s_k + s_j)) in an independent centralized cvxpy solve."""
     # primal-only stopping can halt at a consensus that is not yet optimal:
     # demand the dual residual too.
-    cfg = Config(horizon=6, rho=5.0, admm_tol=1e-7, admm_dual_tol=1e-7, admm_rel_tol=0.0, admm_max_iter=1500,
+    cfg = Config(admm_coupling="copies", horizon=6, rho=5.0, admm_tol=1e-7, admm_dual_tol=1e-7, admm_rel_tol=0.0, admm_max_iter=1500,
                  relinearize=False,
                  eps=0.1, noise_std=0.0, pair_margin=pair_margin, terminal_cost="stage",
                  **({} if pair_margin == "joint" else {"risk_split": 0.3}))  # joint has no split
@@ -168,7 +168,7 @@ def test_one_agent_admm_equals_direct_mpc_solve():
 
 
 def test_messages_per_iteration_formula():
-    cfg = Config(horizon=13, admm_max_iter=1)
+    cfg = Config(admm_coupling="copies", horizon=13, admm_max_iter=1)
     x0 = torch.tensor([[-1.0, 0.0], [1.0, 0.0], [0.0, 1.5]], dtype=torch.float64)
     graph = graph_from_edges(3, [(0, 1), (1, 2)])
     res = ADMM(LocalStep(cfg, cfg.model_spec(), "nominal")).solve_step(x0, x0[:, None].expand(-1, 14, -1), graph)
@@ -287,7 +287,7 @@ def test_buffered_voronoi_fallback_keeps_a_capped_crowd_safe():
     from torch_gpmpc.sim.closed_loop import simulate
     from torch_gpmpc.sim.metrics import compute_metrics
 
-    cfg = Config(scenario="circle", num_agents=8, admm_max_iter=2, noise_std=0.0, gp_samples=50, gp_iters=20)
+    cfg = Config(admm_coupling="copies", scenario="circle", num_agents=8, admm_max_iter=2, noise_std=0.0, gp_samples=50, gp_iters=20)
     m = compute_metrics(simulate(cfg))
     assert m["converged_fraction"] == 0.0 and m["fallback_steps"] > 20
     assert m["violations"] == 0 and m["min_pair_distance"] >= cfg.r_safe
@@ -302,7 +302,7 @@ def test_capped_admm_falls_back_to_safe_plans_in_closed_loop():
     from torch_gpmpc.sim.closed_loop import simulate
     from torch_gpmpc.sim.metrics import compute_metrics
 
-    cfg = Config(admm_max_iter=2, max_steps=40, gp_iters=10, noise_std=0.0)
+    cfg = Config(admm_coupling="copies", admm_max_iter=2, max_steps=40, gp_iters=10, noise_std=0.0)
     m = compute_metrics(simulate(cfg))
     assert m["converged_fraction"] < 0.2
     assert m["fallback_steps"] > 0

@@ -36,21 +36,21 @@ def swap(model: ModelSpec, horizon: int, gap: float = 1.0):
 
 def test_double_integrator_from_a_model_spec_reports_its_own_message_size_and_uncertainty():
     model = ModelSpec.double_integrator(dim=2, dt=0.1, u_max=2.0)
-    ctrl = Controller(model, settings=ControllerSettings(method="nominal", horizon=5))
+    ctrl = Controller(model, settings=ControllerSettings(admm_coupling="copies", method="nominal", horizon=5))
     assert ctrl.message_size == 48 == 2 * (5 + 1) * 4
     assert ctrl.uncertainty == "propagated"
-    chance = Controller(model, gps=[ConstantVarianceGP(0.01)] * 2, settings=ControllerSettings(horizon=5))
+    chance = Controller(model, gps=[ConstantVarianceGP(0.01)] * 2, settings=ControllerSettings(admm_coupling="copies", horizon=5))
     assert chance.message_size == 48 + 5  # the T projected variances of the sum margin
     assert Controller(ModelSpec.single_integrator(2), settings=ControllerSettings(
         method="nominal", horizon=5)).uncertainty == "pointwise"
     # the same model through a default Config: the model decides, not the config's model string
-    admm = ADMM(LocalStep(Config(horizon=5, method="nominal"), model))
+    admm = ADMM(LocalStep(Config(admm_coupling="copies", horizon=5, method="nominal"), model))
     assert admm.agent_step.message_size == 48 and admm.agent_step.uncertainty == "propagated"
 
 
 def test_controller_step_is_the_admm_step_and_reaches_the_centralized_optimum():
     model = ModelSpec.double_integrator(dim=2)
-    settings = ControllerSettings(method="nominal", horizon=8, admm_max_iter=300, admm_tol=1e-5,
+    settings = ControllerSettings(admm_coupling="copies", method="nominal", horizon=8, admm_max_iter=300, admm_tol=1e-5,
                                   admm_rel_tol=0.0)
     x0, xref = swap(model, 8)
     ctrl = Controller(model, settings=settings)
@@ -72,7 +72,7 @@ def test_input_rate_term_uses_the_applied_input_and_admm_reaches_the_centralized
     """With ``input_rate_weight`` the second step's problems carry the first step's applied inputs
     as U_{-1}, and ADMM stops at the centralized optimum of that cost (1e-3)."""
     model = ModelSpec.double_integrator(dim=2)
-    settings = ControllerSettings(method="nominal", horizon=8, admm_max_iter=300, admm_tol=1e-5,
+    settings = ControllerSettings(admm_coupling="copies", method="nominal", horizon=8, admm_max_iter=300, admm_tol=1e-5,
                                   admm_rel_tol=0.0, input_rate_weight=0.5)
     x0, xref = swap(model, 8)
     ctrl = Controller(model, settings=settings)
@@ -98,7 +98,7 @@ def model_matrix(model: ModelSpec, name: str) -> torch.Tensor:
 
 def test_iterate_is_pure_and_the_step_is_its_loop():
     model = ModelSpec.single_integrator(2)
-    settings = ControllerSettings(method="nominal", horizon=6, admm_max_iter=7, admm_tol=1e-9)
+    settings = ControllerSettings(admm_coupling="copies", method="nominal", horizon=6, admm_max_iter=7, admm_tol=1e-9)
     admm = ADMM(LocalStep(settings, model))
     x0, xref = swap(model, 6)
     graph = communication_graph(x0, None)
@@ -118,7 +118,7 @@ def test_iterate_is_pure_and_the_step_is_its_loop():
 
 def test_step_gradients_to_rho_and_split_match_finite_differences():
     model = ModelSpec.single_integrator(2)
-    settings = ControllerSettings(method="nominal-chance", horizon=6, admm_max_iter=8, admm_tol=1e-12,
+    settings = ControllerSettings(admm_coupling="copies", method="nominal-chance", horizon=6, admm_max_iter=8, admm_tol=1e-12,
                                   admm_dual_tol=1e-12, r_safe=0.5)
     ctrl = Controller(model, gps=[ConstantVarianceGP(0.02), ConstantVarianceGP(0.05)], settings=settings)
     x0, xref = swap(model, 6, gap=0.6)
@@ -177,7 +177,7 @@ def test_centralized_planner_takes_the_per_agent_step():
 
 
 def test_distributed_agent_builds_only_its_per_agent_step():
-    cfg = Config(model="double-integrator", horizon=5, method="nominal", scenario="circle", num_agents=3)
+    cfg = Config(admm_coupling="copies", model="double-integrator", horizon=5, method="nominal", scenario="circle", num_agents=3)
     agent = AgentController(0, 3, cfg, torch.zeros(10, 2, dtype=F64))
     assert isinstance(agent.local, LocalStep)
     assert agent.message_size == 2 * 6 * 4 and agent.local.uncertainty == "propagated"
@@ -233,7 +233,7 @@ def test_a_stated_cost_through_admm_reaches_the_centralized_optimum(solver):
     from torch_gpmpc import QuadraticCost
 
     model = ModelSpec.double_integrator(dim=2)
-    settings = ControllerSettings(method="nominal", horizon=8, admm_max_iter=300, admm_tol=1e-5,
+    settings = ControllerSettings(admm_coupling="copies", method="nominal", horizon=8, admm_max_iter=300, admm_tol=1e-5,
                                   admm_rel_tol=0.0, solver=solver)
     cost = QuadraticCost(Q=torch.tensor([2.0, 1.0, 0.2, 0.1], dtype=F64), R=0.05,
                          P=torch.diag(torch.tensor([20.0, 20.0, 1.0, 1.0], dtype=F64)),

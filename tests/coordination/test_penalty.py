@@ -41,16 +41,6 @@ def test_balancing_doubles_halves_or_keeps_each_edge_on_the_residual_ratios():
     assert balance_penalty(torch.tensor([4.0], dtype=F64), res).tolist() == [8.0]
 
 
-def test_balancing_can_relax_settled_edges_whatever_their_round_off():
-    """Round-off residuals (an edge whose rows do not bind) decide nothing when settled: halved
-    whichever way their ratio points (or none, at exact zeros); an edge above the settled ratio is
-    balanced as before, even when it meets its tolerances."""
-    rho = torch.tensor([4.0, 4.0, 4.0, 4.0, 4.0, 4.0], dtype=F64)
-    res = _residuals([1e-14, 1e-17, 0.0, 20.0, 1.0, 1e-3], [1e-17, 1e-14, 0.0, 1.0, 20.0, 1e-5])
-    assert balance_penalty(rho, res).tolist() == [8.0, 2.0, 4.0, 8.0, 2.0, 8.0]
-    assert balance_penalty(rho, res, relax_settled=True).tolist() == [2.0, 2.0, 2.0, 8.0, 2.0, 8.0]
-
-
 def test_balancing_stays_within_bounds_and_passes_gradients_to_the_start():
     low, high = RHO_BOUNDS
     rho = torch.tensor([high, low], dtype=F64)
@@ -81,7 +71,7 @@ def test_tolerances_are_absolute_plus_relative_and_both_ends_know_them():
     # duals start at zero and each update adds rho (y - z), which sums to zero over the ends
     torch.testing.assert_close(lam[:, 0], -lam[:, 1])
     torch.testing.assert_close(lam, rho[:, None, None, None, None] * (copies - z_new[:, None]))
-    cfg = Config(admm_tol=1e-3, admm_rel_tol=1e-2)
+    cfg = Config(admm_coupling="copies", admm_tol=1e-3, admm_rel_tol=1e-2)
     res = edge_residuals(copies, z_new, lam[:, 1].flatten(1).norm(dim=1), primal, dual, cfg)
     for e in range(E):
         size = max(copies[e, 0].norm(), copies[e, 1].norm(), z_new[e].norm())
@@ -96,7 +86,7 @@ def test_tolerances_are_absolute_plus_relative_and_both_ends_know_them():
 
 
 def test_stopping_rules():
-    both, paper = Config(), Config(admm_stop="primal")
+    both, paper = Config(admm_coupling="copies"), Config(admm_coupling="copies", admm_stop="primal")
     assert checks_dual(both) and not checks_dual(paper) and checks_dual(paper.replace(admm_dual_tol=1e-2))
     assert should_stop(0.5, 0.5, both) and not should_stop(0.5, 2.0, both) and not should_stop(2.0, 0.5, both)
     assert should_stop(0.5, 2.0, paper) and not should_stop(0.5, 2.0, paper.replace(admm_dual_tol=1e-2))
@@ -105,7 +95,7 @@ def test_stopping_rules():
 
 def test_unconverged_edges_count_what_the_stopping_test_waits_for():
     res = _residuals([0.5, 2.0, 0.5, math.nan, 0.99], [0.5, 0.5, 3.0, 0.5, 0.2])
-    both, paper = Config(), Config(admm_stop="primal")
+    both, paper = Config(admm_coupling="copies"), Config(admm_coupling="copies", admm_stop="primal")
     assert unconverged_edges(res, both) == 3  # primal 2.0, dual 3.0, and NaN
     assert unconverged_edges(res, paper) == 2  # the paper's rule does not test the dual residual
     assert unconverged_edges(_residuals([0.5], [0.5]), both) == 0
@@ -114,7 +104,7 @@ def test_unconverged_edges_count_what_the_stopping_test_waits_for():
 @pytest.fixture(scope="module")
 def paper_crossing():
     """The paper scenario, noiseless, default settings, through the crossing: the step results."""
-    cfg = Config(noise_std=0.0, max_steps=34)
+    cfg = Config(admm_coupling="copies", noise_std=0.0, max_steps=34)
     system = system_from_config(cfg)
     controller = Controller.for_run(cfg, system, fit_agent_gps(cfg, system, cfg.num_agents))
     admm, planner = controller.admm, ADMMPlanner(controller)
@@ -132,7 +122,7 @@ def test_default_admm_stops_within_one_percent_of_the_centralized_optimum(paper_
     solve of the same convexified step problem, and the plans nearly satisfy its coupling rows."""
     cfg, admm, results = paper_crossing
     xref, graph, res = results[step]
-    assert res.converged and res.iterations < cfg.admm_max_iter
+    assert res.converged and res.iterations < cfg.iteration_cap
     central = solve_centralized(res.problem, graph, admm.nominal, cfg.u_max, cfg.alpha, cfg.slack_penalty)
     cost = plan_cost(res.plans, res.inputs, xref, cfg.alpha, problem=res.problem)
     assert abs(cost / central.cost - 1.0) < 0.01, (cost, central.cost)
@@ -141,22 +131,6 @@ def test_default_admm_stops_within_one_percent_of_the_centralized_optimum(paper_
     nbr = graph.slot_nbr[k_idx]
     gap = (data.normals[k_idx] * (res.plans[k_idx[0], 1:] - res.plans[nbr, 1:])).sum(-1) - data.bounds[k_idx]
     assert float(gap.min()) > -5e-3
-
-
-@pytest.mark.parametrize("step", [18, 22, 26])
-def test_accelerated_admm_stops_within_one_percent_of_the_centralized_optimum(paper_crossing, step):
-    """The same crossing steps solved from a cold start with ``admm_acceleration = anderson``:
-    stopped by the same test, within 1 % of the centralized optimum, in fewer iterations than the
-    plain ADMM from the same cold start."""
-    cfg, admm, results = paper_crossing
-    xref, graph, res = results[step]
-    x0 = res.plans[:, 0]
-    plain = admm.solve_step(x0, xref, graph)
-    fast = admm.with_settings(admm_acceleration="anderson").solve_step(x0, xref, graph)
-    assert fast.converged and fast.iterations < plain.iterations
-    central = solve_centralized(fast.problem, graph, admm.nominal, cfg.u_max, cfg.alpha, cfg.slack_penalty)
-    cost = plan_cost(fast.plans, fast.inputs, xref, cfg.alpha, problem=fast.problem)
-    assert abs(cost / central.cost - 1.0) < 0.01, (cost, central.cost)
 
 
 def test_each_step_counts_its_unconverged_edges_per_iteration(paper_crossing):

@@ -64,7 +64,7 @@ def test_a_team_split_into_groups_of_one_model_plans_as_that_model(method):
 def test_drones_and_ground_robots_plan_with_their_own_dynamics_and_bounds():
     robot = ModelSpec.single_integrator(2, u_max=1.0)
     team = team_spec([DI, robot, DI, robot])
-    settings = ControllerSettings(method="nominal-chance", horizon=8, admm_max_iter=60)
+    settings = ControllerSettings(admm_coupling="copies", method="nominal-chance", horizon=8, admm_max_iter=60)
     gps = [ConstantVarianceGP(0.001)] * 4
     step = TeamStep(settings, team, gps=gps)
     x0, xref = crossing(step.nominal, 4, 8)
@@ -81,7 +81,7 @@ def test_drones_and_ground_robots_plan_with_their_own_dynamics_and_bounds():
 
 
 def test_the_controller_takes_one_model_per_agent():
-    settings = ControllerSettings(method="nominal", horizon=6)
+    settings = ControllerSettings(admm_coupling="copies", method="nominal", horizon=6)
     ctrl = Controller([DI, SI, DI], settings=settings)
     assert isinstance(ctrl.agent_step, TeamStep) and ctrl.model.dim == 4 and ctrl.message_size == 2 * 7 * 4
     x0, xref = crossing(ctrl.model, 3, 6)

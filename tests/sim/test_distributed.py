@@ -18,7 +18,6 @@ from torch_gpmpc.coordination.agent_step import LocalStep
 from torch_gpmpc.coordination.admm import ADMM
 from torch_gpmpc.cli import main
 from torch_gpmpc.config import Config, load_config
-from torch_gpmpc.coordination.acceleration import AndersonWorld
 from torch_gpmpc.coordination.distributed.agent import AgentController
 from torch_gpmpc.coordination.penalty import should_stop
 from torch_gpmpc.sim.distributed import simulate_distributed
@@ -32,7 +31,7 @@ from torch_gpmpc.dynamics.systems import make_system
 from torch_gpmpc.gp.offset import offset_corrected
 from torch_gpmpc.gp.online import OnlineLearning
 
-QUICK = {"method": "gp-chance", "max_steps": 3, "admm_max_iter": 5, "gp_iters": 5}
+QUICK = {"admm_coupling": "copies", "method": "gp-chance", "max_steps": 3, "admm_max_iter": 5, "gp_iters": 5}
 
 
 def hand_driven(cfg: Config) -> tuple:
@@ -78,7 +77,8 @@ def test_agent_controllers_reproduce_batched_admm_bit_for_bit(input_rate_weight)
     # clarabel solves each problem alone, so batch 3 and batch 1 agree bit for bit; with the fast
     # solver a residual differs in its last bit (5.1e-2 +- 7e-18): its kernel solves each problem
     # alone, so the batched torch preparation (condensing, matrix products) rounds by batch size
-    cfg = load_config(None, {"method": "nominal", "max_steps": 2, "admm_max_iter": 4, "solver": "clarabel",
+    cfg = load_config(None, {"admm_coupling": "copies", "method": "nominal", "max_steps": 2, "admm_max_iter": 4,
+                             "solver": "clarabel",
                              "input_rate_weight": input_rate_weight})
     sc, system, admm, agents, noise = hand_driven(cfg)
     x, warm = sc.starts.clone(), None
@@ -100,7 +100,8 @@ def test_agent_controllers_reproduce_the_buffered_voronoi_fallback():
     the same inputs (clarabel: batch and single solves agree bit for bit). The step after a
     fallback can differ: the in-process warm start holds the neighbours' re-planned plans, an
     agent process its neighbours' plans from before their fallback."""
-    cfg = load_config(None, {"method": "nominal", "scenario": "circle", "num_agents": 3, "circle_radius": 0.32, "reference": "target",
+    cfg = load_config(None, {"admm_coupling": "copies", "method": "nominal", "scenario": "circle", "num_agents": 3,
+                             "circle_radius": 0.32, "reference": "target",
                              "admm_max_iter": 2, "solver": "clarabel", "noise_std": 0.0, "wind_scale": 0.0})
     sc = make_scenario(cfg)
     K = sc.num_agents
@@ -119,42 +120,6 @@ def test_agent_controllers_reproduce_the_buffered_voronoi_fallback():
             assert torch.equal(u, res.inputs[:, 0])
             x = system.step(x, clip_norm(u, cfg.u_max))
     assert fallbacks == 1
-
-
-def test_agent_controllers_reproduce_accelerated_admm():
-    """No processes: the agents' shares of the Anderson mix, summed by the world
-    (:class:`AndersonWorld`, as the world process does), give ADMM.solve_step's accelerated
-    iterations: the same number, the same residuals and inputs up to the order of the sums
-    (measured: 2.7e-5 relative, inputs 2e-7)."""
-    cfg = load_config(None, {"method": "nominal", "max_steps": 2, "admm_max_iter": 60, "solver": "clarabel",
-                             "admm_acceleration": "anderson"})
-    sc, system, admm, agents, noise = hand_driven(cfg)
-    x, warm = sc.starts.clone(), None
-    with torch.no_grad():
-        for t in range(2):
-            res = admm.solve_step(x, sc.reference_window(t, cfg.horizon), communication_graph(x, None), warm=warm)
-            warm = res.state.shifted()
-            begin_agents(agents, t, x)
-            K = len(agents)
-            world, primal = AndersonWorld(cfg.admm_anderson_memory), []
-            for it in range(1, cfg.admm_max_iter + 1):
-                own = {k: agents[k].solve() for k in range(K)}
-                out = [agents[k].update({j: own[j][k] for j in own[k]}) for k in range(K)]
-                msgs = [agents[k].residual_message(out[k]) for k in range(K)]
-                primal.append(max(o[0] for o in out))
-                stop = should_stop(max(o[2] for o in out), max(o[3] for o in out), cfg) or it == cfg.admm_max_iter
-                decision = torch.tensor([0.0, 0.0, float(stop)] + world.decide(msgs, stop), dtype=torch.float64)
-                for a in agents:
-                    a.accelerate(decision)
-                if stop:
-                    break
-            assert len(primal) == res.iterations and res.converged
-            # the least squares amplifies the order of the sums' rounding: summing the in-process Gram
-            # matrix in three blocks moves the residuals as much (7.7e-6 relative, inputs 4e-7)
-            np.testing.assert_allclose(primal, res.primal_residuals, rtol=1e-4, atol=1e-12)
-            u = torch.stack([a.end_step().u for a in agents])
-            assert torch.allclose(u, res.inputs[:, 0], rtol=0, atol=1e-5)
-            x = system.step(x, clip_norm(u, cfg.u_max), noise=noise[t])
 
 
 def _exchange(own: dict) -> dict:
@@ -305,22 +270,6 @@ def test_plane_distributed_run_equals_inprocess_and_counts_bytes(tmp_path):
     per_step = T + (T + T * D) + (T + 1) * D  # variances, rows, final plan
     warm_plans = (T + 1) * D  # once, when the edge appears (t = 0)
     assert m["plan_exchange_bytes_per_agent"] == [8.0 * (K - 1) * (cfg.max_steps * per_step + warm_plans)] * K
-
-
-def test_accelerated_distributed_run_equals_inprocess(tmp_path):
-    """Anderson acceleration across processes (the agents' terms reduced by the world with their
-    residuals): the in-process states up to the order of the least squares' sums, the same
-    iterations, and the residual report grown by the terms (3 + m^2 + m numbers)."""
-    quick = {**QUICK, "admm_acceleration": "anderson", "admm_max_iter": 20}
-    out = tmp_path / "dist"
-    cfg, ref = run_both_backends(quick, out)
-    with np.load(out / "rollout.npz", allow_pickle=False) as r:
-        states, iterations = r["states"], r["admm_iterations"]
-    assert np.abs(states - ref.states).max() <= 1e-6
-    assert np.array_equal(iterations, ref.admm_iterations)
-    m = json.loads((out / "metrics.json").read_text())
-    mem = cfg.admm_anderson_memory
-    assert m["reduce_bytes_per_agent_per_iteration"] == [8.0 * (4 + 3 + mem * mem + mem)] * 3
 
 
 @pytest.mark.parametrize("coupling", ["copies", "planes"])

@@ -122,7 +122,7 @@ def test_an_acceleration_box_and_a_workspace_run_on_the_fast_solver(tmp_path, di
         "targets": [[2, 0, 0.6], [-2, 0, -0.6], [0, 2, -0.3], [0, -2, 0.3]],
         "workspace": {"min": [-3, -3, -0.4], "max": [3, 3, 0.4]}}))
     out = tmp_path / "run"
-    sets = {"model": str(model), "solver": "fast", "method": "nominal", "noise_std": 0.0, "wind_scale": 0.0,
+    sets = {"admm_coupling": "copies", "model": str(model), "solver": "fast", "method": "nominal", "noise_std": 0.0, "wind_scale": 0.0,
             "max_steps": 25 if distributed else 60, "admm_max_iter": 40}
     args = ["run", "--scenario", str(scenario), "--out", str(out), *[a for k, v in sets.items() for a in
                                                                       ("--set", f"{k}={v}")]]

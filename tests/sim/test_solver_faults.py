@@ -104,21 +104,21 @@ def load_faults(directory: Path):
     return module
 
 
-#: ADMM variants the in-process fault test runs: plain, Anderson, plane coupling
-ADMM_VARIANTS = {"off": {}, "anderson": {"admm_acceleration": "anderson"}, "planes": {"admm_coupling": "planes"}}
+#: ADMM variants the fault tests run: copies, plane coupling (the default)
+ADMM_VARIANTS = {"copies": {"admm_coupling": "copies"}, "planes": {}}
 
 
-@pytest.mark.parametrize("acceleration", list(ADMM_VARIANTS))
+@pytest.mark.parametrize("coupling", list(ADMM_VARIANTS))
 @pytest.mark.parametrize("fault", list(KINDS))
 @pytest.mark.parametrize("model", list(MODELS))
-def test_solver_fault_falls_back_and_the_run_finishes_in_process(model, fault, acceleration, tmp_path, monkeypatch,
+def test_solver_fault_falls_back_and_the_run_finishes_in_process(model, fault, coupling, tmp_path, monkeypatch,
                                                                   caplog):
-    """(Also with Anderson acceleration: the failed agent's previous plan enters the mix's history;
-    and with plane coupling: the failed agent's ends report no multiplier and its edges grade the
-    iterate unsafe, so the step applies an earlier safe one.)"""
+    """(With the copies the failed agent's previous plan enters the consensus; with plane coupling
+    the failed agent's ends report no multiplier and its edges grade the iterate unsafe, so the step
+    applies an earlier safe one.)"""
     import torch_gpmpc.coordination.agent_step as agent_step
 
-    cfg = Config(**{**SHORT, **MODELS[model]}, **ADMM_VARIANTS[acceleration])
+    cfg = Config(**{**SHORT, **MODELS[model]}, **ADMM_VARIANTS[coupling])
     monkeypatch.setattr(agent_step, "make_local_solver", agent_step.make_local_solver)  # restored afterwards
     monkeypatch.setattr(agent_step.LocalStep, "rescue_inaccurate", agent_step.LocalStep.rescue_inaccurate)
     load_faults(tmp_path).install(fault, FAILING_CALL)
@@ -155,14 +155,14 @@ def test_solver_fault_in_a_mixed_team_fails_only_that_models_agents(fault, tmp_p
     assert rollout.states.shape[-1] == 4 and float(abs(rollout.states[:, 1, 2:]).max()) == 0.0
 
 
-@pytest.mark.parametrize("model, fault, acceleration", [
-    ("double-integrator", "exception", "off"), ("crazyflie", "exception", "off"), ("single-integrator", "nan", "off"),
-    ("crazyflie", "inaccurate", "off"), ("crazyflie", "nan", "anderson"), ("crazyflie", "exception", "planes"),
-    ("single-integrator", "nan", "planes")])
-def test_solver_fault_falls_back_and_the_run_finishes_distributed(model, fault, acceleration, tmp_path, monkeypatch):
-    """Each agent process's own solver fails at its third call: each agent falls back once (also
-    with Anderson acceleration, whose sums then carry the fallen-back agent's share, and with plane
-    coupling, where the fallen-back agent's ends report no multiplier and grade the iterate unsafe)."""
+@pytest.mark.parametrize("model, fault, coupling", [
+    ("double-integrator", "exception", "copies"), ("crazyflie", "exception", "copies"),
+    ("single-integrator", "nan", "copies"), ("crazyflie", "inaccurate", "copies"), ("crazyflie", "nan", "planes"),
+    ("crazyflie", "exception", "planes"), ("single-integrator", "nan", "planes")])
+def test_solver_fault_falls_back_and_the_run_finishes_distributed(model, fault, coupling, tmp_path, monkeypatch):
+    """Each agent process's own solver fails at its third call: each agent falls back once (with the
+    copies and with plane coupling, where the fallen-back agent's ends report no multiplier and grade
+    the iterate unsafe)."""
     hook = tmp_path / "hook"
     hook.mkdir()
     load_faults(hook)
@@ -172,7 +172,7 @@ def test_solver_fault_falls_back_and_the_run_finishes_distributed(model, fault, 
     monkeypatch.setenv("GPMPC_TEST_FAILING_CALL", str(FAILING_CALL))
     out = tmp_path / "dist"
     args = ["run", "--backend", "distributed", "--timeout", "120", "--no-figures", "--out", str(out)]
-    keys = {**SHORT, **MODELS[model], **ADMM_VARIANTS[acceleration]}
+    keys = {**SHORT, **MODELS[model], **ADMM_VARIANTS[coupling]}
     for key, value in keys.items():
         args += ["--set", f"{key}={value}"]
     assert main(args) == 0

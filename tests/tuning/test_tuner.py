@@ -39,7 +39,7 @@ from torch_gpmpc.tuning import (
 
 
 # a small crossing: 3 agents on a circle of radius 2, started ~1 unit from the centre
-SMALL = dict(horizon=6, method="nominal-chance", circle_radius=2.0, ref_points=25)
+SMALL = dict(admm_coupling="copies", horizon=6, method="nominal-chance", circle_radius=2.0, ref_points=25)
 
 
 def _small_objective(seeds, settings: TuneSettings, variances=(0.01, 0.02, 0.04), **overrides) -> TuningObjective:

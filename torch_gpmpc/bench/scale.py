@@ -162,7 +162,7 @@ def measure_whole_run(cfg: Config) -> dict:
         "every_agent_arrived": m["arrival_step_max"] is not None,
         "arrival_step_max": m["arrival_step_max"],
         "converged_fraction": m["converged_fraction"],
-        "steps_at_cap": int(np.count_nonzero(iters >= cfg.admm_max_iter)),
+        "steps_at_cap": int(np.count_nonzero(iters >= cfg.iteration_cap)),
         "fallback_steps": m["fallback_steps"],
         "admm_iterations_mean": m["admm_iterations_mean"],
         "step_s_mean": m["step_time_s_mean"],
@@ -225,7 +225,7 @@ def measure_transitions(num_agents: int, seeds: int) -> dict:
         coupling on every core is at most the target at N = 20 (``None`` at another size).
     """
     cores = available_cores()
-    planners = [("copies, 1 thread (default)", "copies", 1), ("planes, 1 thread", "planes", 1),
+    planners = [("copies, 1 thread", "copies", 1), ("planes, 1 thread (default)", "planes", 1),
                 (f"planes, {cores} threads", "planes", cores)]
     rows = []
     for label, coupling, threads in planners:

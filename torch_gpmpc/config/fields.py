@@ -42,14 +42,27 @@ def nearest_key(name: str, keys: Iterable[str]) -> str:
     return match[0] if match else keys[0]
 
 
+#: Keys that were removed, with why and what to do instead (CHANGELOG.md has the measurements).
+REMOVED_KEYS = {
+    "admm_acceleration": "Anderson acceleration was removed: it gained nothing in a crowd and lost on the "
+                         "random transitions, and the default plane coupling needs no convergence within a step; "
+                         "delete the key",
+    "admm_anderson_memory": "Anderson acceleration was removed; delete the key",
+}
+
+
 def check_keys(data: Mapping[str, Any], keys: Iterable[str], what: str, prefix: str = "") -> None:
-    """Raise on the first key of ``data`` not in ``keys``, naming the nearest valid key.
+    """Raise on the first key of ``data`` not in ``keys``: a removed key (:data:`REMOVED_KEYS`) with
+    what to do, else naming the nearest valid key.
 
     Raises:
-        GpmpcError: ``unknown <what> 'key'; did you mean '<prefix>near'?``.
+        GpmpcError: ``<what> 'key': <why>; delete the key`` or ``unknown <what> 'key'; did you mean
+        '<prefix>near'?``.
     """
     keys = list(keys)
     for key in data:
+        if key in REMOVED_KEYS and key not in keys:
+            raise GpmpcError(f"{what} '{prefix}{key}': {REMOVED_KEYS[key]}")
         if key not in keys:
             raise GpmpcError(f"unknown {what} '{key}'; did you mean '{prefix}{nearest_key(key, keys)}'?")
 

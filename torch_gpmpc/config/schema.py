@@ -161,7 +161,7 @@ class Config(ControllerSettings):
         coerce_lists(self)  # plant_wind_speed = [1, 0, 0], radii = [0.2, 0.3] from Python, TOML or --set
         validate(self, RULES)
         check_risk_mode(self.risk_mode, self.method, self.pair_margin, "config key")
-        check_coupling(self.admm_coupling, self.admm_acceleration, self.relinearize, "config key")
+        check_coupling(self.admm_coupling, self.relinearize, "config key")
         if isinstance(self.model, str):
             check_model_name(self.model)
         if self.models is not None:

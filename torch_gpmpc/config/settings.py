@@ -35,8 +35,12 @@ ADMM_STOPS = ("primal", "primal-dual")
 RISK_MODES = ("pair_step", "mission")
 SOLVERS = ("fast", "clarabel", "reference")
 SAFETY_FALLBACKS = ("cells", "obstacles")
-ADMM_ACCELERATIONS = ("off", "anderson")
 ADMM_COUPLINGS = ("copies", "planes")
+#: Each coupling's iteration budget per control step where ``admm_max_iter`` is null: the planes'
+#: iterates are safe, so a step warm-started from the last one needs few (5 meets the small teams'
+#: arrivals and the crowd's safety; the docs' Coordination page); the copies are safe only once they
+#: agree, so they run towards convergence.
+DEFAULT_ITERATIONS = {"planes": 5, "copies": 100}
 
 CONTROLLER_CHOICES: dict[str, tuple] = {
     "uncertainty": ("auto", *UNCERTAINTY_MODES),
@@ -48,7 +52,6 @@ CONTROLLER_CHOICES: dict[str, tuple] = {
     "method": METHOD_NAMES,
     "risk_mode": RISK_MODES,
     "safety_fallback": SAFETY_FALLBACKS,
-    "admm_acceleration": ADMM_ACCELERATIONS,
     "admm_coupling": ADMM_COUPLINGS,
     "terminal_cost": TERMINAL_COSTS,
 }
@@ -64,9 +67,9 @@ CONTROLLER_RANGES: dict[str, tuple[typing.Callable[[typing.Any], bool], str]] = 
     "admm_tol": (lambda v: v > 0, "a number > 0"),
     "admm_dual_tol": (lambda v: v is None or v > 0, "a number > 0 or null"),
     "admm_rel_tol": (lambda v: 0 <= v < 1, "a number in [0, 1)"),
-    "admm_max_iter": (lambda v: 1 <= v <= 100_000, "an integer in [1, 100000]"),
+    "admm_max_iter": (lambda v: v is None or 1 <= v <= 100_000,
+                      "an integer in [1, 100000], or null (the coupling's default budget)"),
     "admm_time_budget_ms": (lambda v: v is None or v > 0, "a number of milliseconds > 0, or null"),
-    "admm_anderson_memory": (lambda v: 1 <= v <= 50, "an integer in [1, 50]"),
     "comm_radius": (lambda v: v is None or v > 0, "a number > 0 or null (all pairs)"),
     "slack_penalty": (lambda v: v > 0, "a number > 0"),
     "risk_budget": (lambda v: 0 < v < 1, "a number in (0, 1)"),
@@ -140,21 +143,19 @@ class ControllerSettings:
             to the dual tolerance of each edge (:mod:`torch_gpmpc.coordination.penalty`).
         admm_stop: ``primal-dual`` (both residuals, Boyd et al. 2011 §3.3.1) or ``primal`` (the
             paper's rule: a consensus that is feasible, not necessarily optimal).
-        admm_max_iter: ADMM iteration cap per time step.
+        admm_max_iter: ADMM iteration cap per time step (``null``: the coupling's default,
+            :data:`DEFAULT_ITERATIONS`; read it as :attr:`iteration_cap`).
         admm_time_budget_ms: also stop a step's iterations once they have taken this many
             milliseconds of wall time (``null``: no time limit): the iteration that starts after
             the budget is spent is the last, so a step runs at least two. Meant for
             ``admm_coupling = planes``, whose iterates are safe (with copies an early stop falls
             back); a run with a time budget depends on the machine's speed, so it is not
             reproducible.
-        admm_acceleration: ``off`` or ``anderson`` (type-II Anderson acceleration of each step's
-            consensus and duals, :mod:`torch_gpmpc.coordination.acceleration`).
-        admm_anderson_memory: how many past iterates the Anderson mix uses.
         admm_coupling: what neighbours agree on: ``copies`` (the paper's copies of the pair's
-            trajectories; a step is safe once they agree) or ``planes`` (a separating plane per
-            edge and horizon step, each agent keeping its own half: an iteration whose halves held
-            has jointly safe plans, so a step may stop early and apply its last such iterate; see
-            the docs' Plane coupling).
+            trajectories; a step is safe once they agree) or ``planes`` (the default: a separating
+            plane per edge and horizon step, each agent keeping its own half: an iteration whose
+            halves held has jointly safe plans, so a step may stop early and apply its last such
+            iterate; see the docs' Plane coupling).
         relinearize: re-set linearization points from each ADMM iterate (Algorithm 1, step 9);
             false (default): linearize once per control step around the warm start, so ADMM
             converges on one convex problem (the paper's per-iterate rule keeps it moving).
@@ -217,11 +218,9 @@ class ControllerSettings:
     admm_dual_tol: float | None = None
     admm_rel_tol: float = 1e-4
     admm_stop: str = "primal-dual"
-    admm_max_iter: int = 100
+    admm_max_iter: int | None = None
     admm_time_budget_ms: float | None = None
-    admm_acceleration: str = "off"
-    admm_anderson_memory: int = 5
-    admm_coupling: str = "copies"
+    admm_coupling: str = "planes"
     relinearize: bool = False
     comm_radius: float | None = None
     workspace: Workspace | None = None
@@ -246,7 +245,7 @@ class ControllerSettings:
         coerce_lists(self)  # radii = [0.2, 0.3] from Python
         validate(self, RULES)
         check_risk_mode(self.risk_mode, self.method, self.pair_margin, "controller setting")
-        check_coupling(self.admm_coupling, self.admm_acceleration, self.relinearize, "controller setting")
+        check_coupling(self.admm_coupling, self.relinearize, "controller setting")
         warn_ignored(self, CONTROLLER_CONDITIONS, "controller setting")
 
     def replace(self, **changes: typing.Any) -> "ControllerSettings":
@@ -257,6 +256,12 @@ class ControllerSettings:
             out = build(ControllerSettings, {**self.__dict__, **changes}, RULES)
         warn_ignored(out, {k: v for k, v in CONTROLLER_CONDITIONS.items() if k in changes}, "controller setting")
         return out
+
+    @property
+    def iteration_cap(self) -> int:
+        """The ADMM iteration budget per control step: ``admm_max_iter``, or the coupling's default
+        (:data:`DEFAULT_ITERATIONS`) where it is null."""
+        return DEFAULT_ITERATIONS[self.admm_coupling] if self.admm_max_iter is None else self.admm_max_iter
 
     def check_team(self, num_agents: int, where: str = "controller setting") -> None:
         """Refuse ``radii`` whose length is not the team size K."""
@@ -289,8 +294,6 @@ CONTROLLER_CONDITIONS: dict[str, tuple[Applies, ...]] = {
                      Applies("risk_mode", lambda s: s.risk_mode == "pair_step", "the mission budget sets every risk")),
     "risk_budget": (Applies("risk_mode", lambda s: s.risk_mode == "mission", "it is the mission's budget"),),
     "risk_pacing": (Applies("risk_mode", lambda s: s.risk_mode == "mission", "it paces the mission's budget"),),
-    "admm_anderson_memory": (Applies("admm_acceleration", lambda s: s.admm_acceleration == "anderson",
-                                     "it sizes the Anderson history"),),
     "admm_rel_tol": (Applies("admm_stop", lambda s: s.admm_stop == "primal-dual",
                              "the paper's primal rule has absolute tolerances only"),
                      Applies("admm_coupling", lambda s: s.admm_coupling == "copies",
@@ -350,19 +353,13 @@ def check_risk_mode(risk_mode: str, method: str, pair_margin: str, what: str) ->
                          "use pair_margin=sum or joint")
 
 
-def check_coupling(coupling: str, acceleration: str, relinearize: bool, what: str) -> None:
-    """Plane coupling mixes no Anderson history and keeps its planes in the frame of one
-    linearization per step.
+def check_coupling(coupling: str, relinearize: bool, what: str) -> None:
+    """Plane coupling keeps its planes in the frame of one linearization per step.
 
     Raises:
-        GpmpcError: ``admm_coupling = planes`` with ``admm_acceleration = anderson`` or ``relinearize``.
+        GpmpcError: ``admm_coupling = planes`` with ``relinearize``.
     """
-    if coupling != "planes":
-        return
-    if acceleration != "off":
-        raise GpmpcError(f"{what} 'admm_coupling': planes has no Anderson acceleration yet; "
-                         "use admm_acceleration=off, or admm_coupling=copies")
-    if relinearize:
+    if coupling == "planes" and relinearize:
         raise GpmpcError(f"{what} 'admm_coupling': planes keeps one linearization per step; "
                          "use relinearize=false, or admm_coupling=copies")
 

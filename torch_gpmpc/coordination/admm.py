@@ -1,4 +1,5 @@
-"""Consensus ADMM over the neighbour graph (paper §3.3-3.5, Algorithm 1).
+"""Consensus ADMM over the neighbour graph (paper §3.3-3.5, Algorithm 1): the paper's copies
+(``admm_coupling = copies``, below) or separating planes (``planes``, the default; last paragraphs).
 
 Per edge ``e = (lo, hi)`` the shared vector is ``z_e = [X_lo; X_hi]`` (eq. 18),
 shape (2, T+1, D). Agent k keeps a copy ``y_{e,k}`` of it: its own plan in its own
@@ -19,13 +20,11 @@ Stopping (:mod:`~torch_gpmpc.coordination.penalty`): with ``admm_stop = primal-d
 ``rho_e ||z_e - z_e_prev||`` are below their absolute-plus-relative tolerances (Boyd et al.
 2011 §3.3.1); with ``primal`` (the paper's rule) the primal one below ``admm_tol`` (and the
 dual one below ``admm_dual_tol`` if set); or ``admm_max_iter``. The primal-only rule at a
-fixed rho stops on a feasible consensus that is not yet optimal. With ``admm_acceleration =
-anderson`` each iteration of a step starts from the Anderson mix of the last iterates' consensus
-and duals (:mod:`~torch_gpmpc.coordination.acceleration`).
+fixed rho stops on a feasible consensus that is not yet optimal.
 
-With ``admm_coupling = planes`` (:mod:`~torch_gpmpc.coordination.planes`) neighbours share instead
-one separating plane per edge and horizon step, each keeping its own half, and move it by primal
-decomposition: the same team problem, T numbers per message, and plans that keep every pair at any
+With ``admm_coupling = planes`` (the default; :mod:`~torch_gpmpc.coordination.planes`) neighbours
+share instead one separating plane per edge and horizon step, each keeping its own half, and move it
+by primal decomposition: the same team problem, T numbers per message, and plans that keep every pair at any
 iteration, so a capped step applies its last safe iterate rather than falling back.
 
 Messages: per iteration agent k sends its copy ``y_{e,k}`` (``2 (T+1) n`` numbers, n the
@@ -39,9 +38,11 @@ rho, the risk split and the problem data (used by ``gpmpc tune``). One iteration
 :meth:`ADMM.iterate`; a control step (:meth:`ADMM.solve_step`) is that loop plus the stopping
 test and the safety check; the tuner's unroll is the same loop without stopping. Within
 :meth:`ADMM.solve_step`, the iterations after a step's second (its first where no variances are
-exchanged), whose problems change only in their consensus terms, run as compiled calls where
-nothing needs gradients (``admm_compiled``, :mod:`~torch_gpmpc.coordination.steady`): the same
-plans, bit for bit.
+exchanged), whose problems change only in their consensus terms, run on the kept problems where
+nothing needs gradients (``admm_compiled``: :mod:`~torch_gpmpc.coordination.steady`,
+:class:`~torch_gpmpc.coordination.planes.PlaneIterations`): the same plans, bit for bit. The edges'
+update after the solves is written once per coupling (:mod:`~torch_gpmpc.coordination.consensus`,
+:mod:`~torch_gpmpc.coordination.planes`) and shared with the distributed agents.
 """
 
 from __future__ import annotations
@@ -56,8 +57,8 @@ from torch import Tensor, nn
 
 from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.control.problem import LocalProblemData, LocalSolution
-from torch_gpmpc.coordination.acceleration import AndersonAcceleration
 from torch_gpmpc.coordination.bodies import edge_distances, slot_distances
+from torch_gpmpc.coordination.consensus import consensus_update, copies_update
 from torch_gpmpc.coordination.agent_step import (
     LocalStep, edge_copies, edge_variances, fall_back_to_previous, slot_risks,
 )
@@ -70,9 +71,7 @@ from torch_gpmpc.coordination.mission_risk import (
 from torch_gpmpc.coordination.planes import (
     PlaneIterations, SafeIterates, end_multipliers, midpoint_planes, plane_geometry, plane_iteration, plane_problem,
 )
-from torch_gpmpc.coordination.penalty import (
-    balance_penalty, edge_residuals, should_stop, starting_penalties, unconverged_edges,
-)
+from torch_gpmpc.coordination.penalty import should_stop, starting_penalties, unconverged_edges
 from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult, adapt_state, initial_state
 from torch_gpmpc.coordination.steady import SteadyIterations, repeatable
 from torch_gpmpc.dynamics.systems import NominalModel
@@ -80,28 +79,6 @@ from torch_gpmpc.errors import GpmpcError
 
 __all__ = ["ADMM", "ADMMState", "IterationStats", "StepContext", "StepResult", "adapt_state", "consensus_update",
            "initial_state"]
-
-
-def consensus_update(copies: Tensor, z: Tensor, lam: Tensor, rho: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Consensus (eq. 28) and dual (eq. 29) updates of every edge.
-
-    Args:
-        copies: (E, 2 [holder], 2 [half], T+1, n) both ends' copies ``y_{e,a}`` of ``z_e``.
-        z: (E, 2, T+1, n) previous consensus.
-        lam: (E, 2, 2, T+1, n) previous duals, ``lam[e, a]`` held by end ``a``.
-        rho: ADMM penalty: a scalar, or (E,) one per edge.
-
-    Returns:
-        ``(z_new (E, 2, T+1, n), lam_new (E, 2, 2, T+1, n), primal (E, 2), dual (E,))`` with
-        ``primal[e, a] = ||y_{e,a} - z_new_e||`` and ``dual[e] = rho ||z_new_e - z_e||``.
-    """
-    z_new = copies.mean(dim=1)
-    gap = copies - z_new.unsqueeze(1)
-    rho_e = rho.reshape(-1, 1, *[1] * (z.dim() - 1)) if rho.dim() == 1 else rho  # per edge: (E, 1, 1, 1, 1)
-    lam_new = lam + rho_e * gap
-    primal = gap.flatten(2).norm(dim=2)
-    dual = rho * (z_new - z).flatten(1).norm(dim=1)
-    return z_new, lam_new, primal, dual
 
 
 @dataclass
@@ -260,29 +237,22 @@ class ADMM:
         s, graph = self.settings, ctx.graph
         if s.admm_coupling == "planes" and graph.num_edges:
             return self._iterate_planes(ctx, state)
-        adaptive = s.rho_update == "adaptive"
-        rho_now = state.rho if adaptive else ctx.rho
         assembled = self._assemble(ctx, state)
         _, sol, stats = self._local_solves(ctx, state, assembled.data, assembled)
-        z_new, lam = state.z, state.lam
+        z_new, lam, rho_next = state.z, state.lam, state.rho
         if graph.num_edges:
-            copies = edge_copies(sol, graph)
-            z_new, lam, gap_norms, dual_norms = consensus_update(copies, state.z, state.lam, rho_now)
-            lam_norm = lam[:, 0].flatten(1).norm(dim=1)
-            res = edge_residuals(copies, z_new, lam_norm, gap_norms, dual_norms, s)
-            stop = res if ctx.tol == s.admm_tol else edge_residuals(copies, z_new, lam_norm, gap_norms,
-                                                                   dual_norms, s, ctx.tol)
-            stats.primal, stats.dual = res.primal.max(), res.dual.max()
-            stats.primal_ratio = float(stop.primal_ratio.max().detach())
-            stats.dual_ratio = float(stop.dual_ratio.max().detach())
-            stats.unconverged_edges = unconverged_edges(stop, s)
-            if adaptive:
-                rho_now = balance_penalty(rho_now, res)
+            rho_now = state.rho if s.rho_update == "adaptive" else ctx.rho
+            update = copies_update(edge_copies(sol, graph), state.z, state.lam, rho_now, s, ctx.tol)
+            z_new, lam, rho_next = update.z, update.lam, update.rho
+            stats.primal, stats.dual = update.residuals.primal.max(), update.residuals.dual.max()
+            stats.primal_ratio = float(update.stop.primal_ratio.max().detach())
+            stats.dual_ratio = float(update.stop.dual_ratio.max().detach())
+            stats.unconverged_edges = unconverged_edges(update.stop, s)
         pvar = state.pvar
         if assembled.own_variance is not None:
             pvar = edge_variances(assembled.own_variance, graph, state.pvar)
-        return ADMMState(sol.X, sol.U, graph.edges, z_new, lam, pvar, rho_now if adaptive else None,
-                         state.risk_left, solver_point=sol.solver_point), stats
+        return ADMMState(sol.X, sol.U, graph.edges, z_new, lam, pvar, rho_next, state.risk_left,
+                         solver_point=sol.solver_point), stats
 
     def _assemble(self, ctx: StepContext, state: ADMMState) -> Any:
         """The iteration's local problems (:meth:`~.agent_step.LocalStep.assemble`) at the step's
@@ -380,7 +350,7 @@ class ADMM:
             graph: communication graph at this step.
             warm: previous step's state, already shifted (cold start if ``None``).
             rho, risk_split: see :meth:`prepare` (tensors keep gradients).
-            max_iter: iteration cap (defaults to ``settings.admm_max_iter``).
+            max_iter: iteration cap (defaults to ``settings.iteration_cap``).
             tol: absolute primal tolerance of the stopping rule (defaults to ``settings.admm_tol``;
                 0 never stops early). Penalty balancing always uses the configured tolerances.
             safety_fallback: when ADMM stops unconverged, re-plan agents that can stop at once
@@ -390,9 +360,8 @@ class ADMM:
         """
         s = self.settings
         ctx, state = self.prepare(x0, xref, graph, warm, rho, risk_split, tol)
-        max_iter = s.admm_max_iter if max_iter is None else max_iter
+        max_iter = s.iteration_cap if max_iter is None else max_iter
         result = StepResult(plans=state.plans, inputs=state.inputs, state=state, iterations=0, converged=False)
-        accelerator = AndersonAcceleration(s.admm_anderson_memory) if s.admm_acceleration == "anderson" else None
         steady: SteadyIterations | None = None
         planes = s.admm_coupling == "planes" and graph.num_edges
         safe = SafeIterates()  # with planes, the iterates whose halves held near
@@ -400,7 +369,6 @@ class ADMM:
         for it in range(max_iter):
             # the step's last iteration goes through the torch path, which reports the solution
             last = it == max_iter - 1 or (deadline is not None and it > 0 and time.perf_counter() > deadline)
-            previous = state
             if steady is not None and not last:
                 t0 = time.perf_counter()
                 fast = steady.iterate(state)
@@ -424,9 +392,7 @@ class ADMM:
             # first where no variances are exchanged, the margins then not reading the neighbours', or
             # with planes, whose first iteration reads the step's own variances)
             if it == 1 or (it == 0 and (not self.agent_step.exchanges_variance or s.admm_coupling == "planes")):
-                steady = self._steady_iterations(ctx, state, stats, accelerator)
-            if accelerator is not None and it < max_iter - 1:  # a capped step keeps its plain iterate
-                state = accelerator.next_input(previous, state)
+                steady = self._steady_iterations(ctx, state, stats)
         applied = safe.best() if planes else None
         if applied is not None:
             state = dataclasses.replace(state, plans=applied[0], inputs=applied[1])
@@ -443,14 +409,14 @@ class ADMM:
         result.messages = self.agent_step.message_size * graph.degrees()
         return result
 
-    def _steady_iterations(self, ctx: StepContext, state: ADMMState, stats: IterationStats,
-                           accelerator: AndersonAcceleration | None) -> SteadyIterations | PlaneIterations | None:
+    def _steady_iterations(self, ctx: StepContext, state: ADMMState,
+                           stats: IterationStats) -> SteadyIterations | PlaneIterations | None:
         """The step's compiled iterations (:mod:`~.steady`; :class:`~.planes.PlaneIterations` with
         ``admm_coupling = planes``) from the iteration after ``state``, ``stats`` on, or ``None`` where
-        they do not apply: ``admm_compiled`` off, Anderson acceleration, a linearization per iterate,
+        they do not apply: ``admm_compiled`` off, a linearization per iterate,
         no edge, a solver other than ``fast`` with warm starts, a failed solve, gradients wanted, or
         tensors not float64 on the CPU."""
-        if not self.settings.admm_compiled or accelerator is not None or ctx.lin_plans is None \
+        if not self.settings.admm_compiled or ctx.lin_plans is None \
                 or not ctx.graph.num_edges or stats.failed_solves:
             return None
         layer = ctx.layer
@@ -462,7 +428,8 @@ class ADMM:
             return None if solve is None else PlaneIterations(self.settings, ctx.graph, geometry, ctx.rho, ctx.tol,
                                                               solve)
         solve = layer.repeated(stats.problem)
-        return None if solve is None else SteadyIterations(self.settings, ctx.graph, ctx.xref, ctx.rho, ctx.tol, solve)
+        return None if solve is None else SteadyIterations(self.settings, ctx.graph, stats.problem, ctx.rho, ctx.tol,
+                                                           solve)
 
     def _check_safety(self, state: ADMMState, data, graph: Graph, layer, result: StepResult,
                       fallback: bool) -> ADMMState:

@@ -269,8 +269,10 @@ class LocalStep:
         >>> import torch
         >>> from torch_gpmpc import ControllerSettings, LocalStep, ModelSpec
         >>> step = LocalStep(ControllerSettings(method="nominal"), ModelSpec.double_integrator(dim=3))
-        >>> step.message_size, step.uncertainty   # 2 (T+1) n numbers per neighbour and iteration
-        (168, 'propagated')
+        >>> step.message_size, step.uncertainty   # T plane offsets' multipliers per neighbour and iteration
+        (13, 'propagated')
+        >>> step.with_settings(step.settings.replace(admm_coupling="copies")).message_size  # 2 (T+1) n: copies
+        168
     """
 
     def __init__(self, settings: ControllerSettings | Config, model: NominalModel | ModelSpec,

@@ -65,7 +65,7 @@ class Controller:
         >>> xref = x0.flip(0)[:, None].expand(2, 9, 4)      # swap places
         >>> step = ctrl.step(x0, xref)
         >>> tuple(step.plans.shape), tuple(step.inputs.shape), ctrl.message_size, ctrl.uncertainty
-        ((2, 9, 4), (2, 8, 2), 72, 'propagated')
+        ((2, 9, 4), (2, 8, 2), 8, 'propagated')
     """
 
     def __init__(self, model: ModelSpec | NominalModel | str | Path | Sequence, gps: Sequence | None = None,
@@ -205,6 +205,9 @@ class Controller:
         Args:
             x, xref, graph, rho, risk_split: as :meth:`step` (give ``rho`` / ``risk_split`` as tensors
                 with ``requires_grad`` to get their gradients; a stated cost's tensors get theirs too).
+                Under ``admm_coupling = copies`` rho weighs every consensus term; under ``planes`` it
+                only sizes the offsets' moves, which are capped at a quarter of the pair's distance, so
+                where no move is below its cap the plans do not depend on rho (no gradient to it).
             iterations: the fixed ADMM iteration count.
 
         Returns:
@@ -213,8 +216,8 @@ class Controller:
         Examples:
             >>> import torch
             >>> from torch_gpmpc import Controller, ControllerSettings, ModelSpec
-            >>> ctrl = Controller(ModelSpec.double_integrator(2), settings=ControllerSettings(method="nominal",
-            ...                                                                              horizon=6))
+            >>> settings = ControllerSettings(method="nominal", horizon=6, admm_coupling="copies")
+            >>> ctrl = Controller(ModelSpec.double_integrator(2), settings=settings)
             >>> x0 = torch.tensor([[-1.0, 0.1, 0, 0], [1.0, -0.1, 0, 0]], dtype=torch.float64)
             >>> rho = torch.tensor(20.0, dtype=torch.float64, requires_grad=True)
             >>> step = ctrl.differentiable_step(x0, x0.flip(0)[:, None].expand(2, 7, 4), iterations=5, rho=rho)
@@ -225,8 +228,9 @@ class Controller:
             raise GpmpcError(f"Controller.differentiable_step: iterations must be >= 1, got {iterations}")
         probe = self._probes.get(iterations)
         if probe is None:
-            settings = self.settings.replace(admm_tol=1e-300, admm_dual_tol=None, admm_rel_tol=0.0,
-                                             admm_max_iter=int(iterations), solver_warm=False)
+            copies = {"admm_dual_tol": None, "admm_rel_tol": 0.0} if self.settings.admm_coupling == "copies" else {}
+            settings = self.settings.replace(admm_tol=1e-300, admm_max_iter=int(iterations), solver_warm=False,
+                                             **copies)  # the planes have no dual or relative tolerance
             probe = Controller._of(self.agent_step.with_settings(settings))
             self._probes[iterations] = probe
         probe.warm = self.warm

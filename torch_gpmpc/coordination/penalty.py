@@ -31,9 +31,6 @@ from torch_gpmpc.config.settings import ControllerSettings
 #: Change rho_e by RHO_FACTOR when one residual ratio exceeds RHO_BALANCE times the other
 #: (Boyd et al.'s mu = 10, tau = 2); keep it within RHO_BOUNDS.
 RHO_BALANCE, RHO_FACTOR, RHO_BOUNDS = 10.0, 2.0, (1e-3, 1e4)
-#: Residual ratios below which an edge counts as settled for ``relax_settled`` (round-off: its two
-#: ends agree to the last digits).
-SETTLED_RATIO = 1e-6
 #: Default dual tolerance as a multiple of the primal one (``admm_dual_tol`` null).
 DUAL_TOL_FACTOR = 10.0
 
@@ -122,18 +119,12 @@ def starting_penalties(carried: Tensor | None, rho: Tensor, num_edges: int) -> T
     return start if carried is None else torch.where(torch.isnan(carried), start, carried)
 
 
-def balance_penalty(rho: Tensor, residuals: EdgeResiduals, relax_settled: bool = False) -> Tensor:
+def balance_penalty(rho: Tensor, residuals: EdgeResiduals) -> Tensor:
     """Each edge's next penalty by residual balancing on the residual ratios.
 
     Args:
         rho: (E,) current penalties.
         residuals: this iteration's :class:`EdgeResiduals`.
-        relax_settled: halve the penalty of every settled edge (both ratios at most
-            :data:`SETTLED_RATIO`) whatever their ratio. The planes set it: an edge whose rows do not
-            bind agrees exactly, its residuals are round-off, and balancing on their ratio decided by
-            the last bits (mostly halving), so that two runs differing in the last bits (a batch of
-            one or of four) planned differently once the rows bound. Halving keeps what that drift
-            did on average (holding instead cost the transition benchmark 12 % more iterations).
 
     Returns:
         (E,) ``rho * 2`` where the primal ratio exceeds 10x the dual one, ``rho / 2`` in the
@@ -142,9 +133,6 @@ def balance_penalty(rho: Tensor, residuals: EdgeResiduals, relax_settled: bool =
     """
     p, d = residuals.primal_ratio, residuals.dual_ratio
     up, down = p > RHO_BALANCE * d, d > RHO_BALANCE * p
-    if relax_settled:
-        settled = (p <= SETTLED_RATIO) & (d <= SETTLED_RATIO)
-        up, down = up & ~settled, down | settled
     factor = torch.where(up, RHO_FACTOR, torch.where(down, 1.0 / RHO_FACTOR, 1.0)).to(rho.dtype)
     low, high = RHO_BOUNDS
     r = rho.detach()

@@ -1,41 +1,43 @@
-"""ADMM's compiled iterations: a control step's iterations after its second (after its first where
-no variances are exchanged), where only the consensus, the duals and the penalties change.
+"""ADMM's compiled iterations with ``admm_coupling = copies``: a control step's iterations after its
+second (after its first where no variances are exchanged), where only the consensus, the duals and
+the penalties change.
 
 With a frozen linearization (``relinearize = false``, the default) every local problem of a step
 keeps its dynamics, rows and margins from the second iteration on (the margins read the variances
-the neighbours reported at the first; without exchanged variances from the first), so an iteration is: consensus terms from ``z, lam, rho``
-(:func:`~.consensus_kernel.slot_terms`, their sums over slots in torch), the local solves on the
-kept problems (:class:`~torch_gpmpc.control.solvers.repeated.RepeatedSolve`: warm active-set
-solves from the last points), then consensus, duals, residuals and residual balancing
-(:func:`~.consensus_kernel.consensus_step`). Through the torch path (:meth:`~.admm.ADMM.iterate`)
-the same iteration re-assembles and re-validates everything and costs about three times as much on
-the README's quadrotor demo.
+the neighbours reported at the first; without exchanged variances from the first), so an iteration
+is: the consensus terms (:func:`~.consensus.slot_consensus` and
+:class:`~torch_gpmpc.control.problem.ConsensusTerms`, as canonicalization computes them) written into
+the kept problems, the local solves on them
+(:class:`~torch_gpmpc.control.solvers.repeated.RepeatedSolve`: warm active-set solves from the last
+points), then the edges' update (:func:`~.consensus.copies_update`, the torch path's function). Through
+the torch path (:meth:`~.admm.ADMM.iterate`) the same iteration re-assembles and re-validates
+everything.
 
-The compiled iterations compute the same numbers (the plans, consensus, duals and penalties bit for
-bit; the residual norms to the last bits, see :mod:`~.consensus_kernel`) and hand back to the torch
-path whenever anything is unusual (:meth:`SteadyIterations.iterate` returns ``None``): a local
-problem that does not converge or whose plan the acceptance rule rejects, non-finite terms, an
-exception in the solve (the torch path solves that iteration again and counts what fails there).
+The compiled iterations compute the torch path's numbers bit for bit and hand back to the torch path
+whenever anything is unusual (:meth:`SteadyIterations.iterate` returns ``None``): a local problem that
+does not converge or whose plan the acceptance rule rejects, non-finite terms, an exception in the
+solve (the torch path solves that iteration again and counts what fails there).
 :meth:`~.admm.ADMM.solve_step` also runs each step's last iteration through the torch path, so what
 a step reports (its solution, problems, margins, the safety check's data) is that path's.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from torch_gpmpc.config.settings import ControllerSettings
-from torch_gpmpc.control.numpy_views import as_array
+from torch_gpmpc.control.problem import ConsensusTerms, LocalProblemData
 from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
 from torch_gpmpc.control.solvers.repeated import RepeatedSolution, RepeatedSolve
-from torch_gpmpc.coordination.consensus_kernel import consensus_step, slot_terms
+from torch_gpmpc.coordination.agent_step import edge_copies
+from torch_gpmpc.coordination.consensus import copies_update, slot_consensus
 from torch_gpmpc.coordination.graph import Graph
-from torch_gpmpc.coordination.penalty import DUAL_TOL_FACTOR, RHO_BALANCE, RHO_BOUNDS, RHO_FACTOR, checks_dual
+from torch_gpmpc.coordination.penalty import unconverged_edges
 from torch_gpmpc.coordination.state import ADMMState
 
 logger = logging.getLogger(__name__)
@@ -90,53 +92,43 @@ class SteadyIterations:
     Args:
         settings: the controller settings (tolerances, penalty rule, stopping rule).
         graph: the step's communication graph (with at least one edge).
-        xref: (K, T+1, n) the step's reference windows (float64, CPU).
+        problem: the step's kept local problems (batch K), as last assembled.
         rho: the step's penalty, 0-d (every edge's with ``rho_update = fixed``).
         tol: the stopping test's absolute primal tolerance.
         solve: the step's local problems as a :class:`RepeatedSolve`.
     """
 
-    def __init__(self, settings: ControllerSettings, graph: Graph, xref: Tensor, rho: Tensor, tol: float,
-                 solve: RepeatedSolve) -> None:
-        self.solve = solve
-        self.edges = graph.edges
-        self.slot_edge, self.slot_side = as_array(graph.slot_edge, np.int64), as_array(graph.slot_side, np.int64)
-        self.active = as_array(graph.active, np.bool_)
-        self.xref = xref
-        K, M = self.active.shape
-        self.rho_own = np.empty((K, M))
-        self.w_own = np.empty((K, M, *xref.shape[1:]))
+    def __init__(self, settings: ControllerSettings, graph: Graph, problem: LocalProblemData, rho: Tensor,
+                 tol: float, solve: RepeatedSolve) -> None:
+        self.settings, self.graph, self.problem = settings, graph, problem
+        self.rho, self.tol, self.solve = rho, tol, solve
         self.adaptive = settings.rho_update == "adaptive"
-        self.rho = float(rho)
-        rel = settings.admm_rel_tol if settings.admm_stop == "primal-dual" else 0.0
 
-        def dual_abs(primal_tol: float) -> float:
-            return settings.admm_dual_tol if settings.admm_dual_tol is not None else DUAL_TOL_FACTOR * primal_tol
-
-        self.tolerances = np.array([tol, dual_abs(tol), settings.admm_tol, dual_abs(settings.admm_tol), rel,
-                                    RHO_FACTOR, RHO_BALANCE, *RHO_BOUNDS], dtype=np.float64)
-        self.checks_dual = checks_dual(settings)
+    def write_terms(self, state: ADMMState) -> None:
+        """Write the consensus terms of ``state`` into the kept problems, as
+        :meth:`~.agent_step.LocalStep.assemble` and canonicalization compute them (the same bits)."""
+        graph, buf, M = self.graph, self.solve.buffers, self.graph.num_slots
+        rho = state.rho[graph.slot_edge] if self.adaptive else self.rho
+        slots = slot_consensus(state.z, state.lam, graph)
+        terms = ConsensusTerms.of(dataclasses.replace(self.problem, rho=rho, z_own=slots.z_own, z_nbr=slots.z_nbr,
+                                                      lam_own=slots.lam_own, lam_nbr=slots.lam_nbr))
+        buf.c_x[:] = terms.c_x.numpy()
+        buf.l_x[:] = (2.0 * self.problem.xref[:, 1:] + terms.w_own[:, :, 1:].sum(dim=1)).flatten(1).numpy()
+        buf.rho_y[:, :M] = terms.rho_y.numpy()
+        buf.w_y[:, :M] = terms.w_nbr[:, :, 1:].numpy()
+        buf.y0[:] = (terms.w_nbr[:, :, 0] / terms.rho_y[:, :, None]).numpy()
 
     def iterate(self, state: ADMMState) -> SteadyResult | None:
         """One compiled iteration from ``state`` (the step's previous iterate), or ``None`` where
         the torch path must take it (module docstring)."""
-        z, lam = as_array(state.z), as_array(state.lam)
-        rho = as_array(state.rho) if self.adaptive else np.full(z.shape[0], self.rho)
-        buf = self.solve.buffers
-        slot_terms(z, lam, rho, self.slot_edge, self.slot_side, self.active, self.rho_own, self.w_own, buf.rho_y,
-                   buf.w_y, buf.y0)
-        # the sums over slots as canonicalize's (torch's summation order)
-        w_own = torch.from_numpy(self.w_own)
-        buf.l_x[:] = (2.0 * self.xref[:, 1:] + w_own[:, :, 1:].sum(dim=1)).flatten(1).numpy()
-        buf.c_x[:] = (1.0 + 0.5 * torch.from_numpy(self.rho_own).sum(dim=1)).numpy()
+        self.write_terms(state)
         sol = solve_or_hand_back(self.solve, state.solver_point)
         if sol is None:
             return None
-        z_new, lam_new, rho_new, report = np.empty_like(z), np.empty_like(lam), np.empty_like(rho), np.empty(5)
-        consensus_step(as_array(sol.X), as_array(sol.Y), self.slot_edge, self.slot_side, self.active, z, lam, rho,
-                       self.adaptive, self.tolerances, self.checks_dual, z_new, lam_new, rho_new, report)
-        nxt = ADMMState(sol.X, sol.U, self.edges, torch.from_numpy(z_new), torch.from_numpy(lam_new), state.pvar,
-                        torch.from_numpy(rho_new) if self.adaptive else None, state.risk_left,
-                        solver_point=sol.point)
-        return SteadyResult(nxt, float(report[0]), float(report[1]), float(report[2]), float(report[3]),
-                            int(report[4]), sol.slack_active)
+        rho_now = state.rho if self.adaptive else self.rho
+        update = copies_update(edge_copies(sol, self.graph), state.z, state.lam, rho_now, self.settings, self.tol)
+        nxt = ADMMState(sol.X, sol.U, self.graph.edges, update.z, update.lam, state.pvar, update.rho,
+                        state.risk_left, solver_point=sol.point)
+        return SteadyResult(nxt, float(update.residuals.primal.max()), float(update.residuals.dual.max()),
+                            float(update.stop.primal_ratio.max()), float(update.stop.dual_ratio.max()),
+                            unconverged_edges(update.stop, self.settings), sol.slack_active)

@@ -44,7 +44,6 @@ from torch import Tensor
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.control.problem import FAILURE_KINDS
 from torch_gpmpc.coordination.distributed.launch import reap, spawn_agents
-from torch_gpmpc.coordination.acceleration import AndersonWorld
 from torch_gpmpc.coordination.distributed.protocol import (
     CMD_STEP, CMD_STOP, DEFAULT_SETUP_TIMEOUT_S, DEFAULT_TIMEOUT_S, DTYPE, FLOAT_BYTES, MAX_AGENTS, Kind,
     Telemetry, rank_of, residual_size, sensing_size, tag, telemetry_size,
@@ -210,9 +209,8 @@ class RemotePlanner:
         cfg, K, T = self.cfg, self.num_agents, self.cfg.horizon
         res = StepResult(plans=self.last_plan, inputs=torch.zeros(K, T, cfg.input_dim, dtype=DTYPE), state=None,
                          iterations=0, converged=False)
-        mixer = AndersonWorld(cfg.admm_anderson_memory) if cfg.admm_acceleration == "anderson" else None
         deadline = None if cfg.admm_time_budget_ms is None else time.perf_counter() + cfg.admm_time_budget_ms / 1000
-        for it in range(1, cfg.admm_max_iter + 1):
+        for it in range(1, cfg.iteration_cap + 1):
             self._mark_lost(t)
             got = self.net.exchange([], [((residual_size(cfg),), rank_of(k, self.per), tag(Kind.RESID, k))
                                          for k in self._live()], 2 * self.timeout_s + 5.0)
@@ -226,8 +224,8 @@ class RemotePlanner:
             res.iterations = it
             res.converged = should_stop(*ratios, cfg)
             out_of_time = deadline is not None and time.perf_counter() > deadline
-            stop = 2.0 if res.converged else (1.0 if it == cfg.admm_max_iter or out_of_time else 0.0)
-            decision = [primal, dual, stop] + ([] if mixer is None else mixer.decide(vals, stop > 0))
+            stop = 2.0 if res.converged else (1.0 if it == cfg.iteration_cap or out_of_time else 0.0)
+            decision = [primal, dual, stop]
             self.net.exchange([(torch.tensor(decision, dtype=DTYPE), rank_of(k, self.per),
                                 tag(Kind.DECIDE, 0, k)) for k in self._live()], [], self.timeout_s)
             if stop > 0:

@@ -178,7 +178,7 @@ class StepRecorder:
         position indices of the state (``None``: every state is a position)."""
         r, cfg, k = self.rows, self.cfg, self.num_agents
         steps = len(r["inputs"])
-        width = cfg.admm_max_iter
+        width = cfg.iteration_cap
         primal = np.full((steps, width), np.nan)
         dual = np.full((steps, width), np.nan)
         for i, (p, d) in enumerate(zip(r["primal"], r["dual"])):

@@ -83,9 +83,9 @@ def test_gradients_are_taken_on_the_cold_path_and_are_unchanged():
 
 
 @pytest.mark.parametrize("name, cfg", [
-    ("paper", Config(max_steps=8)),
-    ("quadrotor demo (input norm, speed limit)", Config(model=QUADROTOR, scenario="circle", num_agents=4,
-                                                        noise_std=0.03, max_steps=5)),
+    ("paper", Config(admm_coupling="copies", max_steps=8)),
+    ("quadrotor demo (input norm, speed limit)", Config(admm_coupling="copies", model=QUADROTOR, scenario="circle",
+                                                        num_agents=4, noise_std=0.03, max_steps=5)),
 ])
 def test_recorded_closed_loop_problems_solve_warm_to_the_cold_plans(name, cfg):
     """The local problems of a closed loop, replayed in ADMM's order (bench.warm): the same plans to

@@ -36,9 +36,8 @@ from torch import Tensor
 
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.control.problem import FAILURE_KINDS, LocalSolution
-from torch_gpmpc.coordination.acceleration import PartialAnderson
-from torch_gpmpc.coordination.admm import consensus_update
-from torch_gpmpc.coordination.penalty import balance_penalty, edge_residuals, starting_penalties
+from torch_gpmpc.coordination.consensus import copies_update
+from torch_gpmpc.coordination.penalty import starting_penalties
 from torch_gpmpc.coordination.bodies import slot_distances
 from torch_gpmpc.coordination.agent_step import edge_copies, fall_back_to_previous, slot_risks
 from torch_gpmpc.coordination.fallback import fallback_agents, fallback_problem, pair_safety
@@ -150,7 +149,6 @@ class AgentController:
         self.dead: set[int] = set()
         self.graph = graph_from_edges(num_agents, [])
         self.counters = dict.fromkeys(TELEMETRY_KEYS, 0.0)
-        self._before: ADMMState | None = None  # the iterate the last update started from
 
     # --- step set-up
     def begin_step(self, t: int, x0: Tensor, nbr_ids: list[int], xref: Tensor | None = None) -> list[int]:
@@ -236,21 +234,6 @@ class AgentController:
         self.plane_terms: PlaneTerms | None = None  # the step's kept plane problem (compiled solves), if any
         self._safe = SafeIterates()  # the iterates whose halves held near (planes)
         self.kept_rows: tuple = (None, None)  # its half-space rows (the plans' state slack)
-        self.anderson = None  # this step's share of the Anderson mix (admm_acceleration = anderson)
-        self._rho_seen: Tensor | None = None
-        if cfg.admm_acceleration == "anderson":
-            self.anderson = PartialAnderson(cfg.admm_anderson_memory, self._counted_coordinates())
-
-    def _counted_coordinates(self) -> Tensor:
-        """Which of this agent's consensus and dual coordinates (``cat(z.flatten(), lam.flatten())``)
-        it adds to the mix's sums: the consensus of the edges whose lower-indexed end it is, and its
-        own duals (each global coordinate counted once)."""
-        edges, k = self.graph.edges, self.k
-        z_mask = (edges[:, 0] == k)[:, None, None, None].expand_as(self.state.z)
-        own = torch.zeros(edges.shape[0], 2, dtype=torch.bool)
-        own[torch.arange(edges.shape[0]), (edges[:, 1] == k).long()] = True  # holder a = its side
-        lam_mask = own[:, :, None, None, None].expand_as(self.state.lam)
-        return torch.cat([z_mask.reshape(-1), lam_mask.reshape(-1)])
 
     # --- one ADMM iteration
     @property
@@ -322,7 +305,6 @@ class AgentController:
         if self.planes:
             return self.plane_update(received)
         k, state, sol = self.k, self.state, self.solution
-        self._before = state
         plans = sol.X.clone()  # row k: own plan; neighbour rows are overwritten below (same layout)
         inputs = state.inputs.clone()
         inputs[k] = sol.U[k]
@@ -344,21 +326,17 @@ class AgentController:
                         pvar[e, 1 - a] = msg[n_copy:]
                 copies[e, 1 - a] = copy
             rho_now = state.rho if self.adaptive else self.rho
-            z_new, lam, gap_norms, dual_norms = consensus_update(copies, state.z, state.lam, rho_now)
-            own_lam = torch.zeros(copies.shape[0], dtype=lam.dtype)
-            own_lam[self.slot_e] = lam[self.slot_e, self.slot_a].flatten(1).norm(dim=1)
-            res = edge_residuals(copies, z_new, own_lam, gap_norms, dual_norms, self.cfg)
+            # both ends balance the same residuals (an end's duals have the edge's norm): the same rho_e
+            update = copies_update(copies, state.z, state.lam, rho_now, self.cfg, ends=(self.slot_e, self.slot_a))
+            z_new, lam, rho_next, res = update.z, update.lam, update.rho, update.residuals
             lam[self.slot_e, 1 - self.slot_a] = 0.0  # the neighbour's dual is the neighbour's
-            primal = gap_norms[self.slot_e, self.slot_a].max()
-            dual = dual_norms.max()
+            primal = update.gaps[self.slot_e, self.slot_a].max()
+            dual = update.dual.max()
             ratios = (float(res.primal_ratio.max()), float(res.dual_ratio.max()))
         else:
-            z_new, lam = state.z, state.lam
+            z_new, lam, rho_next = state.z, state.lam, None
             primal = dual = self.x0.new_zeros(())
             ratios = (0.0, 0.0)
-        rho_next = None
-        if self.adaptive and self.graph.num_edges:  # both ends balance the same residuals: the same rho_e
-            rho_next = balance_penalty(state.rho, res)
         self.state = ADMMState(plans, inputs, self.graph.edges, z_new, lam, pvar, rho_next,
                                solver_point=sol.solver_point)
         self.result.iterations += 1
@@ -513,28 +491,8 @@ class AgentController:
 
     def residual_message(self, residuals: tuple[float, float, float, float]) -> Tensor:
         """The residual message (:func:`~.protocol.residual_size` numbers) of the iteration
-        :meth:`update` just ran: its ``residuals``, then this agent's terms of the Anderson mix."""
-        head = torch.tensor(residuals, dtype=DTYPE)
-        if self.anderson is None:
-            return head
-        r2, gram, rhs = self.anderson.push(self._before, self.state)
-        rho = self.state.rho
-        changed = rho is not None and self._rho_seen is not None and not torch.equal(rho, self._rho_seen)
-        self._rho_seen = None if rho is None else rho.clone()
-        m, c = self.anderson.memory, rhs.shape[0]
-        gram_pad, rhs_pad = torch.zeros(m, m, dtype=DTYPE), torch.zeros(m, dtype=DTYPE)
-        gram_pad[:c, :c], rhs_pad[:c] = gram, rhs
-        terms = torch.tensor([r2, float(changed), float(c)], dtype=DTYPE)
-        return torch.cat([head, terms, gram_pad.flatten(), rhs_pad])
-
-    def accelerate(self, decision: Tensor) -> None:
-        """Apply the world's decision (:func:`~.protocol.decision_size` numbers) to the next input:
-        the Anderson mix with its weights, a restart of the history, or nothing."""
-        if self.anderson is None or float(decision[2]) > 0.5:
-            return
-        restart, c = bool(decision[3] > 0.5), int(decision[4])
-        gamma = decision[5:5 + c] if c > 0 else None
-        self.state = self.anderson.next_input(self.state, restart, gamma)
+        :meth:`update` just ran: its ``residuals``."""
+        return torch.tensor(residuals, dtype=DTYPE)
 
     def _own_variances(self) -> Tensor | None:
         """``state.pvar`` with this agent's own ends set from its latest assembly."""

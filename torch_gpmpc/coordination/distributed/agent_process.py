@@ -164,12 +164,11 @@ class AgentHost:
             received = self._exchange_with_neighbours(own, Kind.COPY, None, "copy_bytes")
             resid = {k: self.controllers[k].update(received[k]) for k in self.agents}
             sends = [(self.controllers[k].residual_message(resid[k]), 0, tag(Kind.RESID, k)) for k in self.agents]
-            for k in self.agents:  # the whole message: residuals, their ratios, the Anderson terms
+            for k in self.agents:  # the whole message: residuals and their ratios
                 self.controllers[k].counters["reduce_bytes"] += FLOAT_BYTES * residual_size(self.cfg)
             decisions = self._receive(decision_size(self.cfg), Kind.DECIDE, max(4 * self.timeout_s, 60.0), sends)
             comm_time += time.perf_counter() - t0
             for k, decision in zip(self.agents, decisions):
-                self.controllers[k].accelerate(decision)
                 self.controllers[k].keep_safe_plan(decision)
             stop = float(decisions[0][2])
             if stop > 0.5:

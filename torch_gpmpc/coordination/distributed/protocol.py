@@ -107,18 +107,14 @@ def sensing_size(num_agents: int, dim: int, horizon: int) -> int:
 
 def residual_size(cfg: Config) -> int:
     """Numbers in one residual message (agent -> world, every ADMM iteration): primal, dual and
-    their ratios; with ``admm_acceleration = anderson`` also the agent's terms of the mix's least
-    squares: its squared residual, whether an edge's penalty changed, the history length c and
-    ``dG^T dG``, ``dG^T g`` padded to the memory (m x m and m)."""
-    m = cfg.admm_anderson_memory
-    return 4 + (3 + m * m + m if cfg.admm_acceleration == "anderson" else 0)
+    their ratios (the same for every configuration)."""
+    return 4
 
 
 def decision_size(cfg: Config) -> int:
-    """Numbers in one decision message (world -> agent, every ADMM iteration): primal, dual, stop;
-    with ``admm_acceleration = anderson`` also whether the history restarts, the number of mixing
-    weights and the weights (padded to the memory)."""
-    return 3 + (2 + cfg.admm_anderson_memory if cfg.admm_acceleration == "anderson" else 0)
+    """Numbers in one decision message (world -> agent, every ADMM iteration): primal, dual, stop
+    (the same for every configuration)."""
+    return 3
 
 
 def telemetry_size(cfg: Config) -> int:
