@@ -72,6 +72,18 @@ def test_retired_gp_noise_in_margin_maps_onto_margin_variance():
         Config(pair_margin="max")
 
 
+def test_a_file_from_before_anderson_was_removed_loads_and_asking_for_it_is_refused():
+    """A tuned.json or config file that holds ``admm_acceleration = off`` (and its memory) loads with a
+    warning; ``anderson`` is refused with the reason, in files and from Python."""
+    with pytest.warns(FutureWarning, match="admm_acceleration' is retired"):
+        cfg = load_config(None, {"admm_acceleration": "off", "admm_anderson_memory": 5, "rho": 3.0})
+    assert cfg.rho == 3.0 and "admm_acceleration" not in cfg.to_dict()
+    with pytest.raises(GpmpcError, match="'admm_acceleration': Anderson acceleration was removed"):
+        load_config(None, {"admm_acceleration": "anderson"})
+    with pytest.raises(GpmpcError, match="'admm_anderson_memory': Anderson acceleration was removed"):
+        Config(admm_anderson_memory=5)
+
+
 def test_the_command_line_shows_a_retired_key_as_one_warning_line(tmp_path, capsys):
     """Python hides DeprecationWarning by default, so the user never saw this one: it is a
     FutureWarning, and ``gpmpc`` prints it as one line like its errors."""

@@ -382,4 +382,11 @@ def _retire_deprecated(data: Mapping[str, Any]) -> dict[str, Any]:
         warnings.warn(f"config key 'gp_noise_in_margin' is deprecated; it means margin_variance={new}",
                       FutureWarning, stacklevel=3)
         data.setdefault("margin_variance", new)
+    # a file written before Anderson acceleration was removed (a tuned.json holds every key) still loads
+    # where it left it off; asking for it is refused (fields.REMOVED_KEYS)
+    if data.get("admm_acceleration", "off") == "off" and "admm_acceleration" in data:
+        data.pop("admm_acceleration")
+        data.pop("admm_anderson_memory", None)
+        warnings.warn("config key 'admm_acceleration' is retired (Anderson acceleration was removed); "
+                      "delete it and admm_anderson_memory", FutureWarning, stacklevel=3)
     return data
