@@ -86,7 +86,7 @@ def test_bench_cli_scale_short(tmp_path, monkeypatch):
     transitions = result["sections"]["scale"]["transitions"]
     assert [r["workload"].split(", ", 1)[1] for r in transitions["table"]][:2] == ["copies, 1 thread",
                                                                                   "planes, 1 thread (default)"]
-    assert transitions["met"] is None and transitions["table"][0]["speedup_vs_default"] == 1.0
+    assert transitions["met"] is None and transitions["table"][0]["speedup_vs_copies"] == 1.0
     assert all(r["compute_ms_per_agent_step"] > 0 and 0 <= r["success"] <= 1 for r in transitions["table"])
     assert (tmp_path / "figures" / "bench_scale.png").stat().st_size > 0
 

@@ -23,7 +23,7 @@ from torch_gpmpc.coordination.penalty import should_stop
 from torch_gpmpc.sim.distributed import simulate_distributed
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.coordination.graph import communication_graph
-from torch_gpmpc.sim.metrics import CONTRACT_KEYS, pair_distances
+from torch_gpmpc.sim.metrics import CONTRACT_KEYS, compute_metrics, pair_distances
 from torch_gpmpc.sim.scenarios import make_scenario
 from torch_gpmpc.dynamics.systems import clip_norm
 from torch_gpmpc.sim.closed_loop import noise_sequence, simulate
@@ -97,9 +97,9 @@ def test_agent_controllers_reproduce_batched_admm_bit_for_bit(input_rate_weight)
 def test_agent_controllers_reproduce_the_buffered_voronoi_fallback():
     """Three agents almost touching, ADMM capped at 2 iterations: both backends re-plan the agents
     that leave their cells, each from the neighbours' plans before their own fallback, and apply
-    the same inputs (clarabel: batch and single solves agree bit for bit). The step after a
-    fallback can differ: the in-process warm start holds the neighbours' re-planned plans, an
-    agent process its neighbours' plans from before their fallback."""
+    the same inputs (clarabel: batch and single solves agree bit for bit); after the fallback the
+    agents send each other the plans they apply, so the next steps start from the in-process warm
+    start and apply the same inputs too."""
     cfg = load_config(None, {"admm_coupling": "copies", "method": "nominal", "scenario": "circle", "num_agents": 3,
                              "circle_radius": 0.32, "reference": "target",
                              "admm_max_iter": 2, "solver": "clarabel", "noise_std": 0.0, "wind_scale": 0.0})
@@ -110,12 +110,17 @@ def test_agent_controllers_reproduce_the_buffered_voronoi_fallback():
     agents = [AgentController(k, K, cfg, sc.reference_path()[k]) for k in range(K)]
     x, warm, fallbacks = sc.starts.clone(), None, 0
     with torch.no_grad():
-        for t in range(2):  # the fallback acts at t = 1
+        for t in range(4):  # the fallback acts at t = 1
             res = admm.solve_step(x, sc.reference_window(t, cfg.horizon), communication_graph(x, None), warm=warm)
             warm, fallbacks = res.state.shifted(), fallbacks + int(res.fallback)
             drive_agents(agents, t, x, res.iterations)
             for a in agents:
                 a.check_safety(res.converged)
+            assert all(a.fallback_possible == (not res.converged) for a in agents)
+            if not res.converged:  # the applied plans, as the agent processes exchange them
+                applied = {k: agents[k].own_plan().clone() for k in range(K)}
+                for k in range(K):
+                    agents[k].take_applied_plans({j: applied[j] for j in range(K) if j != k})
             u = torch.stack([a.end_step().u for a in agents])
             assert torch.equal(u, res.inputs[:, 0])
             x = system.step(x, clip_norm(u, cfg.u_max))
@@ -240,9 +245,24 @@ def test_cli_distributed_equals_inprocess_and_counts_bytes(tmp_path):
     assert m["reduce_bytes_per_agent_per_iteration"] == [32.0] * K  # primal, dual and their ratios
     assert m["bytes_sent_per_agent_per_iteration"] == [copy_bytes + 32.0] * K
     assert m["bytes_sent_per_agent_per_iteration_mean"] == copy_bytes + 32.0
-    assert m["plan_exchange_bytes_per_agent"] == [8 * (T + 1) * D * (K - 1)] * K  # once, at t = 0
+    # once at t = 0, and after each capped step (which may have re-planned) the plans the agents apply
+    capped = int((~np.asarray(ref.converged, dtype=bool)).sum())
+    assert capped > 0 and m["plan_exchange_bytes_per_agent"] == [8 * (T + 1) * D * (K - 1) * (1 + capped)] * K
     assert np.array_equal(messages, np.full((3, K), (2 * (T + 1) * D + T) * (K - 1)))
     assert m["backend"] == "distributed" and m["processes"] == 3 and m["lost_agents"] == []
+
+
+def test_a_step_that_falls_back_keeps_the_distributed_run_equal_to_in_process(tmp_path):
+    """The paper scenario with the defaults (planes at 5 iterations) has a step without a safe iterate
+    (step 27, seed 0), whose agents re-plan; they send each other the plans they apply, and every later
+    step equals the in-process run's."""
+    out = tmp_path / "dist"
+    cfg, ref = run_both_backends({"max_steps": 32}, out)
+    m = json.loads((out / "metrics.json").read_text())
+    with np.load(out / "rollout.npz", allow_pickle=False) as r:
+        states = r["states"]
+    assert m["fallback_steps"] >= 1 and compute_metrics(ref)["fallback_steps"] == m["fallback_steps"]
+    assert np.abs(states - ref.states).max() <= 1e-9
 
 
 def test_plane_distributed_run_equals_inprocess_and_counts_bytes(tmp_path):

@@ -44,7 +44,7 @@ TIMED = (
     ("torch_gpmpc.control.solvers.interior_point", "canonicalize", "canonicalize"),
     ("torch_gpmpc.control.solvers.ipm_kernel", "solve_polish_batch", "kernel"),
     ("torch_gpmpc.control.solvers.ipm_active", "solve_batch", "kernel_warm"),
-    ("torch_gpmpc.coordination.admm", "consensus_update", "consensus"),
+    ("torch_gpmpc.coordination.admm", "copies_update", "consensus"),
     ("torch_gpmpc.coordination.admm", "plane_iteration", "consensus"),
     ("torch_gpmpc.coordination.steady.SteadyIterations", "iterate", "compiled"),
     ("torch_gpmpc.coordination.planes.PlaneIterations", "iterate", "compiled"),

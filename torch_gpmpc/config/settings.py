@@ -143,8 +143,8 @@ class ControllerSettings:
             to the dual tolerance of each edge (:mod:`torch_gpmpc.coordination.penalty`).
         admm_stop: ``primal-dual`` (both residuals, Boyd et al. 2011 §3.3.1) or ``primal`` (the
             paper's rule: a consensus that is feasible, not necessarily optimal).
-        admm_max_iter: ADMM iteration cap per time step (``null``: the coupling's default,
-            :data:`DEFAULT_ITERATIONS`; read it as :attr:`iteration_cap`).
+        admm_max_iter: ADMM iteration cap per time step (``null``: 5 with planes, 100 with
+            copies; :attr:`iteration_cap` resolves it).
         admm_time_budget_ms: also stop a step's iterations once they have taken this many
             milliseconds of wall time (``null``: no time limit): the iteration that starts after
             the budget is spent is the last, so a step runs at least two. Meant for

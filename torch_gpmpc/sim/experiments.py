@@ -93,8 +93,9 @@ def sweep_config(base: Config, steps: int, iterations: int) -> dict:
 
 #: The paper's cost: ``||X - Xref||^2 + alpha ||U||^2``, no terminal weight of its own (reproduce's runs).
 PAPER_COST = {"terminal_cost": "stage"}
-#: The paper's coordination: consensus ADMM on trajectory copies (eqs. 18-29), run towards convergence.
-PAPER_COORDINATION = {"admm_coupling": "copies", "admm_max_iter": 100}
+#: The paper's coordination: consensus ADMM on trajectory copies (eqs. 18-29), run towards convergence
+#: (a null ``admm_max_iter`` gives the copies' 100; a user's own budget still applies).
+PAPER_COORDINATION = {"admm_coupling": "copies"}
 #: The paper's formulation (eq. 24 margins of the latent GP variance, its cost, its coordination, no
 #: offset estimate): reproduce's six methods.
 PAPER_FORMULATION = {"pair_margin": "own", "margin_variance": "latent", "disturbance_drift": 0.0, **PAPER_COST,

@@ -2,7 +2,7 @@
 
 Shapes use S = steps taken, K = agents, D = state dimension, Du = input dimension,
 P = position dimension (P = D for the paper's single integrator), T = horizon,
-I = ``admm_max_iter``.
+I = the iteration budget (``ControllerSettings.iteration_cap``).
 """
 
 from __future__ import annotations

@@ -481,8 +481,9 @@ class AgentController:
             self.state = dataclasses.replace(self.state, plans=plans, inputs=inputs)
 
     def take_final_plans(self, received: dict[int, Tensor | None]) -> None:
-        """With planes, the neighbours' plans (T+1, D) at the step's last iteration (what the safety
-        check and the next step's linearization read; a lost neighbour keeps its last)."""
+        """The neighbours' plans (T+1, D): with planes at the step's last iteration (what the safety
+        check reads), and after a step that may have re-planned, the plans they apply (what the next
+        step's warm start holds, as in process); a lost neighbour keeps its last."""
         plans = self.state.plans.clone()
         for j, plan in received.items():
             if plan is not None:
@@ -512,18 +513,23 @@ class AgentController:
         unconverged stop, re-plan (inside its buffered Voronoi cell if it is a cell agent and its
         plan leaves it, else against its neighbours' plans if unsafe; as the in-process
         :class:`~torch_gpmpc.coordination.admm.ADMM` does; here each agent sees only its own
-        pairs and its neighbours' plans before their own fallback)."""
+        pairs and its neighbours' plans before their own fallback; their re-planned plans arrive by
+        :meth:`take_applied_plans` where :attr:`fallback_possible`)."""
+        self.fallback_possible = False
         if not self.graph.num_edges or not self.result.iterations:
             return
         k, state, tol = self.k, self.state, self.cfg.admm_tol
         position = self.local.nominal.position
         bounds = self.assembled.data.bounds[:, :, 0].detach()
-        full_bounds = bounds.new_full((self.num_agents, bounds.shape[1]), float("-inf"))
-        full_bounds[k] = bounds[0]
+        self._judged_bounds = bounds.new_full((self.num_agents, bounds.shape[1]), float("-inf"))
+        self._judged_bounds[k] = bounds[0]
+        full_bounds = self._judged_bounds
         unsafe, _, _ = pair_safety(state.plans, self.graph, full_bounds, tol, position)
         replan = torch.zeros_like(unsafe)
-        # with planes every iterate whose halves held is jointly safe: only a step without one re-plans
-        if (self._safe.best() is None) if self.planes else not converged:
+        # with planes every iterate whose halves held is jointly safe: only a step without one re-plans.
+        # Both conditions come from the world's decisions, so every agent of the team knows them.
+        self.fallback_possible = (self._safe.best() is None) if self.planes else not converged
+        if self.fallback_possible:
             replan, cells = fallback_agents(state.plans, self.graph, full_bounds, tol, position,
                                             self.team_nominal.momentum(self.num_agents), unsafe,
                                             self.cfg.safety_fallback)
@@ -539,6 +545,15 @@ class AgentController:
                 self.counters["fallback"] = 1.0
                 unsafe, _, _ = pair_safety(self.state.plans, self.graph, full_bounds, tol, position)
         self.counters["unsafe_plan"] = float(bool(unsafe[k]))
+
+    def take_applied_plans(self, received: dict[int, Tensor | None]) -> None:
+        """After a step that may have re-planned (:attr:`fallback_possible`), the plans the neighbours
+        apply: the next step's warm start holds them, as the in-process one does, and the own plan is
+        judged against them."""
+        self.take_final_plans(received)
+        unsafe, _, _ = pair_safety(self.state.plans, self.graph, self._judged_bounds, self.cfg.admm_tol,
+                                   self.local.nominal.position)
+        self.counters["unsafe_plan"] = float(bool(unsafe[self.k]))
 
     def end_step(self) -> Telemetry:
         """The step's telemetry (input, plan, counters); shifts the state for the next warm start."""

@@ -184,7 +184,23 @@ class AgentHost:
                 for k in self.agents:
                     self.controllers[k].result.converged = stop > 1.5
                     self.controllers[k].check_safety(stop > 1.5)
+                comm_time += self._exchange_applied_plans()
                 return comm_time
+
+    def _exchange_applied_plans(self) -> float:
+        """After a step that may have re-planned (every agent of the team knows whether it may), each
+        agent sends its neighbours the plan it applies; returns the communication time."""
+        agents = [k for k in self.agents if self.controllers[k].fallback_possible]
+        if not agents:
+            return 0.0
+        t0 = time.perf_counter()
+        own = {k: {j: self.controllers[k].own_plan().clone() for j in self.controllers[k].nbrs} if k in agents else {}
+               for k in self.agents}
+        received = self._exchange_with_neighbours(own, Kind.APPLIED_PLAN,
+                                                  (self.cfg.horizon + 1) * self.cfg.state_dim, "plan_bytes")
+        for k in agents:
+            self.controllers[k].take_applied_plans(received[k])
+        return time.perf_counter() - t0
 
     def _exchange_with_neighbours(self, own: dict[int, dict[int, Tensor]], kind: Kind, size: int | None,
                                   counter: str) -> dict[int, dict[int, Tensor | None]]:

@@ -78,6 +78,7 @@ class Kind(enum.IntEnum):
     VARIANCE = 9
     ROWS = 10
     FINAL_PLAN = 11
+    APPLIED_PLAN = 12
 
 
 #: Commands in the first entry of the sensing message.
