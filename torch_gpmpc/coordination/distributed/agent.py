@@ -233,6 +233,7 @@ class AgentController:
         self.geometry = self.own_rows = None  # the step's planes (admm_coupling = planes), by take_plane_rows
         self.plane_terms: PlaneTerms | None = None  # the step's kept plane problem (compiled solves), if any
         self._safe = SafeIterates()  # the iterates whose halves held near (planes)
+        self.fallback_possible = False  # set by check_safety: whether this step may re-plan (the team knows)
         self.kept_rows: tuple = (None, None)  # its half-space rows (the plans' state slack)
 
     # --- one ADMM iteration
