@@ -155,3 +155,28 @@ def test_bench_gp_smoke(monkeypatch):
     row = rows["linearize 42 pts, N=100"]
     assert row["ours_ms"] > 0 and row["gpytorch_ms"] > 0 and row["max_abs_diff"] < 1e-10
     assert "fit N=100 (L-BFGS, 50 iters)" in rows
+
+
+def test_fit_gp_warns_where_the_gp_explains_little(tmp_path, capsys):
+    """Residuals that are noise alone (nothing the inputs see): the held-out R^2 is below LOW_R2 on both
+    rows and fit-gp says so on stderr, naming the row and what to do, and still writes the model;
+    without held-out rows it says how to get them."""
+    from torch_gpmpc.cli.fit_gp import LOW_R2
+
+    gen = torch.Generator().manual_seed(0)
+    x = 4 * torch.rand(120, 2, generator=gen, dtype=torch.float64) - 2
+    u = torch.rand(120, 2, generator=gen, dtype=torch.float64) - 0.5
+    noise = 0.05 * torch.randn(120, 2, generator=gen, dtype=torch.float64)
+    path = tmp_path / "noise.npz"
+    Transitions(x, u, x + 0.1 * u + noise).save(path)
+    report = tmp_path / "r.json"
+    assert main(["fit-gp", "--transitions", str(path), "--out", str(tmp_path / "m.pt"), "--holdout", "0.3",
+                 "--holdout-split", "random", "--iters", "10", "--report", str(report)]) == 0
+    err = capsys.readouterr().err
+    r2 = json.loads(report.read_text())["holdout"]["r2"]
+    assert all(v < LOW_R2 for v in r2), r2
+    for d in (0, 1):
+        assert f"the GP explains little of residual row d{d} (state x{d}): hold-out R^2 {r2[d]:.3g}" in err
+    assert (tmp_path / "m.pt").exists()
+    assert main(["fit-gp", "--transitions", str(path), "--iters", "2"]) == 0
+    assert "add --holdout 0.2 for its R^2 and coverage" in capsys.readouterr().err

@@ -11,6 +11,7 @@ model, the optional report JSON and the optional figure atomically.
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -114,6 +115,34 @@ def _summary(gp, train: Transitions, holdout: dict | None, final_loss: float, se
     return "\n".join(lines)
 
 
+#: Below this hold-out R^2 a residual row's GP explains little of it (a fifth of its variance).
+LOW_R2 = 0.2
+#: Below this share of held-out residuals inside the 95 % intervals the GP's variances understate its
+#: errors, and the chance margins built on them are too small.
+LOW_COVERAGE = 0.8
+
+
+def fit_warnings(holdout: dict | None, residual: list[int]) -> list[str]:
+    """One line per residual row whose held-out R^2 is below :data:`LOW_R2` or whose 95 % coverage is
+    below :data:`LOW_COVERAGE` (``residual``: the model's residual state indices); without held-out
+    rows, one line saying how to get them."""
+    if holdout is None:
+        return ["fit-gp: note: no held-out rows, so nothing says how much the GP explains; "
+                "add --holdout 0.2 for its R^2 and coverage"]
+    lines = []
+    for d, (r2, cover) in enumerate(zip(holdout["r2"], holdout["coverage95"])):
+        row = f"residual row d{d} (state x{residual[d]})"
+        if not r2 >= LOW_R2:
+            lines.append(f"fit-gp: warning: the GP explains little of {row}: hold-out R^2 {r2:.3g} "
+                         f"(below {LOW_R2}); collect more varied transitions (gpmpc collect --samples), or give "
+                         "it inputs that see what drives the residual (--inputs, the model's gp_inputs)")
+        if not cover >= LOW_COVERAGE:
+            lines.append(f"fit-gp: warning: the GP's 95 % intervals hold {cover:.0%} of {row}'s held-out "
+                         f"residuals (below {LOW_COVERAGE:.0%}): its variances understate its errors, and "
+                         "chance margins built on them are too small")
+    return lines
+
+
 def report(n_train: int, residual: list[int], holdout: dict, fit_seconds: float) -> dict:
     """The ``--report`` JSON: ``{n_train, n_holdout, residual, holdout: {rmse, r2, coverage95},
     fit_seconds}``; the lists follow ``residual`` (the model's residual state indices)."""
@@ -156,6 +185,8 @@ def main(args) -> int:
     if args.out is not None:
         gp.save(args.out)
     print(_summary(gp, train, metrics, last["loss"], seconds))
+    for line in fit_warnings(metrics, list(nominal.residual)):
+        print(line, file=sys.stderr)
     print(f"wrote {args.out}" if args.out is not None else "no --out: the model was not saved")
     if args.report is not None:
         write_json(args.report, report(train.num_samples, list(nominal.residual), metrics, seconds))
