@@ -35,6 +35,7 @@ from torch_gpmpc.control.risk import (
 from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.control.solvers import make_local_solver
 from torch_gpmpc.coordination.bodies import body_radii, slot_distances
+from torch_gpmpc.coordination.consensus import slot_consensus
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult
 from torch_gpmpc.dynamics.methods import Method
@@ -400,15 +401,11 @@ class LocalStep:
                                    cfg.eps - eps_self if eps_nbr is None else eps_nbr)
         else:
             margins = normals.new_zeros(normals.shape[:3])
-        r = torch.arange(agent_ids.shape[0])[:, None]
-        c = torch.arange(graph.num_slots)[None, :]
-        z_slot = state.z[slot_edge]  # (B, M, 2, T+1, D)
-        lam_mine = state.lam[slot_edge][r, c, side]  # (B, M, 2, T+1, D): this agent's duals
+        slots = slot_consensus(state.z, state.lam, graph, rows)
         data = LocalProblemData(
             x0=x0, xref=xref, dyn_A=lin.dyn_A, dyn_c=lin.dyn_c, dyn_B=lin.dyn_B, normals=normals,
             bounds=slot_distances(cfg, agent_ids, graph.slot_nbr[rows]) + margins, active=active, rho=rho,
-            z_own=z_slot[r, c, side], z_nbr=z_slot[r, c, 1 - side],
-            lam_own=lam_mine[r, c, side], lam_nbr=lam_mine[r, c, 1 - side],
+            z_own=slots.z_own, z_nbr=slots.z_nbr, lam_own=slots.lam_own, lam_nbr=slots.lam_nbr,
             halfspace_normals=conv.obstacle_normals,
             halfspace_bounds=conv.obstacle_bounds_with_margins(cfg.obstacle_eps if eps_obstacle is None else eps_obstacle),
             u_prev=u_prev, **self.cost_rows(agent_ids, x0),

@@ -32,6 +32,7 @@ from torch import Tensor
 
 from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.control.problem import ConsensusTerms, LocalProblemData
+from torch_gpmpc.control.solvers.canonical import consensus_weights
 from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
 from torch_gpmpc.control.solvers.repeated import RepeatedSolution, RepeatedSolve
 from torch_gpmpc.coordination.agent_step import edge_copies
@@ -105,18 +106,16 @@ class SteadyIterations:
         self.adaptive = settings.rho_update == "adaptive"
 
     def write_terms(self, state: ADMMState) -> None:
-        """Write the consensus terms of ``state`` into the kept problems, as
-        :meth:`~.agent_step.LocalStep.assemble` and canonicalization compute them (the same bits)."""
+        """Write the consensus terms of ``state`` into the kept problems, with the functions
+        :meth:`~.agent_step.LocalStep.assemble` and canonicalization use (the same bits)."""
         graph, buf, M = self.graph, self.solve.buffers, self.graph.num_slots
         rho = state.rho[graph.slot_edge] if self.adaptive else self.rho
         slots = slot_consensus(state.z, state.lam, graph)
         terms = ConsensusTerms.of(dataclasses.replace(self.problem, rho=rho, z_own=slots.z_own, z_nbr=slots.z_nbr,
                                                       lam_own=slots.lam_own, lam_nbr=slots.lam_nbr))
-        buf.c_x[:] = terms.c_x.numpy()
-        buf.l_x[:] = (2.0 * self.problem.xref[:, 1:] + terms.w_own[:, :, 1:].sum(dim=1)).flatten(1).numpy()
-        buf.rho_y[:, :M] = terms.rho_y.numpy()
-        buf.w_y[:, :M] = terms.w_nbr[:, :, 1:].numpy()
-        buf.y0[:] = (terms.w_nbr[:, :, 0] / terms.rho_y[:, :, None]).numpy()
+        c_x, l_x, rho_y, w_y, y0 = consensus_weights(terms, self.problem.xref)
+        buf.c_x[:], buf.l_x[:], buf.y0[:] = c_x.numpy(), l_x.numpy(), y0.numpy()
+        buf.rho_y[:, :M], buf.w_y[:, :M] = rho_y.numpy(), w_y.numpy()  # the state-row slots stay
 
     def iterate(self, state: ADMMState) -> SteadyResult | None:
         """One compiled iteration from ``state`` (the step's previous iterate), or ``None`` where

@@ -192,16 +192,25 @@ def canonicalize(data: LocalProblemData, B: Tensor, condense=condense_dynamics, 
     :func:`stated_cost_terms` or a :class:`CostTermsCache`.
     """
     terms = ConsensusTerms.of(data)
-    l_x = (2.0 * data.xref[:, 1:] + terms.w_own[:, :, 1:].sum(dim=1)).flatten(1)
+    c_x, l_x, rho_y, w_y, y0 = consensus_weights(terms, data.xref)
     G, h = condense(data.x0, data.dyn_A, data.dyn_c, B if data.dyn_B is None else data.dyn_B)
-    y0 = terms.w_nbr[:, :, 0] / terms.rho_y[:, :, None]
     T = data.xref.shape[1] - 1
     g_u = input_rate_linear(data, beta, T, G.shape[2] // T)
     H_cost, g_cost = cost_terms(data, G, h, alpha)
     if data.has_cost:
         g_u = g_u + g_cost
-    return CanonicalData(G=G, h=h, c_x=terms.c_x, l_x=l_x, rho_y=terms.rho_y, w_y=terms.w_nbr[:, :, 1:], y0=y0,
+    return CanonicalData(G=G, h=h, c_x=c_x, l_x=l_x, rho_y=rho_y, w_y=w_y, y0=y0,
                          normals=terms.normals, bounds=terms.bounds, g_u=g_u, H_cost=H_cost)
+
+
+def consensus_weights(terms: ConsensusTerms, xref: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The consensus part of :class:`CanonicalData` from the problems' consensus terms and references
+    ``xref`` (B, T+1, D): ``(c_x (B,), l_x (B, T D), rho_y (B, M), w_y (B, M, T, D), y0 (B, M, D))``.
+    Also what ADMM's compiled iterations write into kept problems
+    (:meth:`~torch_gpmpc.coordination.steady.SteadyIterations.write_terms`)."""
+    l_x = (2.0 * xref[:, 1:] + terms.w_own[:, :, 1:].sum(dim=1)).flatten(1)
+    y0 = terms.w_nbr[:, :, 0] / terms.rho_y[:, :, None]
+    return terms.c_x, l_x, terms.rho_y, terms.w_nbr[:, :, 1:], y0
 
 
 def with_state_rows(canon: CanonicalData, rows: list[tuple[Tensor, Tensor]]) -> CanonicalData:

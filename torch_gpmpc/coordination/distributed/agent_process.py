@@ -173,14 +173,10 @@ class AgentHost:
             stop = float(decisions[0][2])
             if stop > 0.5:
                 if self.cfg.admm_coupling == "planes":  # the neighbours' last plans, for the safety check
-                    t1 = time.perf_counter()
-                    own = {k: {j: self.controllers[k].own_plan().clone() for j in self.controllers[k].nbrs}
-                           for k in self.agents}
-                    received = self._exchange_with_neighbours(own, Kind.FINAL_PLAN,
-                                                              (self.cfg.horizon + 1) * self.cfg.state_dim, "plan_bytes")
+                    received, seconds = self._exchange_own_plans(Kind.FINAL_PLAN, self.agents)
                     for k in self.agents:
                         self.controllers[k].take_final_plans(received[k])
-                    comm_time += time.perf_counter() - t1
+                    comm_time += seconds
                 for k in self.agents:
                     self.controllers[k].result.converged = stop > 1.5
                     self.controllers[k].check_safety(stop > 1.5)
@@ -193,14 +189,19 @@ class AgentHost:
         agents = [k for k in self.agents if self.controllers[k].fallback_possible]
         if not agents:
             return 0.0
+        received, seconds = self._exchange_own_plans(Kind.APPLIED_PLAN, agents)
+        for k in agents:
+            self.controllers[k].take_applied_plans(received[k])
+        return seconds
+
+    def _exchange_own_plans(self, kind: Kind, agents: list[int]) -> tuple[dict[int, dict[int, Tensor | None]], float]:
+        """Hosted agents ``agents`` send each neighbour their current plan ((T+1) D numbers) as ``kind``
+        and collect their neighbours'; returns what they received and the communication time."""
         t0 = time.perf_counter()
         own = {k: {j: self.controllers[k].own_plan().clone() for j in self.controllers[k].nbrs} if k in agents else {}
                for k in self.agents}
-        received = self._exchange_with_neighbours(own, Kind.APPLIED_PLAN,
-                                                  (self.cfg.horizon + 1) * self.cfg.state_dim, "plan_bytes")
-        for k in agents:
-            self.controllers[k].take_applied_plans(received[k])
-        return time.perf_counter() - t0
+        received = self._exchange_with_neighbours(own, kind, (self.cfg.horizon + 1) * self.cfg.state_dim, "plan_bytes")
+        return received, time.perf_counter() - t0
 
     def _exchange_with_neighbours(self, own: dict[int, dict[int, Tensor]], kind: Kind, size: int | None,
                                   counter: str) -> dict[int, dict[int, Tensor | None]]:
