@@ -46,7 +46,6 @@ def test_python_api_example_as_written():
     assert result["min_distance"] > 0.45 and result["final_error"] < 0.3
 
 
-@pytest.mark.filterwarnings("ignore:config key 'gp_online_max_input_change' is ignored")  # the examples set it for gp_online=true
 def test_rotorpy_forest_config_flies_the_swap_vehicles_in_the_same_wind():
     """examples/rotorpy/forest.toml differs from swap.toml only in the scenario (with its trunks) and the input-rate weight."""
     swap = load_config(ROOT / "examples" / "rotorpy" / "swap.toml")
@@ -56,7 +55,6 @@ def test_rotorpy_forest_config_flies_the_swap_vehicles_in_the_same_wind():
     assert forest.scenario == "forest" and forest.input_rate_weight > swap.input_rate_weight
 
 
-@pytest.mark.filterwarnings("ignore:config key 'gp_online_max_input_change' is ignored")  # the examples set it for gp_online=true
 def test_example_configs_find_their_model_file_from_any_directory(tmp_path, monkeypatch):
     """A config's relative model file name is looked up beside the config when the working directory
     has no such file (the examples name ``crazyflie.toml`` beside them); a name that exists from the

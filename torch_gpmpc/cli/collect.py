@@ -12,11 +12,14 @@ from pathlib import Path
 from torch_gpmpc.data import MAX_COLLECT_ROWS, check_suffix, collect_transitions
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.config.model_spec import check_model_name, resolve_model
+from torch_gpmpc.config.plant import DEFAULT_GP_SAMPLES
 from torch_gpmpc.dynamics.systems import make_system
 
 
 def _validate(args) -> None:
-    """Check every argument before any work (raises GpmpcError)."""
+    """Check every argument before any work (raises GpmpcError); fills the plant's default ``--samples``."""
+    if args.samples is None:
+        args.samples = DEFAULT_GP_SAMPLES[args.plant]
     if Path(args.out).is_dir():
         raise GpmpcError(f"--out {args.out!r} is an existing directory; give a file path ending in .npz or .csv")
     check_suffix(args.out)

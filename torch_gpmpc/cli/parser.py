@@ -53,7 +53,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("collect", help="log transitions of the true system (paper data recipe)")
     p.add_argument("--out", required=True, help="output file, .npz or .csv")
     p.add_argument("--agents", type=int, default=3, help="number of agents K")
-    p.add_argument("--samples", type=int, default=100, help="samples per agent N")
+    p.add_argument("--samples", type=int, default=None,
+                   help="samples per agent N (default: 100 on the model plant, 400 per RotorPy vehicle)")
     p.add_argument("--seed", type=int, default=0, help="seed of the sampled states, inputs and noise")
     p.add_argument("--dim", type=int, default=2, help="position dimension of the built-in models (2 or 3)")
     p.add_argument("--model", default="single-integrator",

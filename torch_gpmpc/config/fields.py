@@ -169,11 +169,13 @@ class Applies:
     why: str
 
 
-def warn_ignored(obj: Any, conditions: Mapping[str, tuple[Applies, ...]], what: str) -> None:
+def warn_ignored(obj: Any, conditions: Mapping[str, tuple[Applies, ...]], what: str,
+                 defaults: Mapping[str, Any] | None = None) -> None:
     """Warn, naming the key that overrides it, about every key of the frozen dataclass ``obj`` that is
     set to a non-default value its ``conditions`` say does not apply: ``<what> '<key>' is ignored under
-    <by>=<value>: <why>``."""
-    defaults = {f.name: f.default for f in fields(obj)}
+    <by>=<value>: <why>``. ``defaults`` replaces the fields' defaults of the keys it names (where a
+    null default is filled in at construction)."""
+    defaults = {**{f.name: f.default for f in fields(obj)}, **(defaults or {})}
     for key, rules in conditions.items():
         if getattr(obj, key) == defaults[key]:
             continue

@@ -23,6 +23,8 @@ file looks like::
     [state_rows]                # optional, general rows G x <= h (soft), G is r x n
     G = [[0.0, 0.0, 1.0, 0.0, 0.0, 0.0]]
     h = [3.0]
+    [control]                   # optional: what this vehicle needs from its controller
+    input_rate_weight = 2.0     # the defaults of the config keys of these names (CONTROL_KEYS)
 
 State constraints hold at the planned steps tau = 1..T and are soft (an exact penalty on a
 slack, as the collision rows), so a measured state outside them never makes a plan fail.
@@ -47,7 +49,11 @@ from torch_gpmpc.errors import GpmpcError
 BUILTIN_MODELS = ("single-integrator", "double-integrator")
 MODEL_SUFFIXES = (".toml", ".json")
 _KEYS = ("name", "dt", "A", "B", "position", "residual", "gp_inputs", "input_bound", "state_bound", "state_box",
-         "state_rows")
+         "state_rows", "control")
+#: Config keys a model file's ``[control]`` table may give defaults for: what a vehicle needs from its
+#: controller (a quadrotor that realizes its commands with a lag needs smooth inputs, learns online
+#: only from steady ones, and estimates the wind it hovers in), and their package defaults.
+CONTROL_KEYS = {"input_rate_weight": 0.0, "disturbance_drift": 0.0, "gp_online_max_input_change": None}
 _REQUIRED = ("A", "B", "position", "residual")
 
 
@@ -69,6 +75,8 @@ class ModelSpec:
         state_box_indices, state_box_lower, state_box_upper: an optional box
             ``lower <= x[idx] <= upper`` (entries may be infinite: one-sided), or ``None``.
         state_rows_G, state_rows_h: optional general rows ``G x <= h`` ((r, n) and (r,)), or ``None``.
+        control: ``(key, value)`` pairs of the ``[control]`` table: defaults of those config keys
+            (:data:`CONTROL_KEYS`) for runs with this model; a value set in the configuration wins.
 
     Examples:
         >>> from torch_gpmpc import ModelSpec
@@ -94,6 +102,7 @@ class ModelSpec:
     state_box_upper: tuple[float, ...] | None = None
     state_rows_G: tuple[tuple[float, ...], ...] | None = None
     state_rows_h: tuple[float, ...] | None = None
+    control: tuple[tuple[str, float], ...] = ()
 
     @property
     def state_dim(self) -> int:
@@ -180,6 +189,8 @@ def _table(v: dict[str, Any]) -> dict[str, Any]:
                               "upper": v["state_box_upper"]}
     if v["state_rows_G"] is not None:
         table["state_rows"] = {"G": v["state_rows_G"], "h": v["state_rows_h"]}
+    if v["control"]:
+        table["control"] = dict(v["control"])
     return _as_plain(table)
 
 
@@ -283,12 +294,14 @@ def parse_model(data: dict[str, Any], where: str = "model") -> ModelSpec:
     sb_idx, sb_norm = _state_bound(data.get("state_bound"), n, where)
     box_idx, box_lo, box_hi = _state_box(data.get("state_box"), n, where)
     rows_G, rows_h = _state_rows(data.get("state_rows"), n, where)
+    control = _control(data.get("control"), where)
     _VALIDATING.append(True)
     try:
         return ModelSpec(name=str(data.get("name", Path(where).stem)), dt=dt, A=A, B=B, position=position,
                          residual=residual, gp_inputs=gp_inputs, input_norm=norm, input_box=box,
                          state_bound_indices=sb_idx, state_bound_norm=sb_norm, state_box_indices=box_idx,
-                         state_box_lower=box_lo, state_box_upper=box_hi, state_rows_G=rows_G, state_rows_h=rows_h)
+                         state_box_lower=box_lo, state_box_upper=box_hi, state_rows_G=rows_G, state_rows_h=rows_h,
+                         control=control)
     finally:
         _VALIDATING.pop()
 
@@ -427,3 +440,26 @@ def _state_rows(value: Any, n: int, where: str) -> tuple[tuple[tuple[float, ...]
     if not isinstance(h, list) or len(h) != len(G):
         raise GpmpcError(f"{where}: state_rows.h must list one number per row of G ({len(G)}), got {h!r}")
     return G, tuple(_number(v, f"state_rows.h[{j}]", where) for j, v in enumerate(h))
+
+
+def _control(value: Any, where: str) -> tuple[tuple[str, float], ...]:
+    """The ``[control]`` table: known keys (:data:`CONTROL_KEYS`), finite numbers >= 0 (> 0 for
+    ``gp_online_max_input_change``), in a fixed order."""
+    if value is None:
+        return ()
+    if not isinstance(value, dict):
+        raise GpmpcError(f"{where}: control must be a table of config defaults ({', '.join(CONTROL_KEYS)})")
+    for key in value:
+        if key not in CONTROL_KEYS:
+            raise GpmpcError(f"{where}: control: unknown key {key!r} (did you mean "
+                             f"{nearest_key(key, tuple(CONTROL_KEYS))!r}?); a model file may set "
+                             f"{', '.join(CONTROL_KEYS)}")
+    out = []
+    for key in CONTROL_KEYS:
+        if key in value:
+            v = _number(value[key], f"control.{key}", where)
+            if v < 0 or (key == "gp_online_max_input_change" and v == 0):
+                raise GpmpcError(f"{where}: control.{key} must be "
+                                 f"{'> 0' if key == 'gp_online_max_input_change' else '>= 0'}, got {v}")
+            out.append((key, v))
+    return tuple(out)

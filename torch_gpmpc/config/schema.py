@@ -16,12 +16,12 @@ from typing import Any, Mapping
 
 from torch_gpmpc.config.fields import Applies, Rules, build, check_keys, coerce_lists, validate, warn_ignored
 from torch_gpmpc.config.model_spec import (
-    BUILTIN_MODELS, ModelSpec, check_model_name, parse_model, resolve_model,
+    BUILTIN_MODELS, CONTROL_KEYS, ModelSpec, check_model_name, parse_model, resolve_model,
 )
 from torch_gpmpc.config.obstacles import FOREST_GAP_EXTRA, ObstacleField, doorway_extent, forest_extent
 from torch_gpmpc.config.cost_table import CostTable
 from torch_gpmpc.config.workspace import Workspace
-from torch_gpmpc.config.plant import PLANTS, VEHICLES, WINDS
+from torch_gpmpc.config.plant import DEFAULT_GP_SAMPLES, PLANTS, VEHICLES, WINDS
 from torch_gpmpc.config.team import TeamSpec, team_spec
 from torch_gpmpc.config.settings import (
     CONTROLLER_CHOICES, CONTROLLER_CONDITIONS, CONTROLLER_RANGES, METHOD_NAMES, ControllerSettings, GPFitSettings, check_coupling,
@@ -66,7 +66,8 @@ class Config(ControllerSettings):
             recipe); ``null``: :attr:`scenario_extent` (``circle_radius``, or the forest's
             half-length), so the data cover the scenario.
         min_separation: minimum start (and target) separation of ``random`` scenarios.
-        gp_samples: training transitions per agent (paper: 100).
+        gp_samples: training transitions per agent (null: the plant's, ``DEFAULT_GP_SAMPLES``: the
+            paper's 100 on the model plant, 400 per RotorPy vehicle).
         gp_inputs: ``state`` (paper) or ``state_input``.
         gp_optimizer: ``lbfgs`` (paper) or ``adam``.
         gp_iters: optimizer iterations for GP fitting.
@@ -97,11 +98,18 @@ class Config(ControllerSettings):
         gp_online_budget: the online points each agent keeps (the oldest leave first).
         gp_online_refit_every: re-fit the online GPs' hyperparameters every this many steps (0: never).
         gp_online_max_input_change: add only transitions whose input changed by at most this (norm,
-            input units) since the agent's previous step (null: all).
+            input units) since the agent's previous step (null: the model file's ``[control]`` value,
+            else every transition; ``inf``: every transition).
         disturbance_drift: offset-free tracking: each agent estimates a constant disturbance on
             its residual rows from its own one-step prediction errors, a Kalman filter of a random
             walk of this standard deviation per step (raw units; :mod:`~torch_gpmpc.gp.offset`).
-            0: no estimate.
+            0: no estimate; null: the model file's ``[control]`` value, else 0.
+        input_rate_weight: as in :class:`ControllerSettings`; null: the model file's ``[control]``
+            value, else 0.
+
+    The keys of a model file's ``[control]`` table (:data:`~torch_gpmpc.config.model_spec.CONTROL_KEYS`)
+    are filled in when the configuration is built: after it they hold numbers (or null for
+    ``gp_online_max_input_change`` without a value), and ``to_dict`` writes what the run used.
     Examples:
         >>> from torch_gpmpc import Config
         >>> cfg = Config(model="double-integrator", dim=3, scenario="circle", num_agents=6)
@@ -126,7 +134,7 @@ class Config(ControllerSettings):
     circle_radius: float = 4.0
     gp_box: float | None = None
     min_separation: float = 1.0
-    gp_samples: int = 100
+    gp_samples: int | None = None
     gp_inputs: str = "state"
     gp_optimizer: str = "lbfgs"
     gp_iters: int = 50
@@ -146,7 +154,8 @@ class Config(ControllerSettings):
     gp_online_budget: int = 200
     gp_online_refit_every: int = 0
     gp_online_max_input_change: float | None = None
-    disturbance_drift: float = 0.0
+    disturbance_drift: float | None = None
+    input_rate_weight: float | None = None
 
     def __new__(cls, *args: Any, **kwargs: Any) -> "Config":
         """Refuse a misspelt keyword with the nearest valid key, as config files and ``--set`` do (the
@@ -159,14 +168,17 @@ class Config(ControllerSettings):
             object.__setattr__(self, "model", parse_model(self.model, "config key 'model'"))
         parse_world(self, "config key")
         coerce_lists(self)  # plant_wind_speed = [1, 0, 0], radii = [0.2, 0.3] from Python, TOML or --set
-        validate(self, RULES)
-        check_risk_mode(self.risk_mode, self.method, self.pair_margin, "config key")
-        check_coupling(self.admm_coupling, self.relinearize, "config key")
         if isinstance(self.model, str):
             check_model_name(self.model)
         if self.models is not None:
             for name in self.models:
                 check_model_name(name, "models")
+        run_defaults = _run_defaults(self)
+        object.__setattr__(self, "_filled", _fill_defaults(self, run_defaults))
+        validate(self, RULES)
+        check_risk_mode(self.risk_mode, self.method, self.pair_margin, "config key")
+        check_coupling(self.admm_coupling, self.relinearize, "config key")
+        if self.models is not None:
             self.team()  # refuses models that cannot plan together
         if self.workspace is not None:
             self.workspace.check_dim(self.position_dim, "config key 'workspace'")
@@ -177,7 +189,7 @@ class Config(ControllerSettings):
                 f"config key 'num_agents': the paper scenario has 3 agents, got {self.num_agents}; "
                 "use scenario=circle or scenario=random for other team sizes"
             )
-        warn_ignored(self, CONFIG_CONDITIONS, "config key")
+        warn_ignored(self, CONFIG_CONDITIONS, "config key", run_defaults)
 
     def model_spec(self) -> ModelSpec:
         """The agent model of this run (built-in, read from the model file, or given); with
@@ -253,10 +265,13 @@ class Config(ControllerSettings):
     def replace(self, **changes: Any) -> "Config":
         """Return a copy with ``changes`` applied (same checks as loading); of the keys a change leaves
         ignored, only the changed ones warn (the rest warned when this configuration was built)."""
+        # keys filled from the model file and the plant are filled again (from the new ones, where they change)
+        kept = {k: v for k, v in self.to_dict().items() if k not in self._filled}
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
-            out = from_mapping({**self.to_dict(), **changes})
-        warn_ignored(out, {k: v for k, v in CONFIG_CONDITIONS.items() if k in changes}, "config key")
+            out = from_mapping({**kept, **changes})
+        warn_ignored(out, {k: v for k, v in CONFIG_CONDITIONS.items() if k in changes}, "config key",
+                     _run_defaults(out))
         return out
 
     def to_dict(self) -> dict[str, Any]:
@@ -271,6 +286,39 @@ class Config(ControllerSettings):
         if self.cost is not None:
             out["cost"] = self.cost.to_table()
         return out
+
+
+def _run_defaults(cfg: Config) -> dict[str, Any]:
+    """The defaults of the keys whose default depends on the run: those of :data:`CONTROL_KEYS` from
+    the model file's ``[control]`` table, else the package's (a team's model files must agree);
+    ``gp_samples`` from the plant (:data:`DEFAULT_GP_SAMPLES`)."""
+    names = list(cfg.models) if cfg.models is not None else [cfg.model]
+    tables = [dict(_model_control(name, cfg)) for name in names]
+    out: dict[str, Any] = {"gp_samples": DEFAULT_GP_SAMPLES.get(cfg.plant, DEFAULT_GP_SAMPLES["model"])}
+    for key, default in CONTROL_KEYS.items():
+        values = {table.get(key, default) for table in tables}
+        if len(values) > 1 and getattr(cfg, key) is None:
+            raise GpmpcError(f"config key {key!r}: the team's model files give it different values "
+                             f"({', '.join(map(repr, sorted(values, key=str)))}); set {key} in the configuration")
+        out[key] = values.pop()
+    return out
+
+
+def _fill_defaults(cfg: Config, defaults: dict[str, Any]) -> frozenset[str]:
+    """Set every unset (null) key of ``defaults`` (:func:`_run_defaults`) to its default; the keys set."""
+    filled = frozenset(key for key in defaults if getattr(cfg, key) is None)
+    for key in filled:
+        object.__setattr__(cfg, key, defaults[key])
+    return filled
+
+
+def _model_control(model: str | ModelSpec, cfg: Config) -> tuple[tuple[str, float], ...]:
+    """The ``[control]`` pairs of a model (built-ins have none)."""
+    if isinstance(model, ModelSpec):
+        return model.control
+    if model in BUILTIN_MODELS:
+        return ()
+    return resolve_model(model, cfg.dim, cfg.dt, cfg.u_max).control
 
 
 def _builtin_model(cfg) -> bool:
@@ -353,7 +401,7 @@ _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "gp_online_budget": (lambda v: 2 <= v <= 5000, "an integer in [2, 5000]"),
     "gp_online_refit_every": (lambda v: v >= 0, "an integer >= 0 (0: never re-fit)"),
     "gp_online_max_input_change": (lambda v: v is None or v > 0, "a number > 0 or null (add every transition)"),
-    "disturbance_drift": (lambda v: 0 <= v <= 10, "a number in [0, 10] (0: no offset estimate)"),
+    "disturbance_drift": (lambda v: 0 <= v <= 10, "a number in [0, 10] (0: no offset estimate; null: the model's)"),
 }
 
 

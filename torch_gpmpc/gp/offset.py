@@ -126,6 +126,11 @@ class OffsetCorrected:
         what the offset does not explain, so the two never count the same error twice."""
         self.model.add(inputs, y - self.offset.to(y))
 
+    def judge(self, inputs: Tensor, y: Tensor) -> None:
+        """Let the wrapped guarded model judge rows ``inputs`` (n, Din), residuals ``y`` (n, R), less
+        the offset (:meth:`GuardedOnlineGP.judge <torch_gpmpc.gp.guard.GuardedOnlineGP.judge>`)."""
+        self.model.judge(inputs, y - self.offset.to(y))
+
     def end_step(self) -> bool:
         """Count a step of the wrapped online model
         (:meth:`OnlineGP.end_step <torch_gpmpc.gp.online.OnlineGP.end_step>`)."""

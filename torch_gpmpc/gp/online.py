@@ -33,6 +33,7 @@ from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.gp.cache import PredictionCache, squared_distances
 from torch_gpmpc.gp.cholesky_update import cholesky_append, cholesky_drop_first, cholesky_rank_one
 from torch_gpmpc.gp.fit import refit_hyperparameters
+from torch_gpmpc.gp.guard import GuardedOnlineGP
 from torch_gpmpc.gp.model import ResidualGP, check_training_data
 from torch_gpmpc.gp.offset import OffsetCorrected
 from torch_gpmpc.gp.sparse import sparse_posterior
@@ -190,6 +191,8 @@ class OnlineLearning:
     After each control step, agent k's GP predicts the residual of the transition it just made
     (``y = [x' - A x - B u]_residual`` at its GP input), before it learns from it: the error and the
     predictive variance (latent + noise) are what ``online_prediction_rmse`` and the coverage report.
+    With ``online`` a :class:`~torch_gpmpc.gp.guard.GuardedOnlineGP` then judges its learner and its
+    frozen fit on that transition (every transition, learnt or not) and learns it.
 
     Args:
         gps: one model per agent (the controller's objects: updated in place).
@@ -205,6 +208,7 @@ class OnlineLearning:
     Attributes:
         update_seconds: wall time of the updates (and refits) of each step.
         skipped: transitions not added (input change above ``max_input_change``), per agent.
+        adopted_share: per step, the share of agents planning with their learner (online only).
     """
 
     def __init__(self, gps: list, nominal, online: bool, max_input_change: float | None = None) -> None:
@@ -212,6 +216,7 @@ class OnlineLearning:
         self.max_input_change = max_input_change
         self.update_seconds: list[float] = []
         self.skipped = [0] * len(gps)
+        self.adopted_share: list[float] = []
         self._u_prev: Tensor | None = None
 
     def observe(self, x: Tensor, u: Tensor, x_next: Tensor) -> tuple[Tensor, Tensor]:
@@ -232,11 +237,13 @@ class OnlineLearning:
         if self.online:
             steady = self._steady_inputs(u)
             for k, gp in enumerate(self.gps):
+                gp.judge(inputs[k], y[k:k + 1])
                 if steady[k]:
                     gp.add(inputs[k], y[k:k + 1])
                 else:
                     self.skipped[k] += 1
                 gp.end_step()
+            self.adopted_share.append(sum(_adopted(gp) for gp in self.gps) / len(self.gps))
         for k, gp in enumerate(self.gps):
             if isinstance(gp, OffsetCorrected):
                 # the innovation of the model the next plan uses: after an online update the GP has
@@ -254,7 +261,12 @@ class OnlineLearning:
         return ((u - prev).norm(dim=-1) <= self.max_input_change).tolist()
 
 
-def online_gps(gps: list, budget: int, refit_every: int) -> list[OnlineGP]:
-    """Each agent's own copy of its GP as an :class:`OnlineGP` (a GP shared by several agents is
-    copied, so each learns only its own transitions)."""
-    return [OnlineGP(copy.deepcopy(gp), budget, refit_every) for gp in gps]
+def _adopted(model) -> bool:
+    """Whether an agent's model (guarded, possibly offset-corrected) plans with its learner."""
+    return bool(getattr(getattr(model, "model", model), "adopted", False))
+
+
+def online_gps(gps: list, budget: int, refit_every: int) -> list[GuardedOnlineGP]:
+    """Each agent's own copy of its GP as a guarded :class:`OnlineGP` (a GP shared by several agents
+    is copied, so each learns only its own transitions)."""
+    return [GuardedOnlineGP(OnlineGP(copy.deepcopy(gp), budget, refit_every)) for gp in gps]

@@ -262,6 +262,8 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem | Plant,
             if learning is not None:
                 error, var = learning.observe(x_prev, u, x)
                 recorder.record_prediction(t, error, var, learning.update_seconds[-1], tb)
+                if tb is not None and learning.adopted_share:
+                    tb.scalar("gp/online_adopted", learning.adopted_share[-1], t)
             info = recorder.record(t, res, graph.adjacency(), u, states[-1], step_s)
             if tb is not None:
                 log_step(tb, t, info, res)

@@ -1,0 +1,86 @@
+"""The online guard: a learner is planned with only while it predicts held-out transitions better."""
+
+from __future__ import annotations
+
+import torch
+
+from torch_gpmpc import ResidualGP
+from torch_gpmpc.gp.guard import GUARD_MIN_ROWS, GUARD_WINDOW, GuardedOnlineGP, surely_positive
+from torch_gpmpc.gp.offset import OffsetCorrected
+from torch_gpmpc.gp.online import OnlineGP
+
+F64 = torch.float64
+
+
+def _fitted(seed=0):
+    g = torch.Generator().manual_seed(seed)
+    x = 4 * torch.rand(40, 1, generator=g, dtype=F64) - 2
+    return ResidualGP(x, torch.sin(x) + 0.01 * torch.randn(40, 1, generator=g, dtype=F64))
+
+
+def _points(n, seed):
+    return 3 * torch.rand(n, 1, generator=torch.Generator().manual_seed(seed), dtype=F64) - 1.5
+
+
+def test_an_update_that_worsens_held_out_points_is_refused():
+    """The learner is fed rows whose residual is the truth plus a +-0.4 lag that no input sees; each
+    new point is first judged on its true residual. The learner predicts those worse, so the agent
+    keeps planning with the frozen fit, bit for bit, and the guard's scores are the squared errors
+    written out."""
+    guarded = GuardedOnlineGP(OnlineGP(_fitted(), budget=60))
+    frozen_before = guarded.frozen.predict(_points(5, 9))[0]
+    x = _points(20, 1)
+    expected = []
+    for i in range(20):
+        row, truth = x[i:i + 1], torch.sin(x[i:i + 1])
+        f = float((truth - guarded.frozen.predict(row)[0]).square().sum())
+        lr = float((truth - guarded.learner.predict(row)[0]).square().sum())
+        expected.append((f, lr))
+        guarded.judge(row, truth)
+        assert not guarded.adopted
+        guarded.add(row, truth + (0.4 if i % 2 else -0.4))
+    assert list(guarded.errors) == expected[-GUARD_WINDOW:]
+    assert sum(e[1] for e in expected[-GUARD_WINDOW:]) > 2 * sum(e[0] for e in expected[-GUARD_WINDOW:])
+    q = _points(7, 5)
+    for a, b in zip(guarded.linearize(q), guarded.frozen.linearize(q)):
+        assert torch.equal(a, b)
+    torch.testing.assert_close(guarded.frozen.predict(_points(5, 9))[0], frozen_before, rtol=0, atol=0)
+    assert guarded.gp.num_data == 60   # the learner kept learning while refused
+
+
+def test_an_update_that_predicts_held_out_points_better_is_adopted_and_refused_again():
+    """The residual moves up by 0.3: within a few judged rows the learner, which has learnt it, is
+    surely better and plans; when the residual moves back, the frozen fit takes over."""
+    guarded = GuardedOnlineGP(OnlineGP(_fitted(), budget=30))
+    x = _points(60, 2)
+    adopted = []
+    for i in range(60):
+        shift = 0.3 if i < 30 else 0.0
+        row = x[i:i + 1]
+        guarded.judge(row, torch.sin(row) + shift)
+        guarded.add(row, torch.sin(row) + shift)
+        adopted.append(guarded.adopted)
+    assert adopted[:GUARD_MIN_ROWS - 1] == [False] * (GUARD_MIN_ROWS - 1)
+    assert all(adopted[8:30])
+    assert not any(adopted[30 + GUARD_WINDOW:])
+    q = _points(4, 3)
+    assert torch.equal(guarded.predict(q)[0], guarded.frozen.predict(q)[0])
+
+
+def test_the_offset_estimate_passes_judged_rows_less_its_offset():
+    guarded = GuardedOnlineGP(OnlineGP(_fitted(), budget=30))
+    model = OffsetCorrected(guarded, drift=0.01)
+    model.offset = torch.tensor([0.3], dtype=F64)
+    row = _points(1, 4)
+    model.judge(row, torch.sin(row) + 0.3)
+    f, lr = guarded.errors[-1]
+    assert f == lr and f < 1e-3   # both judged on the residual less the offset
+
+
+def test_the_learner_must_be_better_by_two_standard_errors():
+    """Paired gains (frozen minus learner squared error): mean against 2 sample standard deviations
+    over sqrt(n), written out."""
+    assert surely_positive([0.3, 0.1, 0.2])          # mean 0.2 > 2 * 0.1 / sqrt(3) = 0.115
+    assert not surely_positive([0.3, -0.1, 0.2])     # mean 0.133 < 2 * 0.208 / sqrt(3) = 0.240
+    assert not surely_positive([1.0, -1.0, 1.0, -1.0])
+    assert surely_positive([0.5, 0.5, 0.5])          # no spread: any positive mean
