@@ -99,7 +99,7 @@ class Config(ControllerSettings):
         gp_online_refit_every: re-fit the online GPs' hyperparameters every this many steps (0: never).
         gp_online_max_input_change: add only transitions whose input changed by at most this (norm,
             input units) since the agent's previous step (null: the model file's ``[control]`` value,
-            else every transition; ``inf``: every transition).
+            else every transition; a value above any input change, say 1e9: every transition).
         disturbance_drift: offset-free tracking: each agent estimates a constant disturbance on
             its residual rows from its own one-step prediction errors, a Kalman filter of a random
             walk of this standard deviation per step (raw units; :mod:`~torch_gpmpc.gp.offset`).

@@ -13,9 +13,9 @@ Why a test and not the lower mean: in closed loop the model an agent plans with 
 transitions both are judged on. A learner that is only slightly better (within the noise of a
 quadrotor's lag) makes plans whose transitions it then predicts slightly better again, and the team
 drifts into a worse regime for both models. Measured on four Crazyflies in a 2 m/s wind that turns
-at step 40 (RotorPy, no input filter, seeds 0 / 1; the docs' RotorPy page): one-step error after the
-change 0.072 / 0.069 with the test, 0.166 / 0.196 with the lower mean, 0.20 / 0.19 with no guard,
-against 0.064 / 0.063 frozen.
+at step 40 (RotorPy, seeds 0 / 1, without the model's smoothing, offset estimate and input filter;
+the docs' RotorPy page): one-step error after the change 0.072 / 0.069 with the test, 0.166 / 0.196
+with the lower mean, 0.20 / 0.19 with no guard, against 0.064 / 0.063 frozen.
 
 What this gives: an update that worsens the held-out transitions is never adopted; one that improves
 them by more than their noise is adopted within a few transitions (after a wind change, where the
@@ -50,8 +50,8 @@ def surely_positive(gains: list[float]) -> bool:
 
 
 class GuardedOnlineGP:
-    """An :class:`~torch_gpmpc.gp.online.OnlineGP` beside its frozen fit, planning with whichever
-    predicted the latest held-out transitions better (the
+    """An :class:`~torch_gpmpc.gp.online.OnlineGP` beside its frozen fit, planning with the learner only
+    while it predicted the latest held-out transitions surely better (the
     :class:`~torch_gpmpc.gp.protocol.ResidualModel` protocol).
 
     Args:
