@@ -87,7 +87,8 @@ def holdout(sets: dict, samples: int) -> dict:
 
 def replay(out: Path, seed: int, change_step: int, budgets=(50, 100)) -> list[dict]:
     """The online update without feedback: the transitions of the frozen run of ``seed`` (wind change)
-    fed to online copies of the same GPs; one-step prediction over the 50 steps after the change."""
+    fed to online copies of the same GPs (their learners, without the guard); one-step prediction over
+    the 50 steps after the change."""
     import torch
 
     from torch_gpmpc.config import load_config
@@ -105,7 +106,8 @@ def replay(out: Path, seed: int, change_step: int, budgets=(50, 100)) -> list[di
     rows = []
     for budget in budgets:
         frozen = OnlineLearning(gps, system.nominal, online=False)
-        online = OnlineLearning(online_gps(gps, budget, 0), system.nominal, online=True)
+        # the learners alone, without the guard: what the update itself learns
+        online = OnlineLearning([guarded.learner for guarded in online_gps(gps, budget, 0)], system.nominal, online=True)
         pairs = [(frozen.observe(x[t], u[t], x[t + 1]), online.observe(x[t], u[t], x[t + 1])) for t in range(len(u))]
         err_f = torch.stack([f[0] for f, _ in pairs])[after]
         err_o, var_o = (torch.stack([o[i] for _, o in pairs])[after] for i in (0, 1))

@@ -82,3 +82,18 @@ def test_collect_defaults_to_the_plants_samples(tmp_path, plant, samples):
     args = build_parser().parse_args(["collect", "--plant", plant, "--out", str(tmp_path / "d.npz")])
     _validate(args)
     assert args.samples == samples
+
+
+def test_a_stated_config_fills_again_from_another_model_as_a_benchmark_task_does(tmp_path):
+    stated = Config(model=CRAZYFLIE).stated_dict()
+    assert stated["input_rate_weight"] is None and stated["gp_samples"] is None
+    smooth = _model_file(tmp_path, "smooth.toml", {"input_rate_weight": 3.0})
+    team = Config(**{**Config().stated_dict(), "models": (smooth, smooth), "num_agents": 2, "scenario": "circle"})
+    assert team.input_rate_weight == 3.0
+    assert Config(**{**stated, "model": "double-integrator", "dim": 3}).input_rate_weight == 0.0
+
+
+@pytest.mark.parametrize("key, value", [("model", 3), ("models", 3), ("plant", [1])])
+def test_a_wrong_type_is_named_before_any_model_is_read(key, value):
+    with pytest.raises(GpmpcError, match=f"config key '{key}'"):
+        Config(**{key: value})

@@ -84,3 +84,38 @@ def test_the_learner_must_be_better_by_two_standard_errors():
     assert not surely_positive([0.3, -0.1, 0.2])     # mean 0.133 < 2 * 0.208 / sqrt(3) = 0.240
     assert not surely_positive([1.0, -1.0, 1.0, -1.0])
     assert surely_positive([0.5, 0.5, 0.5])          # no spread: any positive mean
+
+
+def test_an_equally_good_learner_is_adopted_only_by_chance():
+    """Paired squared errors of two equally good models (independent unit normal errors): the test
+    adopts the learner on about 6 % of the windows of 3 transitions and 3 % of those of 10 (the figures
+    the guard's docstring gives)."""
+    g = torch.Generator().manual_seed(0)
+    for n, low, high in ((3, 0.05, 0.07), (10, 0.025, 0.038)):
+        errors = torch.randn(20000, n, 2, generator=g, dtype=F64).square()
+        rate = sum(surely_positive(row.tolist()) for row in errors[..., 0] - errors[..., 1]) / 20000
+        assert low < rate < high
+
+
+def test_online_gps_keep_the_whole_fit_as_the_frozen_model():
+    """A fit on more rows than the window: the learner keeps the latest rows, the frozen model all."""
+    from torch_gpmpc.gp.online import online_gps
+
+    fit = _fitted()
+    guarded = online_gps([fit], budget=10, refit_every=0)[0]
+    assert guarded.gp.num_data == 10 and guarded.frozen.num_data == fit.num_data == 40
+    q = _points(6, 8)
+    assert torch.equal(guarded.predict(q)[0], fit.predict(q)[0])
+
+
+def test_learning_runs_with_unguarded_online_gps_too():
+    from torch_gpmpc.config.model_spec import ModelSpec
+    from torch_gpmpc.dynamics.systems import NominalModel
+    from torch_gpmpc.gp.online import OnlineLearning
+
+    nominal = NominalModel(ModelSpec.double_integrator(dim=1, dt=0.1, u_max=2.0))
+    gp = ResidualGP(torch.zeros(5, 1, dtype=F64) + torch.arange(5.0, dtype=F64)[:, None], torch.zeros(5, 1, dtype=F64))
+    learning = OnlineLearning([OffsetCorrected(OnlineGP(gp, budget=20), drift=0.01)], nominal, online=True)
+    x = torch.tensor([[0.5, 0.1]], dtype=F64)
+    learning.observe(x, torch.zeros(1, 1, dtype=F64), nominal(x, torch.zeros(1, 1, dtype=F64)))
+    assert learning.gps[0].model.gp.num_data == 6

@@ -41,7 +41,7 @@ def config_keys() -> list[ConfigKey]:
         >>> keys["admm_coupling"].default, keys["admm_coupling"].allowed
         ('copies', 'copies, planes')
     """
-    docs = {**attribute_docs(Config), **attribute_docs(ControllerSettings)}
+    docs = {**attribute_docs(ControllerSettings), **attribute_docs(Config)}  # a key Config redefines: its text
     controller = set(ControllerSettings.__dataclass_fields__)
     return [ConfigKey(f.name, str(f.type).replace("typing.", "").replace("torch_gpmpc.config.", ""),
                       default_of(f), allowed(f.name), applies(f.name), docs.get(f.name, ""), f.name in controller)

@@ -12,11 +12,12 @@ import dataclasses
 import warnings
 import typing
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Mapping
 
 from torch_gpmpc.config.fields import Applies, Rules, build, check_keys, coerce_lists, validate, warn_ignored
 from torch_gpmpc.config.model_spec import (
-    BUILTIN_MODELS, CONTROL_KEYS, ModelSpec, check_model_name, parse_model, resolve_model,
+    BUILTIN_MODELS, CONTROL_KEYS, MODEL_SUFFIXES, ModelSpec, check_model_name, parse_model, resolve_model,
 )
 from torch_gpmpc.config.obstacles import FOREST_GAP_EXTRA, ObstacleField, doorway_extent, forest_extent
 from torch_gpmpc.config.cost_table import CostTable
@@ -104,12 +105,9 @@ class Config(ControllerSettings):
             its residual rows from its own one-step prediction errors, a Kalman filter of a random
             walk of this standard deviation per step (raw units; :mod:`~torch_gpmpc.gp.offset`).
             0: no estimate; null: the model file's ``[control]`` value, else 0.
-        input_rate_weight: as in :class:`ControllerSettings`; null: the model file's ``[control]``
-            value, else 0.
+        input_rate_weight: beta, the weight of the input changes (see :class:`ControllerSettings`);
+            null: the model file's ``[control]`` value, else 0.
 
-    The keys of a model file's ``[control]`` table (:data:`~torch_gpmpc.config.model_spec.CONTROL_KEYS`)
-    are filled in when the configuration is built: after it they hold numbers (or null for
-    ``gp_online_max_input_change`` without a value), and ``to_dict`` writes what the run used.
     Examples:
         >>> from torch_gpmpc import Config
         >>> cfg = Config(model="double-integrator", dim=3, scenario="circle", num_agents=6)
@@ -117,6 +115,12 @@ class Config(ControllerSettings):
         (6, 3, 'propagated')
         >>> cfg.controller_settings().horizon
         13
+
+    The keys whose default depends on the run (a model file's ``[control]`` table,
+    :data:`~torch_gpmpc.config.model_spec.CONTROL_KEYS`, and ``gp_samples`` by plant) are filled in
+    when the configuration is built: after it they hold the values the run uses, which ``to_dict``
+    writes; :meth:`stated_dict` writes them null, as stated, so a configuration rebuilt from it with
+    another model or plant fills them from that one.
     """
 
     u_max: float = 2.0
@@ -168,17 +172,16 @@ class Config(ControllerSettings):
             object.__setattr__(self, "model", parse_model(self.model, "config key 'model'"))
         parse_world(self, "config key")
         coerce_lists(self)  # plant_wind_speed = [1, 0, 0], radii = [0.2, 0.3] from Python, TOML or --set
+        run_defaults = _run_defaults(self)  # skips what validate refuses next, with the key named
+        object.__setattr__(self, "_filled", _fill_defaults(self, run_defaults))
+        validate(self, RULES)
+        check_risk_mode(self.risk_mode, self.method, self.pair_margin, "config key")
+        check_coupling(self.admm_coupling, self.relinearize, "config key")
         if isinstance(self.model, str):
             check_model_name(self.model)
         if self.models is not None:
             for name in self.models:
                 check_model_name(name, "models")
-        run_defaults = _run_defaults(self)
-        object.__setattr__(self, "_filled", _fill_defaults(self, run_defaults))
-        validate(self, RULES)
-        check_risk_mode(self.risk_mode, self.method, self.pair_margin, "config key")
-        check_coupling(self.admm_coupling, self.relinearize, "config key")
-        if self.models is not None:
             self.team()  # refuses models that cannot plan together
         if self.workspace is not None:
             self.workspace.check_dim(self.position_dim, "config key 'workspace'")
@@ -265,14 +268,18 @@ class Config(ControllerSettings):
     def replace(self, **changes: Any) -> "Config":
         """Return a copy with ``changes`` applied (same checks as loading); of the keys a change leaves
         ignored, only the changed ones warn (the rest warned when this configuration was built)."""
-        # keys filled from the model file and the plant are filled again (from the new ones, where they change)
-        kept = {k: v for k, v in self.to_dict().items() if k not in self._filled}
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
-            out = from_mapping({**kept, **changes})
+            out = from_mapping({**self.stated_dict(), **changes})
         warn_ignored(out, {k: v for k, v in CONFIG_CONDITIONS.items() if k in changes}, "config key",
                      _run_defaults(out))
         return out
+
+    def stated_dict(self) -> dict[str, Any]:
+        """:meth:`to_dict` with the keys filled from the model file and the plant null, as stated: a
+        configuration rebuilt from it (with another model, team or plant) fills them again."""
+        filled = getattr(self, "_filled", frozenset())  # a Config unpickled from an older version has none
+        return {k: (None if k in filled else v) for k, v in self.to_dict().items()}
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict of all keys (JSON-serializable; a :class:`ModelSpec` becomes its model table)."""
@@ -292,15 +299,17 @@ def _run_defaults(cfg: Config) -> dict[str, Any]:
     """The defaults of the keys whose default depends on the run: those of :data:`CONTROL_KEYS` from
     the model file's ``[control]`` table, else the package's (a team's model files must agree);
     ``gp_samples`` from the plant (:data:`DEFAULT_GP_SAMPLES`)."""
-    names = list(cfg.models) if cfg.models is not None else [cfg.model]
-    tables = [dict(_model_control(name, cfg)) for name in names]
-    out: dict[str, Any] = {"gp_samples": DEFAULT_GP_SAMPLES.get(cfg.plant, DEFAULT_GP_SAMPLES["model"])}
+    names = list(cfg.models) if isinstance(cfg.models, (list, tuple)) else [cfg.model]
+    tables = [dict(_model_control(name)) for name in names]
+    plant = cfg.plant if isinstance(cfg.plant, str) else "model"
+    out: dict[str, Any] = {"gp_samples": DEFAULT_GP_SAMPLES.get(plant, DEFAULT_GP_SAMPLES["model"])}
     for key, default in CONTROL_KEYS.items():
         values = {table.get(key, default) for table in tables}
         if len(values) > 1 and getattr(cfg, key) is None:
-            raise GpmpcError(f"config key {key!r}: the team's model files give it different values "
-                             f"({', '.join(map(repr, sorted(values, key=str)))}); set {key} in the configuration")
-        out[key] = values.pop()
+            raise GpmpcError(f"config key {key!r}: the team's models give it different values "
+                             f"({', '.join(map(repr, sorted(values, key=str)))}; a model without it counts as "
+                             f"{default!r}); set {key} in the configuration")
+        out[key] = values.pop() if len(values) == 1 else None  # disagreeing files, the key set: no default
     return out
 
 
@@ -312,13 +321,14 @@ def _fill_defaults(cfg: Config, defaults: dict[str, Any]) -> frozenset[str]:
     return filled
 
 
-def _model_control(model: str | ModelSpec, cfg: Config) -> tuple[tuple[str, float], ...]:
-    """The ``[control]`` pairs of a model (built-ins have none)."""
+def _model_control(model: Any) -> tuple[tuple[str, float], ...]:
+    """The ``[control]`` pairs of a model: a ModelSpec's, an existing model file's; none for a built-in
+    (or a value the checks after filling refuse, naming the key)."""
     if isinstance(model, ModelSpec):
         return model.control
-    if model in BUILTIN_MODELS:
+    if not isinstance(model, str) or Path(model).suffix.lower() not in MODEL_SUFFIXES or not Path(model).is_file():
         return ()
-    return resolve_model(model, cfg.dim, cfg.dt, cfg.u_max).control
+    return resolve_model(model, 2, 0.1, 1.0).control  # dim, dt and u_max shape built-ins only
 
 
 def _builtin_model(cfg) -> bool:
@@ -389,7 +399,6 @@ _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "gp_box": (lambda v: v is None or 0 < v <= 1e4, "a number in (0, 10000] or null (circle_radius)"),
     "min_separation": (lambda v: v >= 0, "a number >= 0"),
     # an exact GP costs O(N^3) time and O(N^2) memory per agent
-    "gp_samples": (lambda v: 2 <= v <= 5000, "an integer in [2, 5000]"),
     "gp_iters": (lambda v: v >= 1, "an integer >= 1"),
     "wind_scale": (lambda v: v >= 0, "a number >= 0"),
     "dt": (lambda v: 0 < v <= 10, "a number in (0, 10]"),
@@ -401,7 +410,9 @@ _RANGES: dict[str, tuple[typing.Callable[[Any], bool], str]] = {
     "gp_online_budget": (lambda v: 2 <= v <= 5000, "an integer in [2, 5000]"),
     "gp_online_refit_every": (lambda v: v >= 0, "an integer >= 0 (0: never re-fit)"),
     "gp_online_max_input_change": (lambda v: v is None or v > 0, "a number > 0 or null (add every transition)"),
-    "disturbance_drift": (lambda v: 0 <= v <= 10, "a number in [0, 10] (0: no offset estimate; null: the model's)"),
+    "disturbance_drift": (lambda v: 0 <= v <= 10, "a number in [0, 10] (0: no offset estimate); null: the model file's"),
+    "input_rate_weight": (lambda v: v >= 0, "a number >= 0 (0: no input-rate term); null: the model file's, else 0"),
+    "gp_samples": (lambda v: 2 <= v <= 5000, "an integer in [2, 5000]; null: the plant's (100, 400 with rotorpy)"),
 }
 
 

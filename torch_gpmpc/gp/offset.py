@@ -129,7 +129,8 @@ class OffsetCorrected:
     def judge(self, inputs: Tensor, y: Tensor) -> None:
         """Let the wrapped guarded model judge rows ``inputs`` (n, Din), residuals ``y`` (n, R), less
         the offset (:meth:`GuardedOnlineGP.judge <torch_gpmpc.gp.guard.GuardedOnlineGP.judge>`)."""
-        self.model.judge(inputs, y - self.offset.to(y))
+        if hasattr(self.model, "judge"):  # an unguarded OnlineGP has nothing to judge
+            self.model.judge(inputs, y - self.offset.to(y))
 
     def end_step(self) -> bool:
         """Count a step of the wrapped online model

@@ -198,7 +198,8 @@ class OnlineLearning:
         gps: one model per agent (the controller's objects: updated in place).
         nominal: the planning model (its residual rows and GP input columns; a mixed team's
             :class:`~torch_gpmpc.dynamics.team.TeamNominal`).
-        online: add each agent's transitions to its own GP (``OnlineGP`` wrappers).
+        online: add each agent's transitions to its own GP (:func:`online_gps`' guarded models, or
+            :class:`OnlineGP` ones, either possibly offset-corrected).
         max_input_change: add a transition only if its input differs from the agent's previous one
             by at most this (Euclidean norm; ``None``: every transition). A vehicle that realizes its
             command with a lag (a quadrotor tilting first) makes transitions whose residual is mostly
@@ -237,7 +238,8 @@ class OnlineLearning:
         if self.online:
             steady = self._steady_inputs(u)
             for k, gp in enumerate(self.gps):
-                gp.judge(inputs[k], y[k:k + 1])
+                if hasattr(gp, "judge"):  # a guarded model (online_gps) judges before it learns
+                    gp.judge(inputs[k], y[k:k + 1])
                 if steady[k]:
                     gp.add(inputs[k], y[k:k + 1])
                 else:
@@ -269,4 +271,6 @@ def _adopted(model) -> bool:
 def online_gps(gps: list, budget: int, refit_every: int) -> list[GuardedOnlineGP]:
     """Each agent's own copy of its GP as a guarded :class:`OnlineGP` (a GP shared by several agents
     is copied, so each learns only its own transitions)."""
-    return [GuardedOnlineGP(OnlineGP(copy.deepcopy(gp), budget, refit_every)) for gp in gps]
+    # the guard's frozen model is the whole fit: the learner keeps only its latest ``budget`` rows
+    return [GuardedOnlineGP(OnlineGP(copy.deepcopy(gp), budget, refit_every), frozen=copy.deepcopy(gp))
+            for gp in gps]

@@ -49,11 +49,11 @@ def benchmark_tasks(cfg: Config, scenarios: Sequence[str], agents: Sequence[int]
         if Path(name).suffix in (".json", ".toml"):
             size = make_scenario(cfg, name).num_agents  # validates the file before any run starts
             # the file's team overrides num_agents, as in ``gpmpc run --scenario``
-            out += [(Path(name).stem, size, Task("bench", cfg.method, cfg.seed + s, cfg.rho, cfg.to_dict(), cache_dir,
+            out += [(Path(name).stem, size, Task("bench", cfg.method, cfg.seed + s, cfg.rho, cfg.stated_dict(), cache_dir,
                                                  scenario_file=str(name))) for s in range(seeds)]
             continue
         for k in agents:
-            config = {**cfg.to_dict(), "scenario": name, "num_agents": int(k)}
+            config = {**cfg.stated_dict(), "scenario": name, "num_agents": int(k)}
             Config(**config)  # refuse a bad combination (paper with K != 3) before any run starts
             out += [(name, int(k), Task("bench", cfg.method, cfg.seed + s, cfg.rho, config, cache_dir))
                     for s in range(seeds)]
