@@ -127,10 +127,14 @@ class OffsetCorrected:
         self.model.add(inputs, y - self.offset.to(y))
 
     def judge(self, inputs: Tensor, y: Tensor) -> None:
-        """Let the wrapped guarded model judge rows ``inputs`` (n, Din), residuals ``y`` (n, R), less
+        """Let the wrapped online model judge rows ``inputs`` (n, Din), residuals ``y`` (n, R), less
         the offset (:meth:`GuardedOnlineGP.judge <torch_gpmpc.gp.guard.GuardedOnlineGP.judge>`)."""
-        if hasattr(self.model, "judge"):  # an unguarded OnlineGP has nothing to judge
-            self.model.judge(inputs, y - self.offset.to(y))
+        self.model.judge(inputs, y - self.offset.to(y))
+
+    @property
+    def adopted(self) -> bool:
+        """Whether the wrapped online model plans with what it has learnt."""
+        return self.model.adopted
 
     def end_step(self) -> bool:
         """Count a step of the wrapped online model

@@ -109,6 +109,14 @@ class OnlineGP:
                 else:
                     self._add_sparse(inputs[i:i + 1], y[i:i + 1])
 
+    #: an unguarded online GP always plans with what it has learnt (:class:`~.guard.GuardedOnlineGP`
+    #: chooses)
+    adopted = True
+
+    def judge(self, inputs: Tensor, y: Tensor) -> None:
+        """Nothing to choose between (a :class:`~torch_gpmpc.gp.guard.GuardedOnlineGP` judges its
+        learner against its fit here); ``inputs`` (n, Din), ``y`` (n, R)."""
+
     def end_step(self) -> bool:
         """Count one control step; re-fit the hyperparameters when ``refit_every`` steps have passed.
         Returns whether it re-fitted."""
@@ -238,14 +246,13 @@ class OnlineLearning:
         if self.online:
             steady = self._steady_inputs(u)
             for k, gp in enumerate(self.gps):
-                if hasattr(gp, "judge"):  # a guarded model (online_gps) judges before it learns
-                    gp.judge(inputs[k], y[k:k + 1])
+                gp.judge(inputs[k], y[k:k + 1])  # before it learns: a guarded model scores held-out rows
                 if steady[k]:
                     gp.add(inputs[k], y[k:k + 1])
                 else:
                     self.skipped[k] += 1
                 gp.end_step()
-            self.adopted_share.append(sum(_adopted(gp) for gp in self.gps) / len(self.gps))
+            self.adopted_share.append(sum(gp.adopted for gp in self.gps) / len(self.gps))
         for k, gp in enumerate(self.gps):
             if isinstance(gp, OffsetCorrected):
                 # the innovation of the model the next plan uses: after an online update the GP has
@@ -261,11 +268,6 @@ class OnlineLearning:
         if self.max_input_change is None or prev is None:
             return [True] * u.shape[0]
         return ((u - prev).norm(dim=-1) <= self.max_input_change).tolist()
-
-
-def _adopted(model) -> bool:
-    """Whether an agent's model (guarded, possibly offset-corrected) plans with its learner."""
-    return bool(getattr(getattr(model, "model", model), "adopted", False))
 
 
 def online_gps(gps: list, budget: int, refit_every: int) -> list[GuardedOnlineGP]:
