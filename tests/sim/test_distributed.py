@@ -265,6 +265,23 @@ def test_a_step_that_falls_back_keeps_the_distributed_run_equal_to_in_process(tm
     assert np.abs(states - ref.states).max() <= 1e-9
 
 
+def test_online_gps_learn_in_the_agent_processes_as_in_process(tmp_path):
+    """With ``gp_online`` every agent process keeps its own guarded online GP and learns from the
+    transitions it makes, its offset estimate on top: the states equal the in-process run's, where
+    one OnlineLearning updates every agent. The wind turns at step 1 and the learners are adopted
+    from step 7 on, where the run parts from a frozen one."""
+    out = tmp_path / "dist"
+    keys = {"method": "gp-chance", "max_steps": 12, "gp_iters": 5, "gp_online": True, "wind_scale": 0.5,
+            "wind_change_step": 1, "disturbance_drift": 0.01}
+    cfg, ref = run_both_backends(keys, out)
+    with np.load(out / "rollout.npz", allow_pickle=False) as r:
+        states = r["states"]
+    assert states.shape == ref.states.shape == (13, 3, 2)
+    assert np.abs(states - ref.states).max() <= 1e-9
+    frozen = simulate(cfg.replace(gp_online=False))
+    assert np.abs(frozen.states - ref.states).max() > 0.1
+
+
 def test_plane_distributed_run_equals_inprocess_and_counts_bytes(tmp_path):
     """``admm_coupling = planes`` across processes (two agents per process, so in-memory and gloo
     deliveries both): the in-process states and iterations; per iteration T offsets per neighbour,

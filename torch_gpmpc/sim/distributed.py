@@ -319,10 +319,6 @@ def check_distributed(cfg: Config, num_agents: int, agents_per_process: int, tim
         raise GpmpcError("config key 'risk_mode': the mission budget runs in process only so far (its agents "
                          "would also exchange their step's risks and applied next states); drop "
                          "--backend distributed or use risk_mode=pair_step")
-    if cfg.gp_online:
-        raise GpmpcError("config key 'gp_online': online GP updates run in process only so far (each agent "
-                         "process would learn from the transitions the world sends it); drop --backend "
-                         "distributed or set gp_online=false")
     if agents_per_process < 1:
         raise GpmpcError(f"--agents-per-process (agents_per_process) must be >= 1, got {agents_per_process}")
     if not timeout_s > 0:

@@ -43,7 +43,7 @@ from torch_gpmpc.coordination.agent_step import edge_copies, fall_back_to_previo
 from torch_gpmpc.coordination.fallback import fallback_agents, fallback_problem, pair_safety
 from torch_gpmpc.coordination.controller import make_agent_step
 from torch_gpmpc.gp.offset import OffsetCorrected, offset_corrected
-from torch_gpmpc.gp.online import OnlineLearning
+from torch_gpmpc.gp.online import OnlineLearning, online_gps
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
 from torch_gpmpc.coordination.graph import graph_from_edges
 from torch_gpmpc.coordination.planes import (
@@ -126,8 +126,11 @@ class AgentController:
         self.k, self.num_agents, self.cfg = k, num_agents, cfg
         self.reference = torch.as_tensor(reference, dtype=DTYPE)
         system = team_system_from_config(cfg)
-        #: this agent's residual model, with its own offset estimate where ``disturbance_drift`` > 0
-        self.gp = None if gp is None else offset_corrected([gp], cfg.offset_drift)[0]
+        #: this agent's residual model: with ``gp_online`` its own guarded online copy, and its own
+        #: offset estimate where ``disturbance_drift`` > 0 (the in-process run's wrapping, in its order)
+        self.gp = None if gp is None else offset_corrected(
+            online_gps([gp], cfg.gp_online_budget, cfg.gp_online_refit_every) if cfg.gp_online else [gp],
+            cfg.offset_drift)[0]
         # indexed by agent id; this process holds only its own GP
         gps = None if self.gp is None else [self.gp if j == k else None for j in range(self.num_agents)]
         step = make_agent_step(cfg, system, gps)
@@ -137,9 +140,9 @@ class AgentController:
         #: this agent's per-agent step (the same object the in-process ADMM iterates; in a mixed
         #: team its model's step, as the in-process TeamStep uses for its rows)
         self.local = step.groups[step.team.group_of[k]] if isinstance(step, TeamStep) else step
-        #: the offset estimate's updates, as the in-process loop makes them for every agent
-        self.learning = OnlineLearning([self.gp], self.local.nominal, online=False) \
-            if isinstance(self.gp, OffsetCorrected) else None
+        #: the online GP's and the offset estimate's updates, as the in-process loop makes them for every agent
+        self.learning = OnlineLearning([self.gp], self.local.nominal, cfg.gp_online, cfg.gp_online_max_input_change) \
+            if cfg.gp_online or isinstance(self.gp, OffsetCorrected) else None
         self.rho = torch.as_tensor(cfg.rho, dtype=DTYPE)
         #: neighbours agree on separating planes (admm_coupling = planes), not on copies
         self.planes = cfg.admm_coupling == "planes"
@@ -163,7 +166,7 @@ class AgentController:
         """
         cfg, k, K = self.cfg, self.k, self.num_agents
         nominal = self.local.nominal
-        self._observe_offset(x0)
+        self._learn_from_last_step(x0)
         self.x0 = x0
         if xref is None:
             xref = nominal.reference_states(reference_window(self.reference, t, cfg.horizon))
@@ -187,10 +190,11 @@ class AgentController:
         self._next_nbrs = sorted(int(j) for j in nbr_ids if int(j) != k)
         return [j for j in self._next_nbrs if j not in self.nbrs]
 
-    def _observe_offset(self, x0: Tensor) -> None:
-        """Update this agent's offset estimate from the transition it just made (x0 (D,), its measured
-        state, after the input it applied last from the state of the step before) through
-        :class:`~torch_gpmpc.gp.online.OnlineLearning`, as the in-process loop does for every agent."""
+    def _learn_from_last_step(self, x0: Tensor) -> None:
+        """Learn from the transition this agent just made (x0 (D,), its measured state, after the
+        input it applied last from the state of the step before) through
+        :class:`~torch_gpmpc.gp.online.OnlineLearning`, as the in-process loop does for every agent:
+        its online GP (``gp_online``) and its offset estimate."""
         if self.learning is None or self.state is None or self.state.applied is None:
             return
         u = self.local.nominal.project(self.state.applied[self.k:self.k + 1])
