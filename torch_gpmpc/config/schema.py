@@ -173,6 +173,7 @@ class Config(ControllerSettings):
         parse_world(self, "config key")
         coerce_lists(self)  # plant_wind_speed = [1, 0, 0], radii = [0.2, 0.3] from Python, TOML or --set
         run_defaults = _run_defaults(self)  # skips what validate refuses next, with the key named
+        object.__setattr__(self, "_default_values", run_defaults)  # replace's warnings compare against them
         object.__setattr__(self, "_filled", _fill_defaults(self, run_defaults))
         validate(self, RULES)
         check_risk_mode(self.risk_mode, self.method, self.pair_margin, "config key")
@@ -272,7 +273,7 @@ class Config(ControllerSettings):
             warnings.simplefilter("ignore", UserWarning)
             out = from_mapping({**self.stated_dict(), **changes})
         warn_ignored(out, {k: v for k, v in CONFIG_CONDITIONS.items() if k in changes}, "config key",
-                     _run_defaults(out))
+                     out._default_values)
         return out
 
     def stated_dict(self) -> dict[str, Any]:

@@ -29,13 +29,14 @@ import time
 import torch
 from torch import Tensor
 
+from torch_gpmpc.config.schema import Config
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.gp.cache import PredictionCache, squared_distances
 from torch_gpmpc.gp.cholesky_update import cholesky_append, cholesky_drop_first, cholesky_rank_one
 from torch_gpmpc.gp.fit import refit_hyperparameters
 from torch_gpmpc.gp.guard import GuardedOnlineGP
 from torch_gpmpc.gp.model import ResidualGP, check_training_data
-from torch_gpmpc.gp.offset import OffsetCorrected
+from torch_gpmpc.gp.offset import OffsetCorrected, offset_corrected
 from torch_gpmpc.gp.sparse import sparse_posterior
 
 #: L-BFGS steps of a periodic hyperparameter refit.
@@ -276,3 +277,12 @@ def online_gps(gps: list, budget: int, refit_every: int) -> list[GuardedOnlineGP
     # the guard's frozen model is the whole fit: the learner keeps only its latest ``budget`` rows
     return [GuardedOnlineGP(OnlineGP(copy.deepcopy(gp), budget, refit_every), frozen=copy.deepcopy(gp))
             for gp in gps]
+
+
+def run_models(gps: list, cfg: Config) -> list:
+    """Each agent's model as a run of ``cfg`` plans with it, in process and in an agent process alike:
+    with ``gp_online`` its own guarded online copy (:func:`online_gps`), then its offset estimate
+    where ``disturbance_drift`` > 0 (:func:`~torch_gpmpc.gp.offset.offset_corrected`)."""
+    if cfg.gp_online:
+        gps = online_gps(gps, cfg.gp_online_budget, cfg.gp_online_refit_every)
+    return offset_corrected(gps, cfg.offset_drift)

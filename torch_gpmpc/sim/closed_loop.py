@@ -36,8 +36,7 @@ from torch_gpmpc.dynamics.plants import Plant, plant_from_config
 from torch_gpmpc.dynamics.systems import TrueSystem
 from torch_gpmpc.dynamics.team import TeamSystem, team_system_from_config
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.gp.offset import offset_corrected
-from torch_gpmpc.gp.online import OnlineLearning, online_gps
+from torch_gpmpc.gp.online import OnlineLearning, run_models
 from torch_gpmpc.sim.detours import DeadlockBreaker, detour_clearance, detour_reference
 from torch_gpmpc.sim.path_following import PathFollower
 from torch_gpmpc.sim.recorder import StepInfo, StepRecorder, log_step
@@ -159,9 +158,7 @@ def simulate(
             else fit_agent_gps(cfg, system, num_agents)
     learning = None
     if gps is not None:
-        if cfg.gp_online:
-            gps = online_gps(gps, cfg.gp_online_budget, cfg.gp_online_refit_every)
-        gps = offset_corrected(gps, cfg.offset_drift)
+        gps = run_models(gps, cfg)
         learning = OnlineLearning(gps, system.nominal, cfg.gp_online, cfg.gp_online_max_input_change)
     planner = ADMMPlanner(Controller.for_run(cfg, system, gps))
     return run_closed_loop(cfg, scenario, system, planner, on_step, tb, learning)

@@ -42,8 +42,8 @@ from torch_gpmpc.coordination.bodies import slot_distances
 from torch_gpmpc.coordination.agent_step import edge_copies, fall_back_to_previous, slot_risks
 from torch_gpmpc.coordination.fallback import fallback_agents, fallback_problem, pair_safety
 from torch_gpmpc.coordination.controller import make_agent_step
-from torch_gpmpc.gp.offset import OffsetCorrected, offset_corrected
-from torch_gpmpc.gp.online import OnlineLearning, online_gps
+from torch_gpmpc.gp.offset import OffsetCorrected
+from torch_gpmpc.gp.online import OnlineLearning, run_models
 from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
 from torch_gpmpc.coordination.graph import graph_from_edges
 from torch_gpmpc.coordination.planes import (
@@ -126,11 +126,8 @@ class AgentController:
         self.k, self.num_agents, self.cfg = k, num_agents, cfg
         self.reference = torch.as_tensor(reference, dtype=DTYPE)
         system = team_system_from_config(cfg)
-        #: this agent's residual model: with ``gp_online`` its own guarded online copy, and its own
-        #: offset estimate where ``disturbance_drift`` > 0 (the in-process run's wrapping, in its order)
-        self.gp = None if gp is None else offset_corrected(
-            online_gps([gp], cfg.gp_online_budget, cfg.gp_online_refit_every) if cfg.gp_online else [gp],
-            cfg.offset_drift)[0]
+        #: this agent's residual model as the in-process run wraps it (online copy, offset estimate)
+        self.gp = None if gp is None else run_models([gp], cfg)[0]
         # indexed by agent id; this process holds only its own GP
         gps = None if self.gp is None else [self.gp if j == k else None for j in range(self.num_agents)]
         step = make_agent_step(cfg, system, gps)
