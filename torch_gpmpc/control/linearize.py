@@ -33,6 +33,7 @@ from torch import Tensor
 
 from torch_gpmpc.dynamics.methods import Dynamics, Method
 from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.gp.batch import linearize_models
 from torch_gpmpc.dynamics.systems import PAPER_DT, NominalModel, VortexWind
 
 
@@ -172,20 +173,13 @@ def _gp_linearizations(gps, zbar: Tensor, method: Method, R: int) -> tuple[Tenso
         raise GpmpcError(f"method {method.value!r} needs one residual GP per agent (gps=None was given)")
     if len(gps) != batch:
         raise GpmpcError(f"method {method.value!r}: got {len(gps)} GPs for {batch} agents")
-    means, jacs, variances = [], [], []
-    for k, gp in enumerate(gps):
-        mean, jac, var = gp.linearize(zbar[k])
-        expected = {"mean": (steps, R), "jac": (steps, R, din), "var": (steps, R)}
-        for name, value in (("mean", mean), ("jac", jac), ("var", var)):
-            if tuple(value.shape) != expected[name]:
-                raise GpmpcError(
-                    f"GP of agent {k} returned {name} of shape {tuple(value.shape)}, expected "
-                    f"{expected[name]} (is the GP trained on the model's {din} GP inputs and {R} residual rows?)"
-                )
-        means.append(mean)
-        jacs.append(jac)
-        variances.append(var)
-    return torch.stack(means), torch.stack(jacs), torch.stack(variances)
+    mean, jac, var = linearize_models(gps, zbar)
+    expected = {"mean": (batch, steps, R), "jac": (batch, steps, R, din), "var": (batch, steps, R)}
+    for name, value in (("mean", mean), ("jac", jac), ("var", var)):
+        if tuple(value.shape) != expected[name]:
+            raise GpmpcError(f"the GPs returned {name} of shape {tuple(value.shape)}, expected {expected[name]} "
+                             f"(are they trained on the model's {din} GP inputs and {R} residual rows?)")
+    return mean, jac, var
 
 
 def _gp_noise(gp, R: int, like: Tensor) -> Tensor:

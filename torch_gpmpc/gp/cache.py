@@ -1,8 +1,14 @@
-"""The prediction cache of a fitted :class:`~torch_gpmpc.gp.model.ResidualGP`.
+"""The prediction cache of a fitted :class:`~torch_gpmpc.gp.model.ResidualGP`, and the posterior
+evaluated from it.
 
 Like GPyTorch's exact prediction strategy, the fitted model keeps the Cholesky factor of
 ``K + s^2 I`` and ``alpha = (K + s^2 I)^{-1} y`` in one object, rebuilt by
 ``ResidualGP.refresh()`` whenever the hyperparameters change.
+
+The posterior functions (:func:`cross_covariances`, :func:`mean_and_jacobian`) take one model's cache
+or a stack of B caches (:class:`StackedMeans`, every tensor with a leading batch dimension): one
+code for an agent's model and for a whole team's (:mod:`~torch_gpmpc.gp.batch`), element for element
+the same operations, so the two give the same bits.
 """
 
 from __future__ import annotations
@@ -42,10 +48,100 @@ class PredictionCache:
     chol_add: Tensor | None = None  # (D, N, N) sparse GP: lower factor of Sigma^-1 (gp.sparse)
 
 
+@dataclass
+class StackedMeans:
+    """The fields of B same-shaped :class:`PredictionCache` s that the posterior mean and its Jacobian
+    read, stacked on a leading batch dimension (shapes as there, with B in front). The factors
+    (``chol``) stay with each model: the variance is solved model by model."""
+
+    x_mean: Tensor  # (B, Din)
+    x_std: Tensor  # (B, Din)
+    ls: Tensor  # (B, D, 1, Din)
+    x_scale: Tensor  # (B, D, 1, Din)
+    S: Tensor  # (B, D, N, Din)
+    S_cols: tuple[Tensor, ...]  # Din tensors (B, D, 1, N)
+    outputscale: Tensor  # (B, D)
+    alpha: Tensor  # (B, D, N)
+    y_mean: Tensor  # (B, D)
+    y_std: Tensor  # (B, D)
+
+    @classmethod
+    def stack(cls, caches: list[PredictionCache]) -> "StackedMeans":
+        """Stack B caches of the same shapes."""
+        def stacked(name: str) -> Tensor:
+            return torch.stack([getattr(c, name) for c in caches])
+
+        columns = tuple(torch.stack([c.S_cols[i] for c in caches]) for i in range(len(caches[0].S_cols)))
+        return cls(stacked("x_mean"), stacked("x_std"), stacked("ls"), stacked("x_scale"), stacked("S"), columns,
+                   stacked("outputscale"), stacked("alpha"), stacked("y_mean"), stacked("y_std"))
+
+
+def cross_covariances(c: PredictionCache | StackedMeans, x: Tensor) -> tuple[Tensor, Tensor]:
+    """Scaled query points s (..., D, n, Din) and cross-covariances k (..., D, n, N) of raw query
+    points x (..., n, Din); ``...`` is empty for one cache and (B,) for a stack."""
+    s = (((x - c.x_mean[..., None, :]) / c.x_std[..., None, :]))[..., None, :, :] / c.ls
+    # squared distances column by column: exact differences, faster than cdist for small Din
+    sq = (s[..., 0:1] - c.S_cols[0]).square_()
+    for i in range(1, len(c.S_cols)):
+        sq += (s[..., i:i + 1] - c.S_cols[i]).square_()
+    k = c.outputscale[..., :, None, None] * torch.exp(-0.5 * sq)
+    return s, k
+
+
+def posterior_mean(c: PredictionCache | StackedMeans, k: Tensor) -> Tensor:
+    """Standardized posterior mean (..., D, n) from cross-covariances k (..., D, n, N)."""
+    return (k * c.alpha[..., :, None, :]).sum(-1)
+
+
+def mean_and_jacobian(c: PredictionCache | StackedMeans, s: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
+    """Raw-unit mean (..., n, D) and Jacobian (..., n, D, Din) from :func:`cross_covariances`."""
+    W = k * c.alpha[..., :, None, :]  # (..., D, n, N)
+    mean_std = W.sum(-1)  # (..., D, n)
+    # eq. 13 in scaled coordinates: d mu_std / d s_i = sum_n W_n (S_ni - s_i);
+    # chain rule through s = (x - x_mean) / (x_std * lengthscale), then y = y_mean + y_std mu_std
+    jac = (W @ c.S - mean_std[..., None] * s) / c.x_scale * c.y_std[..., :, None, None]
+    return raw_mean(c, mean_std), jac.transpose(-3, -2)
+
+
+def raw_mean(c: PredictionCache | StackedMeans, mean_std: Tensor) -> Tensor:
+    """Raw-unit mean (..., n, D) from the standardized one (..., D, n)."""
+    return c.y_mean[..., None, :] + c.y_std[..., None, :] * mean_std.transpose(-1, -2)
+
+
+def explained_variance(c: PredictionCache, k: Tensor) -> tuple[Tensor, Tensor | None]:
+    """What ONE cache's data explain of the prior variance at cross-covariances k (D, n, N):
+    ``||chol^-1 k||^2`` (D, n), and for a sparse GP the ``||chol_add^-1 k||^2`` (D, n) it adds back
+    (``None`` for an exact GP). Solved against the model's own factor."""
+    v = torch.linalg.solve_triangular(c.chol, k.mT, upper=False)
+    if c.chol_add is None:
+        return v.square().sum(-2), None
+    return v.square().sum(-2), torch.linalg.solve_triangular(c.chol_add, k.mT, upper=False).square().sum(-2)
+
+
+def latent_variance(c: PredictionCache | StackedMeans, explained: Tensor, added: Tensor | None) -> Tensor:
+    """Raw-unit latent variance (..., n, D) from :func:`explained_variance` (each (..., D, n)):
+    ``outputscale - ||chol^-1 k||^2 (+ ||chol_add^-1 k||^2 for a sparse GP)``."""
+    var = c.outputscale[..., :, None] - explained
+    if added is not None:  # sparse: + k Sigma k (gp.sparse)
+        var = var + added
+    return c.y_std[..., None, :] ** 2 * var.clamp_min(0.0).transpose(-1, -2)
+
+
 def parameter_values(module: torch.nn.Module) -> Tensor:
     """A snapshot of a module's parameter values, flattened (a new tensor): what a prediction
     cache is keyed on, so that in-place optimizer steps and setter assignments are both seen."""
-    return torch.cat([p.detach().reshape(-1) for p in module.parameters()])
+    return torch.cat([p.detach().reshape(-1) for p in _parameters(module, [])])
+
+
+def _parameters(module: torch.nn.Module, found: list[Tensor]) -> list[Tensor]:
+    """Every parameter of ``module`` and its submodules, read from their registries: what
+    ``module.parameters()`` yields (with shared ones repeated), at half its cost, for the check that
+    every prediction makes."""
+    found.extend(p for p in module._parameters.values() if p is not None)
+    for child in module._modules.values():
+        if child is not None:
+            _parameters(child, found)
+    return found
 
 
 def squared_distances(a: Tensor, b: Tensor) -> Tensor:

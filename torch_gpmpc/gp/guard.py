@@ -36,6 +36,8 @@ from collections import deque
 import torch
 from torch import Tensor
 
+from torch_gpmpc.gp.batch import ShiftedGP, shifted_gp
+
 #: transitions over which the two models' one-step errors are compared (about 1 s at 10 Hz)
 GUARD_WINDOW = 10
 #: transitions scored before the learner may be adopted
@@ -122,6 +124,10 @@ class GuardedOnlineGP:
     def predict(self, x: Tensor, include_noise: bool = False) -> tuple[Tensor, Tensor]:
         """The planning model's mean and variance (n, R) at ``x`` (n, Din)."""
         return self.planning_model.predict(x, include_noise=include_noise)
+
+    def shifted_gp(self) -> ShiftedGP | None:
+        """The planning model's GP, for a team's batched evaluation (:mod:`~torch_gpmpc.gp.batch`)."""
+        return shifted_gp(self.planning_model)
 
     # ------------------------------------------------------------------ judging and learning
     def judge(self, inputs: Tensor, y: Tensor) -> None:

@@ -40,7 +40,11 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.gp.cache import PredictionCache, parameter_values, safe_cholesky, squared_distances
+from torch_gpmpc.gp.batch import ShiftedGP
+from torch_gpmpc.gp.cache import (
+    PredictionCache, cross_covariances, explained_variance, latent_variance, mean_and_jacobian, parameter_values,
+    posterior_mean, raw_mean, safe_cholesky, squared_distances,
+)
 from torch_gpmpc.gp.gpytorch_models import GPyTorchResidual
 from torch_gpmpc.gp.io import FORMAT, VERSION, read_payload, verify_checksum, write_payload
 from torch_gpmpc.gp.normalization import Standardization
@@ -294,30 +298,20 @@ class ResidualGP(torch.nn.Module):
     def _cross(self, x: Tensor) -> tuple[PredictionCache, Tensor, Tensor]:
         """Scaled query points s (D, n, Din) and cross-covariances k (D, n, N)."""
         c = self._get_cache()
-        x = self._check_query(x)
-        s = ((x - c.x_mean) / c.x_std) / c.ls
-        # squared distances column by column: exact differences, faster than cdist for small Din
-        sq = (s[..., 0:1] - c.S_cols[0]).square_()
-        for i in range(1, len(c.S_cols)):
-            sq += (s[..., i:i + 1] - c.S_cols[i]).square_()
-        k = c.outputscale[:, None, None] * torch.exp(-0.5 * sq)
+        s, k = cross_covariances(c, self.check_query(x))
         return c, s, k
 
-    def _check_query(self, x: Tensor) -> Tensor:
+    def check_query(self, x: Tensor) -> Tensor:
+        """Query points x (n, Din) as float64.
+
+        Raises:
+            GpmpcError: naming the expected shape, for anything else.
+        """
         if not isinstance(x, Tensor) or x.ndim != 2 or x.shape[1] != self.input_dim:
             shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
             raise GpmpcError(f"GP query points must have shape (n, {self.input_dim}) "
                              f"({self.gp_inputs} inputs), got {shape}")
         return x.to(torch.float64)
-
-    @staticmethod
-    def _variance(c: PredictionCache, k: Tensor) -> Tensor:
-        """Latent variance in standardized units, shape (D, n)."""
-        v = torch.linalg.solve_triangular(c.chol, k.mT, upper=False)
-        var = c.outputscale[:, None] - v.square().sum(-2)
-        if c.chol_add is not None:  # sparse: + k Sigma k (gp.sparse)
-            var = var + torch.linalg.solve_triangular(c.chol_add, k.mT, upper=False).square().sum(-2)
-        return var.clamp_min(0.0)
 
     # ------------------------------------------------------------------ predictions
     def predict(self, x: Tensor, include_noise: bool = False) -> tuple[Tensor, Tensor]:
@@ -332,8 +326,8 @@ class ResidualGP(torch.nn.Module):
             ``(mean (n, D), var (n, D))`` in raw units.
         """
         c, _, k = self._cross(x)
-        mean = c.y_mean + c.y_std * (k * c.alpha[:, None, :]).sum(-1).T  # same op order as linearize
-        var = c.y_std ** 2 * self._variance(c, k).T
+        mean = raw_mean(c, posterior_mean(c, k))  # the same operations as linearize's mean
+        var = latent_variance(c, *explained_variance(c, k))
         if include_noise:
             var = var + c.noise_raw
         return mean, var
@@ -348,12 +342,13 @@ class ResidualGP(torch.nn.Module):
             ``J`` of shape (n, D, Din) with ``J[j, d, i] = d mu_d / d x_i`` at ``x[j]``.
         """
         c, s, k = self._cross(x)
-        return self._mean_jac(c, s, k)[1]
+        return mean_and_jacobian(c, s, k)[1]
 
     def linearize(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Mean, mean Jacobian and latent variance at ``x`` in one call.
 
-        Equals ``predict(x)`` and ``mean_jacobian(x)``; differentiable w.r.t. ``x``.
+        Equals ``predict(x)`` and ``mean_jacobian(x)``; differentiable w.r.t. ``x``. A team's models
+        at once: :func:`~torch_gpmpc.gp.batch.linearize_models` (the same bits).
 
         Args:
             x: linearization points, shape (n, Din), raw units.
@@ -362,19 +357,15 @@ class ResidualGP(torch.nn.Module):
             ``(mean (n, D), jac (n, D, Din), var (n, D))`` in raw units.
         """
         c, s, k = self._cross(x)
-        mean, jac = self._mean_jac(c, s, k)
-        var = c.y_std ** 2 * self._variance(c, k).T
-        return mean, jac, var
+        mean, jac = mean_and_jacobian(c, s, k)
+        return mean, jac, latent_variance(c, *explained_variance(c, k))
 
-    @staticmethod
-    def _mean_jac(c: PredictionCache, s: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
-        """Raw-unit mean (n, D) and Jacobian (n, D, Din) from one cross-covariance k (D, n, N)."""
-        W = k * c.alpha[:, None, :]  # (D, n, N)
-        mean_std = W.sum(-1)  # (D, n)
-        # eq. 13 in scaled coordinates: d mu_std / d s_i = sum_n W_n (S_ni - s_i);
-        # chain rule through s = (x - x_mean) / (x_std * lengthscale), then y = y_mean + y_std mu_std
-        jac = (W @ c.S - mean_std[..., None] * s) / c.x_scale * c.y_std[:, None, None]
-        return c.y_mean + c.y_std * mean_std.T, jac.transpose(0, 1)
+    def shifted_gp(self) -> ShiftedGP | None:
+        """This model for a team's batched evaluation (:mod:`~torch_gpmpc.gp.batch`); ``None`` while
+        its predictions carry gradients to the hyperparameters (each call builds its own graph)."""
+        if self.hyperparameter_gradients and torch.is_grad_enabled():
+            return None
+        return ShiftedGP(self)
 
     def gpytorch_predict(self, x: Tensor, include_noise: bool = False) -> tuple[Tensor, Tensor]:
         """The same prediction through GPyTorch's own predictive path (reference/baseline).
@@ -386,7 +377,7 @@ class ResidualGP(torch.nn.Module):
         Returns:
             ``(mean (n, D), var (n, D))`` in raw units (differentiable w.r.t. ``x``).
         """
-        x = self._check_query(x)
+        x = self.check_query(x)
         if self.inducing_points is not None:
             raise GpmpcError("gpytorch_predict is the exact GP's reference path; this model is sparse "
                              "(tests/gp/test_sparse.py compares it with GPyTorch's SGPR)")

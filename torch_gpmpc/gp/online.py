@@ -31,6 +31,7 @@ from torch import Tensor
 
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.gp.batch import ShiftedGP, predict_models, shifted_gp
 from torch_gpmpc.gp.cache import PredictionCache, squared_distances
 from torch_gpmpc.gp.cholesky_update import cholesky_append, cholesky_drop_first, cholesky_rank_one
 from torch_gpmpc.gp.fit import refit_hyperparameters
@@ -97,6 +98,10 @@ class OnlineGP:
     def predict(self, x: Tensor, include_noise: bool = False) -> tuple[Tensor, Tensor]:
         """Mean and variance (n, R) at ``x`` (n, Din)."""
         return self.gp.predict(x, include_noise=include_noise)
+
+    def shifted_gp(self) -> ShiftedGP | None:
+        """Its GP, for a team's batched evaluation (:mod:`~torch_gpmpc.gp.batch`)."""
+        return shifted_gp(self.gp)
 
     # ------------------------------------------------------------------ learning
     def add(self, inputs: Tensor, y: Tensor) -> None:
@@ -239,8 +244,7 @@ class OnlineLearning:
         if isinstance(inputs, Tensor):  # one model: (K, Din); a mixed team's: one (1, Din_k) per agent
             inputs = [inputs[k:k + 1] for k in range(inputs.shape[0])]
         errors, variances = [], []
-        for k, gp in enumerate(self.gps):
-            mean, var = gp.predict(inputs[k], include_noise=True)
+        for k, (mean, var) in enumerate(predict_models(self.gps, inputs, include_noise=True)):
             errors.append(y[k] - mean[0])
             variances.append(var[0])
         start = time.perf_counter()

@@ -6,6 +6,8 @@ predictive variance of the chance margins. Anything with these four members work
 :class:`~torch_gpmpc.gp.model.ResidualGP` (the package's fitted SE-ARD GPs, exact or sparse),
 :class:`~torch_gpmpc.gp.gpytorch_models.GPyTorchResidual` (a user's own GPyTorch exact models,
 built by ``ResidualGP.from_gpytorch``), or a hand-written model (e.g. a constant variance).
+A model may also offer ``shifted_gp()``, the fitted GP it plans with: then a team's models are
+linearized in one batch (:mod:`~torch_gpmpc.gp.batch`); without it, one call per agent.
 
 Shapes: n query points, Din GP inputs (the model's ``gp_inputs`` columns), R residual rows
 (the model's ``residual`` indices, one GP each).
