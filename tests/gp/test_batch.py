@@ -93,15 +93,38 @@ def test_the_batch_is_differentiable_in_the_points_like_each_model():
         torch.testing.assert_close(grad[b], torch.autograd.grad(m.sum() + v.sum(), xb)[0], rtol=1e-12, atol=1e-14)
 
 
+def test_a_model_that_predicts_otherwise_is_asked_itself():
+    """A subclass or an instance that replaces linearize is not batched from its GP: the batch would
+    skip what it adds."""
+
+    class Doubled(ResidualGP):
+        def linearize(self, x):
+            mean, jac, var = super().linearize(x)
+            return mean, jac, 2 * var
+
+    x, y = _field(20, 0)
+    doubled, plain = Doubled(x, y, gp_inputs="x0,x1"), ResidualGP(x, y, gp_inputs="x0,x1")
+    patched = OffsetCorrected(ResidualGP(x, y, gp_inputs="x0,x1"), drift=0.01)
+    patched.linearize = lambda z: tuple(2 * part for part in OffsetCorrected.linearize(patched, z))
+    points = _points(3)
+    _, _, var = linearize_models([doubled, plain, patched], points)
+    torch.testing.assert_close(var[0], 2 * plain.linearize(points[0])[2], rtol=0, atol=0)
+    torch.testing.assert_close(var[2], patched.linearize(points[2])[2], rtol=0, atol=0)
+
+
 def test_wrong_points_and_wrong_results_are_named():
     gp = fit_residual_gp(*_field(20, 0), iters=5, gp_inputs="x0,x1")
     with pytest.raises(GpmpcError, match=r"shape \(n, 2\)"):
         linearize_models([gp], torch.zeros(1, 4, 3, dtype=F64))
+    with pytest.raises(GpmpcError, match=r"\(B, n, Din\) with B = 2"):
+        linearize_models([gp, gp], torch.zeros(3, 4, 2, dtype=F64))
+    with pytest.raises(GpmpcError, match="one per model"):
+        predict_models([gp, gp], [torch.zeros(1, 2, dtype=F64)])
 
     class Wrong(ConstantVarianceGP):
         def linearize(self, x):
             mean, jac, var = super().linearize(x)
             return mean[:, :1], jac, var
 
-    with pytest.raises(GpmpcError, match="agent 1 returned"):
+    with pytest.raises(GpmpcError, match="agent 1 returned a mean"):
         linearize_models([gp, Wrong(0.1)], torch.zeros(2, 4, 2, dtype=F64))

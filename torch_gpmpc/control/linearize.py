@@ -173,6 +173,10 @@ def _gp_linearizations(gps, zbar: Tensor, method: Method, R: int) -> tuple[Tenso
         raise GpmpcError(f"method {method.value!r} needs one residual GP per agent (gps=None was given)")
     if len(gps) != batch:
         raise GpmpcError(f"method {method.value!r}: got {len(gps)} GPs for {batch} agents")
+    for k, gp in enumerate(gps):
+        if getattr(gp, "output_dim", R) != R:
+            raise GpmpcError(f"the GP of agent {k} has {gp.output_dim} outputs but the model has {R} residual rows; "
+                             "fit it on the model's residual rows")
     mean, jac, var = linearize_models(gps, zbar)
     expected = {"mean": (batch, steps, R), "jac": (batch, steps, R, din), "var": (batch, steps, R)}
     for name, value in (("mean", mean), ("jac", jac), ("var", var)):

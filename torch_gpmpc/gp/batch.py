@@ -8,47 +8,29 @@ mean and Jacobian of all of them come from the same operations as one model's
 (:mod:`~torch_gpmpc.gp.cache`), with a leading batch dimension; the variance is solved model by model
 against each one's own factor. The results are the bits of the per-model calls.
 
-A model joins the batch through ``shifted_gp()``: the :class:`ShiftedGP` it plans with (a fitted GP and
-the constant shifts a wrapper adds, such as an offset estimate). Models without it (a user's own,
-:class:`~torch_gpmpc.gp.gpytorch_models.GPyTorchResidual`) are called one by one, as are models whose
-caches differ in shape from the rest (grouped by shape).
+A model joins a batch through ``planning_gp()`` (:class:`~torch_gpmpc.gp.protocol.PlanningGP`: the
+fitted GP it plans with and the constant shifts a wrapper adds, such as an offset estimate); models
+whose caches have the same shapes form one batch. Models without it (a user's own,
+:class:`~torch_gpmpc.gp.gpytorch_models.GPyTorchResidual`, a subclass that predicts otherwise) are
+called one by one.
 
 Shapes: B models, n query points, Din GP inputs, R residual rows, N support points.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Sequence
+from dataclasses import dataclass
+from typing import Sequence
 
 import torch
 from torch import Tensor
 
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.gp.cache import (
-    PredictionCache, StackedMeans, cross_covariances, explained_variance, latent_variance, mean_and_jacobian,
+    PredictionCache, StackedCaches, cross_covariances, explained_variance, latent_variance, mean_and_jacobian,
     posterior_mean, raw_mean,
 )
-
-
-@dataclass(frozen=True)
-class ShiftedGP:
-    """A fitted GP (``ResidualGP``) and the constant shifts a wrapper adds to its mean and to its
-    variance, each (R,), applied in order (outermost wrapper last)."""
-
-    gp: Any
-    mean_shifts: tuple[Tensor, ...] = field(default_factory=tuple)
-    var_shifts: tuple[Tensor, ...] = field(default_factory=tuple)
-
-    def shifted(self, mean: Tensor, var: Tensor) -> "ShiftedGP":
-        """This view with one more shift of the mean and of the variance (each (R,)) on top."""
-        return ShiftedGP(self.gp, (*self.mean_shifts, mean), (*self.var_shifts, var))
-
-
-def shifted_gp(model) -> ShiftedGP | None:
-    """The :class:`ShiftedGP` ``model`` plans with, or ``None`` if it cannot join a batch."""
-    view = getattr(model, "shifted_gp", None)
-    return view() if callable(view) else None
+from torch_gpmpc.gp.protocol import PlanningGP, planning_gp
 
 
 def linearize_models(models: Sequence, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -61,7 +43,15 @@ def linearize_models(models: Sequence, x: Tensor) -> tuple[Tensor, Tensor, Tenso
 
     Returns:
         ``(mean (B, n, R), jac (B, n, R, Din), var (B, n, R))``.
+
+    Raises:
+        GpmpcError: x not (B, n, Din) for the B models, or a model's results not (n, R), (n, R, Din),
+            (n, R) with the team's R.
     """
+    if not isinstance(x, Tensor) or x.ndim != 3 or x.shape[0] != len(models):
+        shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+        raise GpmpcError(f"linearize_models: x must be (B, n, Din) with B = {len(models)}, one row of points per "
+                         f"model, got {shape}")
     groups = _groups(models, x)
     if len(groups) == 1 and len(groups[0].indices) == len(models):  # the usual case: one batch
         return groups[0].linearize(x.to(torch.float64))
@@ -72,11 +62,12 @@ def linearize_models(models: Sequence, x: Tensor) -> tuple[Tensor, Tensor, Tenso
     for b, model in enumerate(models):
         if out[b] is None:
             out[b] = _checked(b, model, model.linearize(x[b]), x[b])
-    shapes = [tuple(tuple(part.shape) for part in parts) for parts in out]
-    for b, shape in enumerate(shapes):
-        if shape != shapes[0]:
-            raise GpmpcError(f"the residual model of agent {b} has {shape[0][-1]} outputs, agent 0's has "
-                             f"{shapes[0][0][-1]}: a team's models must share the residual rows")
+    rows = [parts[0].shape[-1] for parts in out]
+    usual = max(set(rows), key=rows.count)
+    for b, count in enumerate(rows):
+        if count != usual:
+            raise GpmpcError(f"the residual model of agent {b} has {count} outputs where most of the team's have "
+                             f"{usual}: a team's models must share the residual rows")
     return tuple(torch.stack(parts) for parts in zip(*out))
 
 
@@ -89,8 +80,13 @@ def predict_models(models: Sequence, x: Sequence[Tensor], include_noise: bool = 
         include_noise: add each model's observation noise (the predictive variance).
 
     Returns:
-        B pairs ``(mean (n_b, R_b), var (n_b, R_b))``.
+        B pairs ``(mean (n_b, R_b), var (n_b, R_b))`` (a batch's are views of one stacked tensor).
+
+    Raises:
+        GpmpcError: not one tensor of points per model, or points of the wrong shape for a model.
     """
+    if len(x) != len(models):
+        raise GpmpcError(f"predict_models: got {len(x)} point sets for {len(models)} models; give one per model")
     out: list = [None] * len(models)
     for group in _groups(models, x):
         points = torch.stack([x[b] for b in group.indices]).to(torch.float64)
@@ -108,12 +104,12 @@ class _Group:
     their indices in the team, views and caches."""
 
     indices: list[int]
-    views: list[ShiftedGP]
+    views: list[PlanningGP]
     caches: list[PredictionCache]
 
     def linearize(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Mean (G, n, R), Jacobian (G, n, R, Din) and variance (G, n, R) at x (G, n, Din)."""
-        stack = StackedMeans.stack(self.caches)
+        stack = StackedCaches.stack(self.caches)
         s, k = cross_covariances(stack, x)
         mean, jac = mean_and_jacobian(stack, s, k)
         mean, var = self._shifted(mean, self._latent_variance(stack, k))
@@ -121,14 +117,14 @@ class _Group:
 
     def predict(self, x: Tensor, include_noise: bool) -> tuple[Tensor, Tensor]:
         """Mean and variance (G, n, R) at x (G, n, Din)."""
-        stack = StackedMeans.stack(self.caches)
+        stack = StackedCaches.stack(self.caches)
         _, k = cross_covariances(stack, x)
         var = self._latent_variance(stack, k)
         if include_noise:
             var = var + torch.stack([c.noise_raw for c in self.caches])[:, None, :]
         return self._shifted(raw_mean(stack, posterior_mean(stack, k)), var)
 
-    def _latent_variance(self, stack: StackedMeans, k: Tensor) -> Tensor:
+    def _latent_variance(self, stack: StackedCaches, k: Tensor) -> Tensor:
         """(G, n, R): each model's solves against its own factor, the rest on the stack."""
         explained, added = zip(*(explained_variance(c, k[j]) for j, c in enumerate(self.caches)))
         return latent_variance(stack, torch.stack(explained), None if added[0] is None else torch.stack(added))
@@ -147,7 +143,7 @@ def _groups(models: Sequence, x: Sequence[Tensor] | Tensor) -> list[_Group]:
     shifts. Checks the points as each model's own call would (once per group for a (B, n, Din) x)."""
     groups: dict[tuple, _Group] = {}
     for b, model in enumerate(models):
-        view = shifted_gp(model)
+        view = planning_gp(model)
         if view is None:
             continue
         c: PredictionCache = view.gp.prediction_cache()
@@ -168,9 +164,9 @@ def _checked(b: int, model, result: tuple[Tensor, Tensor, Tensor], x: Tensor) ->
     """Model b's own ``linearize`` result, checked against its protocol shapes (n, R), (n, R, Din), (n, R)."""
     n, din = x.shape
     rows = getattr(model, "output_dim", result[0].shape[-1])
-    expected = ((n, rows), (n, rows, din), (n, rows))
-    got = tuple(tuple(part.shape) for part in result)
-    if got != expected:
-        raise GpmpcError(f"the residual model of agent {b} returned mean, Jacobian and variance of shapes {got}, "
-                         f"expected {expected} (the ResidualModel protocol)")
+    expected = {"mean": (n, rows), "Jacobian": (n, rows, din), "variance": (n, rows)}
+    for (name, shape), part in zip(expected.items(), result):
+        if tuple(part.shape) != shape:
+            raise GpmpcError(f"the residual model of agent {b} returned a {name} of shape {tuple(part.shape)}, "
+                             f"expected {shape} (the ResidualModel protocol's linearize)")
     return result

@@ -5,10 +5,12 @@ Like GPyTorch's exact prediction strategy, the fitted model keeps the Cholesky f
 ``K + s^2 I`` and ``alpha = (K + s^2 I)^{-1} y`` in one object, rebuilt by
 ``ResidualGP.refresh()`` whenever the hyperparameters change.
 
-The posterior functions (:func:`cross_covariances`, :func:`mean_and_jacobian`) take one model's cache
-or a stack of B caches (:class:`StackedMeans`, every tensor with a leading batch dimension): one
-code for an agent's model and for a whole team's (:mod:`~torch_gpmpc.gp.batch`), element for element
-the same operations, so the two give the same bits.
+The posterior functions (:func:`cross_covariances`, :func:`posterior_mean`, :func:`mean_and_jacobian`,
+:func:`raw_mean`, :func:`latent_variance`) take one model's cache or a stack of B caches
+(:class:`StackedCaches`, every tensor with a leading batch dimension): one code for an agent's model
+and for a whole team's (:mod:`~torch_gpmpc.gp.batch`), element for element the same operations, so
+the two give the same bits. Only :func:`explained_variance`, the triangular solves, takes one cache:
+torch's batched solve gives other bits.
 """
 
 from __future__ import annotations
@@ -49,10 +51,10 @@ class PredictionCache:
 
 
 @dataclass
-class StackedMeans:
-    """The fields of B same-shaped :class:`PredictionCache` s that the posterior mean and its Jacobian
-    read, stacked on a leading batch dimension (shapes as there, with B in front). The factors
-    (``chol``) stay with each model: the variance is solved model by model."""
+class StackedCaches:
+    """The fields of B same-shaped :class:`PredictionCache` s that the posterior functions read,
+    stacked on a leading batch dimension (shapes as there, with B in front). The factors (``chol``)
+    stay with each model: :func:`explained_variance` is solved model by model."""
 
     x_mean: Tensor  # (B, Din)
     x_std: Tensor  # (B, Din)
@@ -66,7 +68,7 @@ class StackedMeans:
     y_std: Tensor  # (B, D)
 
     @classmethod
-    def stack(cls, caches: list[PredictionCache]) -> "StackedMeans":
+    def stack(cls, caches: list[PredictionCache]) -> "StackedCaches":
         """Stack B caches of the same shapes."""
         def stacked(name: str) -> Tensor:
             return torch.stack([getattr(c, name) for c in caches])
@@ -76,7 +78,7 @@ class StackedMeans:
                    stacked("outputscale"), stacked("alpha"), stacked("y_mean"), stacked("y_std"))
 
 
-def cross_covariances(c: PredictionCache | StackedMeans, x: Tensor) -> tuple[Tensor, Tensor]:
+def cross_covariances(c: PredictionCache | StackedCaches, x: Tensor) -> tuple[Tensor, Tensor]:
     """Scaled query points s (..., D, n, Din) and cross-covariances k (..., D, n, N) of raw query
     points x (..., n, Din); ``...`` is empty for one cache and (B,) for a stack."""
     s = (((x - c.x_mean[..., None, :]) / c.x_std[..., None, :]))[..., None, :, :] / c.ls
@@ -88,12 +90,12 @@ def cross_covariances(c: PredictionCache | StackedMeans, x: Tensor) -> tuple[Ten
     return s, k
 
 
-def posterior_mean(c: PredictionCache | StackedMeans, k: Tensor) -> Tensor:
+def posterior_mean(c: PredictionCache | StackedCaches, k: Tensor) -> Tensor:
     """Standardized posterior mean (..., D, n) from cross-covariances k (..., D, n, N)."""
     return (k * c.alpha[..., :, None, :]).sum(-1)
 
 
-def mean_and_jacobian(c: PredictionCache | StackedMeans, s: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
+def mean_and_jacobian(c: PredictionCache | StackedCaches, s: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
     """Raw-unit mean (..., n, D) and Jacobian (..., n, D, Din) from :func:`cross_covariances`."""
     W = k * c.alpha[..., :, None, :]  # (..., D, n, N)
     mean_std = W.sum(-1)  # (..., D, n)
@@ -103,7 +105,7 @@ def mean_and_jacobian(c: PredictionCache | StackedMeans, s: Tensor, k: Tensor) -
     return raw_mean(c, mean_std), jac.transpose(-3, -2)
 
 
-def raw_mean(c: PredictionCache | StackedMeans, mean_std: Tensor) -> Tensor:
+def raw_mean(c: PredictionCache | StackedCaches, mean_std: Tensor) -> Tensor:
     """Raw-unit mean (..., n, D) from the standardized one (..., D, n)."""
     return c.y_mean[..., None, :] + c.y_std[..., None, :] * mean_std.transpose(-1, -2)
 
@@ -118,7 +120,7 @@ def explained_variance(c: PredictionCache, k: Tensor) -> tuple[Tensor, Tensor | 
     return v.square().sum(-2), torch.linalg.solve_triangular(c.chol_add, k.mT, upper=False).square().sum(-2)
 
 
-def latent_variance(c: PredictionCache | StackedMeans, explained: Tensor, added: Tensor | None) -> Tensor:
+def latent_variance(c: PredictionCache | StackedCaches, explained: Tensor, added: Tensor | None) -> Tensor:
     """Raw-unit latent variance (..., n, D) from :func:`explained_variance` (each (..., D, n)):
     ``outputscale - ||chol^-1 k||^2 (+ ||chol_add^-1 k||^2 for a sparse GP)``."""
     var = c.outputscale[..., :, None] - explained

@@ -36,7 +36,7 @@ from collections import deque
 import torch
 from torch import Tensor
 
-from torch_gpmpc.gp.batch import ShiftedGP, shifted_gp
+from torch_gpmpc.gp.protocol import PlanningGP, evaluates_as, planning_gp
 
 #: transitions over which the two models' one-step errors are compared (about 1 s at 10 Hz)
 GUARD_WINDOW = 10
@@ -125,9 +125,9 @@ class GuardedOnlineGP:
         """The planning model's mean and variance (n, R) at ``x`` (n, Din)."""
         return self.planning_model.predict(x, include_noise=include_noise)
 
-    def shifted_gp(self) -> ShiftedGP | None:
+    def planning_gp(self) -> PlanningGP | None:
         """The planning model's GP, for a team's batched evaluation (:mod:`~torch_gpmpc.gp.batch`)."""
-        return shifted_gp(self.planning_model)
+        return planning_gp(self.planning_model) if evaluates_as(self, GuardedOnlineGP) else None
 
     # ------------------------------------------------------------------ judging and learning
     def judge(self, inputs: Tensor, y: Tensor) -> None:

@@ -40,7 +40,6 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.gp.batch import ShiftedGP
 from torch_gpmpc.gp.cache import (
     PredictionCache, cross_covariances, explained_variance, latent_variance, mean_and_jacobian, parameter_values,
     posterior_mean, raw_mean, safe_cholesky, squared_distances,
@@ -48,6 +47,7 @@ from torch_gpmpc.gp.cache import (
 from torch_gpmpc.gp.gpytorch_models import GPyTorchResidual
 from torch_gpmpc.gp.io import FORMAT, VERSION, read_payload, verify_checksum, write_payload
 from torch_gpmpc.gp.normalization import Standardization
+from torch_gpmpc.gp.protocol import PlanningGP, evaluates_as
 from torch_gpmpc.gp.sparse import sparse_posterior
 
 log = logging.getLogger(__name__)
@@ -360,12 +360,13 @@ class ResidualGP(torch.nn.Module):
         mean, jac = mean_and_jacobian(c, s, k)
         return mean, jac, latent_variance(c, *explained_variance(c, k))
 
-    def shifted_gp(self) -> ShiftedGP | None:
+    def planning_gp(self) -> PlanningGP | None:
         """This model for a team's batched evaluation (:mod:`~torch_gpmpc.gp.batch`); ``None`` while
-        its predictions carry gradients to the hyperparameters (each call builds its own graph)."""
-        if self.hyperparameter_gradients and torch.is_grad_enabled():
+        its predictions carry gradients to the hyperparameters (each call builds its own graph), and for
+        a subclass that predicts otherwise."""
+        if (self.hyperparameter_gradients and torch.is_grad_enabled()) or not evaluates_as(self, ResidualGP):
             return None
-        return ShiftedGP(self)
+        return PlanningGP(self)
 
     def gpytorch_predict(self, x: Tensor, include_noise: bool = False) -> tuple[Tensor, Tensor]:
         """The same prediction through GPyTorch's own predictive path (reference/baseline).

@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.gp.batch import ShiftedGP, shifted_gp
+from torch_gpmpc.gp.protocol import PlanningGP, evaluates_as, planning_gp
 
 
 #: the weight of the newest squared error in the measured error variance (about 20 steps' memory)
@@ -104,10 +104,10 @@ class OffsetCorrected:
         mean, var = self.model.predict(x, include_noise=include_noise)
         return mean + self.offset.to(mean), var + self.variance.to(var)
 
-    def shifted_gp(self) -> ShiftedGP | None:
+    def planning_gp(self) -> PlanningGP | None:
         """The wrapped model's GP with the offset on its mean and the estimate's variance on its
         variance, for a team's batched evaluation (:mod:`~torch_gpmpc.gp.batch`)."""
-        view = shifted_gp(self.model)
+        view = planning_gp(self.model) if evaluates_as(self, OffsetCorrected) else None
         return None if view is None else view.shifted(self.offset, self.variance)
 
     def observe(self, error: Tensor) -> None:

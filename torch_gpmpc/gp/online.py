@@ -31,13 +31,14 @@ from torch import Tensor
 
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.gp.batch import ShiftedGP, predict_models, shifted_gp
+from torch_gpmpc.gp.batch import predict_models
 from torch_gpmpc.gp.cache import PredictionCache, squared_distances
 from torch_gpmpc.gp.cholesky_update import cholesky_append, cholesky_drop_first, cholesky_rank_one
 from torch_gpmpc.gp.fit import refit_hyperparameters
 from torch_gpmpc.gp.guard import GuardedOnlineGP
 from torch_gpmpc.gp.model import ResidualGP, check_training_data
 from torch_gpmpc.gp.offset import OffsetCorrected, offset_corrected
+from torch_gpmpc.gp.protocol import PlanningGP, evaluates_as, planning_gp
 from torch_gpmpc.gp.sparse import sparse_posterior
 
 #: L-BFGS steps of a periodic hyperparameter refit.
@@ -99,9 +100,9 @@ class OnlineGP:
         """Mean and variance (n, R) at ``x`` (n, Din)."""
         return self.gp.predict(x, include_noise=include_noise)
 
-    def shifted_gp(self) -> ShiftedGP | None:
+    def planning_gp(self) -> PlanningGP | None:
         """Its GP, for a team's batched evaluation (:mod:`~torch_gpmpc.gp.batch`)."""
-        return shifted_gp(self.gp)
+        return planning_gp(self.gp) if evaluates_as(self, OnlineGP) else None
 
     # ------------------------------------------------------------------ learning
     def add(self, inputs: Tensor, y: Tensor) -> None:
