@@ -265,21 +265,27 @@ def test_a_step_that_falls_back_keeps_the_distributed_run_equal_to_in_process(tm
     assert np.abs(states - ref.states).max() <= 1e-9
 
 
-def test_online_gps_learn_in_the_agent_processes_as_in_process(tmp_path):
+@pytest.mark.parametrize("model, refit_every", [("single-integrator", 0), ("single-integrator", 4),
+                                               ("double-integrator", 0)])
+def test_online_gps_learn_in_the_agent_processes_as_in_process(tmp_path, model, refit_every):
     """With ``gp_online`` every agent process keeps its own guarded online GP and learns from the
     transitions it makes, its offset estimate on top: the states equal the in-process run's, where
-    one OnlineLearning updates every agent. The wind turns at step 1 and the learners are adopted
-    from step 7 on, where the run parts from a frozen one."""
+    one OnlineLearning updates every agent, also with the hyperparameters refitted every 4 steps in
+    each process, and for the double integrator (GPs on its velocity rows). The wind turns at step 1
+    and the learners are adopted within the run, which parts from a frozen one."""
     out = tmp_path / "dist"
     keys = {"method": "gp-chance", "max_steps": 12, "gp_iters": 5, "gp_online": True, "wind_scale": 0.5,
-            "wind_change_step": 1, "disturbance_drift": 0.01}
+            "wind_change_step": 1, "disturbance_drift": 0.01, "gp_online_refit_every": refit_every,
+            "model": model}
     cfg, ref = run_both_backends(keys, out)
     with np.load(out / "rollout.npz", allow_pickle=False) as r:
         states = r["states"]
-    assert states.shape == ref.states.shape == (13, 3, 2)
+    assert states.shape == ref.states.shape == (13, 3, 2 if model == "single-integrator" else 4)
     assert np.abs(states - ref.states).max() <= 1e-9
     frozen = simulate(cfg.replace(gp_online=False))
     assert np.abs(frozen.states - ref.states).max() > 0.1
+    if refit_every:  # the refits moved the run (by 0.046 here): the processes did refit
+        assert np.abs(simulate(cfg.replace(gp_online_refit_every=0)).states - ref.states).max() > 0.01
 
 
 def test_plane_distributed_run_equals_inprocess_and_counts_bytes(tmp_path):
