@@ -56,6 +56,13 @@ def test_linearize_models_is_each_models_linearize_bit_for_bit(team):
             assert torch.equal(got[b], want), f"model {b}"
 
 
+def test_the_noise_is_added_as_a_caller_adds_it(team):
+    x = _points(len(team))
+    _, _, var = linearize_models(team, x, include_noise=True)
+    for b, model in enumerate(team):
+        assert torch.equal(var[b], model.linearize(x[b])[2] + model.noise), f"model {b}"
+
+
 def test_predict_models_is_each_models_predict_bit_for_bit(team):
     x = list(_points(len(team), n=3))
     for include_noise in (False, True):

@@ -109,7 +109,7 @@ def linearize_plan(
 
     gp_out = None
     if method.needs_gp:
-        gp_out = _gp_linearizations(gps, zbar, method, R)
+        gp_out = _gp_linearizations(gps, zbar, method, R, include_noise)
 
     jac_u = None
     if base is Dynamics.NOMINAL:
@@ -126,8 +126,6 @@ def linearize_plan(
 
     if chance:
         var = gp_out[2]
-        if include_noise:
-            var = var + torch.stack([_gp_noise(gp, R, xbar) for gp in gps])[:, None, :]
     else:
         var = xbar.new_zeros(batch, steps, R)
 
@@ -166,8 +164,10 @@ def _wind_linearization(wind: VortexWind | None, xbar: Tensor, method: Method,
     return mean, jac
 
 
-def _gp_linearizations(gps, zbar: Tensor, method: Method, R: int) -> tuple[Tensor, Tensor, Tensor]:
-    """Stacked GP mean (B, T+1, R), Jacobian (B, T+1, R, Din), latent variance (B, T+1, R)."""
+def _gp_linearizations(gps, zbar: Tensor, method: Method, R: int,
+                       include_noise: bool) -> tuple[Tensor, Tensor, Tensor]:
+    """Stacked GP mean (B, T+1, R), Jacobian (B, T+1, R, Din), latent variance (B, T+1, R) (plus each
+    GP's observation noise with ``include_noise``)."""
     batch, steps, din = zbar.shape
     if gps is None:
         raise GpmpcError(f"method {method.value!r} needs one residual GP per agent (gps=None was given)")
@@ -177,18 +177,10 @@ def _gp_linearizations(gps, zbar: Tensor, method: Method, R: int) -> tuple[Tenso
         if getattr(gp, "output_dim", R) != R:
             raise GpmpcError(f"the GP of agent {k} has {gp.output_dim} outputs but the model has {R} residual rows; "
                              "fit it on the model's residual rows")
-    mean, jac, var = linearize_models(gps, zbar)
+    mean, jac, var = linearize_models(gps, zbar, include_noise=include_noise)
     expected = {"mean": (batch, steps, R), "jac": (batch, steps, R, din), "var": (batch, steps, R)}
     for name, value in (("mean", mean), ("jac", jac), ("var", var)):
         if tuple(value.shape) != expected[name]:
             raise GpmpcError(f"the GPs returned {name} of shape {tuple(value.shape)}, expected {expected[name]} "
                              f"(are they trained on the model's {din} GP inputs and {R} residual rows?)")
     return mean, jac, var
-
-
-def _gp_noise(gp, R: int, like: Tensor) -> Tensor:
-    """A GP's observation-noise variance as an (R,) tensor."""
-    noise = torch.as_tensor(gp.noise, dtype=like.dtype, device=like.device).reshape(-1)
-    if noise.shape[0] != R:
-        raise GpmpcError(f"GP noise has {noise.shape[0]} entries, expected R = {R} residual rows")
-    return noise

@@ -33,20 +33,21 @@ from torch_gpmpc.gp.cache import (
 from torch_gpmpc.gp.protocol import PlanningGP, planning_gp
 
 
-def linearize_models(models: Sequence, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def linearize_models(models: Sequence, x: Tensor, include_noise: bool = False) -> tuple[Tensor, Tensor, Tensor]:
     """Every model's ``linearize`` at its own points, at once (the same bits as one call per model).
 
     Args:
         models: B residual models (the :class:`~torch_gpmpc.gp.protocol.ResidualModel` protocol),
             all with R outputs.
         x: (B, n, Din) GP inputs, model b's at ``x[b]``.
+        include_noise: add each model's observation-noise variance ``noise`` (R,) to its variance.
 
     Returns:
         ``(mean (B, n, R), jac (B, n, R, Din), var (B, n, R))``.
 
     Raises:
         GpmpcError: x not (B, n, Din) for the B models, or a model's results not (n, R), (n, R, Din),
-            (n, R) with the team's R.
+            (n, R) with the team's R, or its noise not (R,).
     """
     if not isinstance(x, Tensor) or x.ndim != 3 or x.shape[0] != len(models):
         shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
@@ -54,14 +55,15 @@ def linearize_models(models: Sequence, x: Tensor) -> tuple[Tensor, Tensor, Tenso
                          f"model, got {shape}")
     groups = _groups(models, x)
     if len(groups) == 1 and len(groups[0].indices) == len(models):  # the usual case: one batch
-        return groups[0].linearize(x.to(torch.float64))
+        return groups[0].linearize(x.to(torch.float64), include_noise)
     out: list = [None] * len(models)
     for group in groups:
-        for j, parts in enumerate(zip(*group.linearize(x[list(group.indices)].to(torch.float64)))):
+        for j, parts in enumerate(zip(*group.linearize(x[list(group.indices)].to(torch.float64), include_noise))):
             out[group.indices[j]] = parts
     for b, model in enumerate(models):
         if out[b] is None:
-            out[b] = _checked(b, model, model.linearize(x[b]), x[b])
+            mean, jac, var = _checked(b, model, model.linearize(x[b]), x[b])
+            out[b] = (mean, jac, var + _noise(b, model, var) if include_noise else var)
     rows = [parts[0].shape[-1] for parts in out]
     usual = max(set(rows), key=rows.count)
     for b, count in enumerate(rows):
@@ -107,12 +109,14 @@ class _Group:
     views: list[PlanningGP]
     caches: list[PredictionCache]
 
-    def linearize(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def linearize(self, x: Tensor, include_noise: bool) -> tuple[Tensor, Tensor, Tensor]:
         """Mean (G, n, R), Jacobian (G, n, R, Din) and variance (G, n, R) at x (G, n, Din)."""
         stack = StackedCaches.stack(self.caches)
         s, k = cross_covariances(stack, x)
         mean, jac = mean_and_jacobian(stack, s, k)
         mean, var = self._shifted(mean, self._latent_variance(stack, k))
+        if include_noise:  # after the shifts, as a caller adds a model's noise to its variance
+            var = var + self._noise()
         return mean, jac, var
 
     def predict(self, x: Tensor, include_noise: bool) -> tuple[Tensor, Tensor]:
@@ -120,9 +124,13 @@ class _Group:
         stack = StackedCaches.stack(self.caches)
         _, k = cross_covariances(stack, x)
         var = self._latent_variance(stack, k)
-        if include_noise:
-            var = var + torch.stack([c.noise_raw for c in self.caches])[:, None, :]
+        if include_noise:  # before the shifts, as ResidualGP.predict adds it
+            var = var + self._noise()
         return self._shifted(raw_mean(stack, posterior_mean(stack, k)), var)
+
+    def _noise(self) -> Tensor:
+        """(G, 1, R) the models' observation-noise variances, raw units."""
+        return torch.stack([c.noise_raw for c in self.caches])[:, None, :]
 
     def _latent_variance(self, stack: StackedCaches, k: Tensor) -> Tensor:
         """(G, n, R): each model's solves against its own factor, the rest on the stack."""
@@ -170,3 +178,12 @@ def _checked(b: int, model, result: tuple[Tensor, Tensor, Tensor], x: Tensor) ->
             raise GpmpcError(f"the residual model of agent {b} returned a {name} of shape {tuple(part.shape)}, "
                              f"expected {shape} (the ResidualModel protocol's linearize)")
     return result
+
+
+def _noise(b: int, model, like: Tensor) -> Tensor:
+    """Model b's observation-noise variance ``noise`` as an (R,) tensor like ``like`` (n, R)."""
+    noise = torch.as_tensor(model.noise, dtype=like.dtype, device=like.device).reshape(-1)
+    if noise.shape[0] != like.shape[-1]:
+        raise GpmpcError(f"the residual model of agent {b} has a noise of {noise.shape[0]} entries, expected "
+                         f"R = {like.shape[-1]}, one per residual row")
+    return noise
