@@ -155,7 +155,7 @@ def _groups(models: Sequence, x: Sequence[Tensor] | Tensor) -> list[_Group]:
         if view is None:
             continue
         c: PredictionCache = view.gp.prediction_cache()
-        points = x[b].shape if isinstance(x, Tensor) else view.gp.check_query(x[b]).shape
+        points = x.shape[1:] if isinstance(x, Tensor) else view.gp.check_query(x[b]).shape
         key = (tuple(c.S.shape), c.chol_add is not None, tuple(points), len(view.mean_shifts), len(view.var_shifts))
         group = groups.get(key)
         if group is None:

@@ -259,11 +259,14 @@ class OnlineLearning:
                     self.skipped[k] += 1
                 gp.end_step()
             self.adopted_share.append(sum(gp.adopted for gp in self.gps) / len(self.gps))
-        for k, gp in enumerate(self.gps):
-            if isinstance(gp, OffsetCorrected):
-                # the innovation of the model the next plan uses: after an online update the GP has
-                # learnt what the offset did not explain (OffsetCorrected.add), near noise level here
-                gp.observe(y[k] - gp.predict(inputs[k])[0][0] if self.online else errors[k])
+        corrected = [k for k, gp in enumerate(self.gps) if isinstance(gp, OffsetCorrected)]
+        # the innovation of the model the next plan uses: after an online update the GP has learnt
+        # what the offset did not explain (OffsetCorrected.add), near noise level here
+        innovations = [y[k] - mean[0] for k, (mean, _) in zip(corrected, predict_models(
+            [self.gps[k] for k in corrected], [inputs[k] for k in corrected]))] if self.online \
+            else [errors[k] for k in corrected]
+        for k, innovation in zip(corrected, innovations):
+            self.gps[k].observe(innovation)
         self.update_seconds.append(time.perf_counter() - start if self.online else 0.0)
         return torch.stack(errors), torch.stack(variances)
 
