@@ -12,6 +12,7 @@ from torch_gpmpc.cli import main
 from torch_gpmpc.config import Config, load_config
 from torch_gpmpc.coordination.agent_step import LocalStep
 from torch_gpmpc.errors import GpmpcError
+from tests.helpers import lag_model
 
 COST_FILE = """
 method = "nominal"
@@ -68,3 +69,18 @@ def test_a_table_of_the_wrong_size_names_the_key_and_the_model():
         LocalStep(cfg, cfg.model_spec())
     with pytest.raises(GpmpcError, match="terminal_cost"):
         Config(terminal_cost="none")
+
+
+@pytest.mark.parametrize("terminal", ["lqr", "stage"])
+def test_the_default_cost_leaves_the_last_command_rows_to_the_input_cost(terminal):
+    """A row that holds the last input (w' = u) gets no state weight by default: Q = diag(1, 1, 1, 1, 0, 0), the
+    same weights as stating that cost (and P = Q under terminal_cost = stage)."""
+    cfg = Config(method="nominal", model=lag_model(), terminal_cost=terminal)
+    Q, R, P, _ = LocalStep(cfg, cfg.model_spec()).cost_weights
+    weights = [1.0, 1.0, 1.0, 1.0, 0.0, 0.0]
+    torch.testing.assert_close(Q[0], torch.diag(torch.tensor(weights, dtype=torch.float64)))
+    stated = cfg.replace(cost={"Q": weights, "R": cfg.alpha})
+    Qs, Rs, Ps, _ = LocalStep(stated, stated.model_spec()).cost_weights
+    assert torch.equal(Q, Qs) and torch.equal(R, Rs) and torch.equal(P, Ps)
+    if terminal == "stage":
+        assert torch.equal(P, Q)

@@ -119,6 +119,32 @@ class ModelSpec:
         """P."""
         return len(self.position)
 
+    @property
+    def input_memory(self) -> tuple[tuple[int, int], ...]:
+        """The state rows that hold the last applied input, as ``(row, input index)`` pairs: rows with
+        ``A[row] = 0`` and ``B[row]`` the unit vector of one input, not a position or residual row.
+
+        Such a row (``w' = u_j``) lets a model, and its GPs through ``gp_inputs``, see the command
+        before the current one: what a vehicle that realizes its commands with a lag still responds to
+        (``examples/rotorpy/crazyflie_lag.toml``). The default cost does not weigh these rows (the
+        input cost already does), plants set them to the command they applied, and the plan-tracking
+        metric leaves them out (a plan predicts them exactly).
+
+        Examples:
+            >>> m = ModelSpec.from_table({"A": [[1.0, 0.0], [0.0, 0.0]], "B": [[0.1], [1.0]], "position": [0],
+            ...                           "residual": [0], "input_bound": {"box": [1.0]}})
+            >>> m.input_memory
+            ((1, 0),)
+        """
+        skip = set(self.position) | set(self.residual)
+        out = []
+        for i, (a_row, b_row) in enumerate(zip(self.A, self.B)):
+            ones = [j for j, b in enumerate(b_row) if b == 1.0]
+            if (i not in skip and not any(a_row) and len(ones) == 1
+                    and all(b == 0.0 for j, b in enumerate(b_row) if j != ones[0])):
+                out.append((i, ones[0]))
+        return tuple(out)
+
     @classmethod
     def single_integrator(cls, dim: int = 2, u_max: float = 2.0) -> "ModelSpec":
         """The paper's model: ``A = I``, ``B = 0.1 I``, ``||u|| <= u_max`` in ``dim`` dimensions."""

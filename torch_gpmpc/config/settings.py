@@ -98,7 +98,8 @@ class ControllerSettings:
         cost: a stated tracking cost, a ``[cost]`` table ``{Q, R, P, u_ref}`` (each weight a number times
             I, a diagonal list or a list of rows; :class:`~torch_gpmpc.control.cost.QuadraticCost`):
             stage cost ``(x - r)^T Q (x - r) + (u - u_ref)^T R (u - u_ref)``, terminal ``(x_T - r_T)^T P
-            (x_T - r_T)``; null: Q = I, R = alpha I.
+            (x_T - r_T)``; null: Q = I (0 on the rows that hold the last input,
+            :attr:`~torch_gpmpc.config.model_spec.ModelSpec.input_memory`), R = alpha I.
         terminal_cost: the terminal weight P when the cost gives none: ``lqr`` (the model's LQR
             cost-to-go, the default) or ``stage`` (P = Q, the paper's cost; ``gpmpc reproduce`` uses it).
         input_rate_weight: weight beta of the input changes ``beta sum_t ||U_t - U_{t-1}||^2`` in

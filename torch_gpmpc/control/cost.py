@@ -7,8 +7,10 @@ tracking cost over the horizon T is::
     + (x_T - r_T)^T P (x_T - r_T)
 
 (``x_0`` is measured, so its term is a constant). Without a stated cost the package uses
-``Q = I``, ``R = alpha I`` and, by default, the LQR cost-to-go of the nominal model as ``P``
-(:func:`lqr_terminal_weight`); the paper's own cost is ``P = Q`` (``terminal_cost = stage``).
+``Q = I`` (0 on the rows that hold the last input, which the input cost weighs already:
+:attr:`~torch_gpmpc.config.model_spec.ModelSpec.input_memory`), ``R = alpha I`` and, by default,
+the LQR cost-to-go of the nominal model as ``P`` (:func:`lqr_terminal_weight`); the paper's own cost
+is ``P = Q`` (``terminal_cost = stage``).
 The input-rate term, the slack penalties and the ADMM terms are added on top by the solvers.
 """
 

@@ -166,8 +166,9 @@ def cost_weights(cost: QuadraticCost | list[QuadraticCost] | None, settings: Con
                  nominal: NominalModel) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
     """The tracking cost's weights ``(Q, R, P, u_ref)`` with a leading agent axis (1 row for a cost shared
     by all, else one per agent id), or ``None`` for the paper's cost (no cost stated, ``terminal_cost =
-    stage``): see :class:`LocalStep`'s ``cost``. A cost without P gets the terminal weight of
-    ``settings.terminal_cost``.
+    stage``, no rows that hold the last input): see :class:`LocalStep`'s ``cost``. A cost without P gets
+    the terminal weight of ``settings.terminal_cost``; the default cost is :func:`default_state_weights`'s
+    Q and ``R = alpha I``.
 
     Raises:
         GpmpcError: a cost given both ways, not a :class:`QuadraticCost`, or weights that do not fit the model.
@@ -176,12 +177,15 @@ def cost_weights(cost: QuadraticCost | list[QuadraticCost] | None, settings: Con
     if cost is not None and table is not None:
         raise GpmpcError("the cost is given twice, as the settings' cost table and as cost=QuadraticCost(...); "
                          "keep one")
-    if cost is None:
-        if table is None and settings.terminal_cost == "stage":
+    if cost is None and table is None:
+        state_weights = default_state_weights(nominal)
+        if state_weights is None and settings.terminal_cost == "stage":
             return None
-        costs = [QuadraticCost(Q=1.0, R=settings.alpha) if table is None else
-                 QuadraticCost(Q=table.Q, R=table.R, P=table.P, u_ref=table.u_ref)]
-        where = ["the default cost (Q = I, R = alpha I): " if table is None else "config key 'cost', entry "]
+        costs = [QuadraticCost(Q=1.0 if state_weights is None else state_weights, R=settings.alpha)]
+        where = ["the default cost (Q = I, R = alpha I): "]
+    elif cost is None:
+        costs = [QuadraticCost(Q=table.Q, R=table.R, P=table.P, u_ref=table.u_ref)]
+        where = ["config key 'cost', entry "]
     else:
         costs = [cost] if isinstance(cost, QuadraticCost) else list(cost) if isinstance(cost, (list, tuple)) else None
         if costs is None or not costs or not all(isinstance(c, QuadraticCost) for c in costs):
@@ -195,6 +199,19 @@ def cost_weights(cost: QuadraticCost | list[QuadraticCost] | None, settings: Con
             c = dataclasses.replace(c, P=c.Q)
         resolved.append(c.resolve(nominal, at))
     return tuple(torch.stack(ws) for ws in zip(*resolved))  # type: ignore[return-value]
+
+
+def default_state_weights(nominal: NominalModel) -> Tensor | None:
+    """The default cost's diagonal Q, (n,): 1 on every state but the rows that hold the last input
+    (:attr:`~torch_gpmpc.config.model_spec.ModelSpec.input_memory`: the input cost weighs them already);
+    ``None`` for a model without such rows (Q = I). A mixed team's models each have their own step,
+    so each gets its own."""
+    rows = nominal.input_memory_rows
+    if not rows:
+        return None
+    q = torch.ones(nominal.dim, dtype=torch.float64)
+    q[rows] = 0.0
+    return q
 
 
 def cost_version(cost: QuadraticCost | list[QuadraticCost] | None) -> tuple | None:

@@ -69,7 +69,8 @@ def fly_excitation(nominal: NominalModel, settings: PlantSettings, samples: int,
     :data:`JERK`.
 
     Returns:
-        ``(x (N, 6), u (N, 3), x_next (N, 6))`` measured planning states and commanded accelerations.
+        ``(x (N, n), u (N, 3), x_next (N, n))`` measured planning states (n = 6, or 9 with the last
+        command) and commanded accelerations.
     """
     spec, dt = nominal.spec, nominal.spec.dt
     v_max = 1.0 if spec.state_bound_norm is None else float(spec.state_bound_norm)
@@ -79,7 +80,7 @@ def fly_excitation(nominal: NominalModel, settings: PlantSettings, samples: int,
     xs, us, xns = [], [], []
     a = torch.zeros(3, dtype=torch.float64)
     for t in range(samples):
-        p, v = x[0, :3], x[0, 3:]
+        p, v = x[0, :3], x[0, 3:6]
         if t % SETPOINT_STEPS == 0 or bool((p.abs() > scale).any()):
             target = velocity_setpoint(p, v_max, scale, generator)
         want = project_input(limit_speed(v, (target - v) / TAU_V, dt, spec.state_bound_norm), spec)

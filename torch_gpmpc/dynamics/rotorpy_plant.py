@@ -6,7 +6,8 @@ Hz. Each control step, every vehicle gets the flat-output setpoint of its agent'
 the planned acceleration a, ``p(s) = p + v s + a s^2 / 2``, ``v(s) = v + a s``, yaw 0) and RotorPy's
 SE(3) geometric controller tracks it at ``plant_rate_hz`` on RotorPy's rigid-body model (rotor and
 parasitic drag, motor lag, thrust limits) in the configured wind. Every ``dt`` the plant returns
-the sampled (p, v), with optional Gaussian sensor noise.
+the sampled (p, v), with optional Gaussian sensor noise, and with a lag model (the last command as
+states, :func:`check_planning_model`) the command it applied, exactly.
 
 What the double integrator does not know (drag, wind, tracking lag) is the residual the GPs learn.
 RotorPy (MIT licence) is an optional dependency: ``pip install -e ".[rotorpy]"``.
@@ -49,22 +50,28 @@ def require_rotorpy() -> None:
 
 
 def check_planning_model(spec: ModelSpec) -> None:
-    """The RotorPy plant flies a 3D double integrator (p, v) with acceleration inputs.
+    """The RotorPy plant flies a 3D double integrator (p, v) with acceleration inputs, optionally with
+    the last command as three more states (``w' = u``, :attr:`ModelSpec.input_memory`: a model of the
+    vehicle's tracking lag, ``examples/rotorpy/crazyflie_lag.toml``).
 
     Raises:
         GpmpcError: naming the model and what it must be.
     """
-    dt = spec.dt
+    dt, n = spec.dt, spec.state_dim
     eye, zero = np.eye(3), np.zeros((3, 3))
     A = np.block([[eye, dt * eye], [zero, eye]])
     B = np.vstack([0.5 * dt * dt * eye, dt * eye])
-    ok = (spec.state_dim == 6 and spec.input_dim == 3 and tuple(spec.position) == (0, 1, 2)
+    if n == 9:  # the double integrator and the last command
+        A = np.block([[A, np.zeros((6, 3))], [np.zeros((3, 9))]])
+        B = np.vstack([B, eye])
+    ok = (n in (6, 9) and spec.input_dim == 3 and tuple(spec.position) == (0, 1, 2)
           and np.allclose(np.array(spec.A), A, atol=1e-9) and np.allclose(np.array(spec.B), B, atol=1e-9))
     if not ok:
         raise GpmpcError(f"plant=rotorpy flies a 3D double integrator (states p, v; inputs the accelerations: "
-                         f"A = [[I, dt I], [0, I]], B = [[dt^2/2 I], [dt I]], position = [0, 1, 2]); model "
-                         f"{spec.name!r} is not one. Use the built-in double-integrator in 3D (dim = 3) or a model file "
-                         "like examples/rotorpy/crazyflie.toml")
+                         f"A = [[I, dt I], [0, I]], B = [[dt^2/2 I], [dt I]], position = [0, 1, 2]), optionally "
+                         f"with the last command as states 6-8 (A rows 0, B rows I); model {spec.name!r} is not one. "
+                         "Use the built-in double-integrator in 3D (dim = 3) or a model file like "
+                         "examples/rotorpy/crazyflie.toml or crazyflie_lag.toml")
 
 
 @dataclass(frozen=True)
@@ -184,6 +191,7 @@ class RotorPyPlant:
         self._np_state = np.random.RandomState(settings.seed).get_state()
         self._gen = torch.Generator().manual_seed(int(settings.seed))
         self._states: list[dict] = []
+        self._last_inputs = np.zeros((0, 3))  # (K, 3): the commands applied last (0 before the first)
         self.min_distance = math.inf
 
     @contextlib.contextmanager
@@ -198,11 +206,15 @@ class RotorPyPlant:
 
     @property
     def true_states(self) -> Tensor:
-        """The vehicles' true (p, v), (K, 6)."""
-        return torch.tensor(np.array([np.concatenate([s["x"], s["v"]]) for s in self._states]), dtype=torch.float64)
+        """The vehicles' true (p, v), (K, 6), or (p, v, last command), (K, 9), for a lag model."""
+        rows = [np.concatenate([s["x"], s["v"]]) for s in self._states]
+        if self.nominal.spec.state_dim == 9:
+            rows = [np.concatenate([r, u]) for r, u in zip(rows, self._last_inputs)]
+        return torch.tensor(np.array(rows), dtype=torch.float64)
 
     def reset(self, starts: Tensor) -> Tensor:
-        """Every vehicle hovering at its start (K, 3); returns the measured (p, v), (K, 6)."""
+        """Every vehicle hovering at its start (K, 3); returns the measured states (K, 6 or 9: the last
+        command 0)."""
         from rotorpy.controllers.quadrotor_control import SE3Control
         from rotorpy.vehicles.multirotor import Multirotor
 
@@ -214,6 +226,7 @@ class RotorPyPlant:
             self._vehicles = [Multirotor(self.params, initial_state=s) for s in self._states]
             self._controllers = [SE3Control(self.params) for _ in self._states]
             self._winds = [make_wind(self.settings, self.nominal.spec.dt) for _ in self._states]
+        self._last_inputs = np.zeros((len(self._states), 3))
         self.min_distance = math.inf
         self._track_distance()
         return self._measure()
@@ -222,12 +235,13 @@ class RotorPyPlant:
         """Fly control step ``t`` (the process noise ``noise`` is ignored: the physics is the noise)."""
         dt, h = self.nominal.spec.dt, 1.0 / self.settings.rate_hz
         x, u = np.asarray(x, dtype=float), np.asarray(u, dtype=float)
+        self._last_inputs = u.copy()
         with self._own_random_state():
             for i in range(self.substeps):
                 time = t * dt + i * h
                 for k, state in enumerate(self._states):
                     state["wind"] = self._winds[k].update(time, state["x"])
-                    control = self._controllers[k].update(time, state, flat_output(x[k, :3], x[k, 3:], u[k], i * h))
+                    control = self._controllers[k].update(time, state, flat_output(x[k, :3], x[k, 3:6], u[k], i * h))
                     self._states[k] = self._vehicles[k].step(state, control, h)
                 self._track_distance()
         return self._measure()
@@ -236,7 +250,10 @@ class RotorPyPlant:
         true = self.true_states
         if self.settings.sensor_noise == 0.0:
             return true
-        return true + self.settings.sensor_noise * torch.randn(true.shape, generator=self._gen, dtype=torch.float64)
+        noise = torch.zeros_like(true)  # the sensors see p and v; the vehicle knows the command it was given
+        noise[:, :6] = self.settings.sensor_noise * torch.randn((len(true), 6), generator=self._gen,
+                                                                dtype=torch.float64)
+        return true + noise
 
     def _track_distance(self) -> None:
         if len(self._states) < 2:

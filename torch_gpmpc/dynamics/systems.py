@@ -46,6 +46,11 @@ class SpecSizes:
         """Positions of states: (..., n) -> (..., P)."""
         return x[..., self.position]
 
+    @property
+    def input_memory_rows(self) -> list[int]:
+        """State rows that hold the last applied input (:attr:`ModelSpec.input_memory`)."""
+        return [row for row, _ in self.spec.input_memory]
+
 
 class NominalModel(SpecSizes):
     """The known linear model ``f(x, u) = A x + B u`` of one agent, from a :class:`ModelSpec`.

@@ -62,6 +62,12 @@ class TeamNominal(SpecSizes):
     def __repr__(self) -> str:
         return f"TeamNominal({[m.spec.name for m in self.models]}, n={self.dim}, m={self.input_dim})"
 
+    @property
+    def input_memory_rows(self) -> list[int]:
+        """State rows that hold the last applied input in every model of the team."""
+        common = set.intersection(*(set(m.input_memory_rows) for m in self.models))
+        return sorted(common)
+
     def agent_model(self, k: int) -> NominalModel:
         """Agent k's (lifted) model."""
         return self.models[self.team.group_of[k]]

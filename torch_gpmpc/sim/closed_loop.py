@@ -267,4 +267,5 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem | Plant,
             if on_step is not None:
                 on_step(t, info)
     wall = time.perf_counter() - start_time
-    return recorder.rollout(torch.stack(states), scenario.targets, wall, cfg.method, nominal.position)
+    return recorder.rollout(torch.stack(states), scenario.targets, wall, cfg.method, nominal.position,
+                            nominal.input_memory_rows)

@@ -374,11 +374,14 @@ def prediction_metrics(rollout: Rollout, change_step: int | None) -> dict[str, A
 def plan_tracking_rmse(rollout: Rollout) -> float | None:
     """RMSE between every agent's planned next state (the plan at tau = 1) and the true state the plant
     reached, over steps, agents and state entries (``None`` for a run with zero steps): how well the
-    planning model (nominal plus learned residual) predicts the plant one step ahead."""
+    planning model (nominal plus learned residual) predicts the plant one step ahead. The rows that
+    hold the last input (:attr:`Rollout.input_memory`) are left out: a plan predicts them exactly."""
     plans, flown = np.asarray(rollout.plans), np.asarray(rollout.states)
     if plans.shape[0] == 0:
         return None
-    return float(np.sqrt(np.mean((plans[:, :, 1] - flown[1:]) ** 2)))
+    memory = set(getattr(rollout, "input_memory", None) or ())
+    rows = [i for i in range(plans.shape[-1]) if i not in memory]
+    return float(np.sqrt(np.mean((plans[:, :, 1, rows] - flown[1:, :, rows]) ** 2)))
 
 
 def deadlock_steps(positions: np.ndarray, targets: np.ndarray, goal_tol: float, r_safe: float,

@@ -173,9 +173,10 @@ class StepRecorder:
         return matrix.detach()[self.pairs].numpy()
 
     def rollout(self, states: Tensor, targets: Tensor, wall: float, method: str,
-                position: list[int] | None = None) -> Rollout:
-        """The run's :class:`Rollout` from the states (S+1, K, D), targets (K, P) and the
-        position indices of the state (``None``: every state is a position)."""
+                position: list[int] | None = None, input_memory: list[int] | None = None) -> Rollout:
+        """The run's :class:`Rollout` from the states (S+1, K, D), targets (K, P), the
+        position indices of the state (``None``: every state is a position) and the rows that hold
+        the last input (:attr:`Rollout.input_memory`)."""
         r, cfg, k = self.rows, self.cfg, self.num_agents
         steps = len(r["inputs"])
         width = cfg.iteration_cap
@@ -219,6 +220,7 @@ class StepRecorder:
             pair_risk=stack("pair_risk", (0, len(self.pairs[0]))),
             obstacle_risk=stack("obstacle_risk", (0, k)) if cfg.obstacles is not None and len(cfg.obstacles) else None,
             position=None if position is None or position == list(range(D)) else list(position),
+            input_memory=list(input_memory) if input_memory else None,
             prediction_error=np.asarray(pred["error"]) if pred["error"] else None,
             prediction_var=np.asarray(pred["var"]) if pred["var"] else None,
             gp_update_time=np.asarray(pred["update_s"]) if pred["update_s"] else None,

@@ -62,6 +62,8 @@ class Rollout:
             sample, shape (S, K), NaN for methods without margins (``None`` without obstacles and
             in older files; the last four are ``None`` in files written before they existed).
         position: the state indices of the position (P of them); ``None``: every state.
+        input_memory: the state rows that hold the last applied input in every agent's model
+            (:attr:`~torch_gpmpc.config.model_spec.ModelSpec.input_memory`); ``None``: none.
         prediction_error: each agent's one-step GP prediction error of the residual it observed, shape
             (S, K, R) (``None`` without GPs; :class:`~torch_gpmpc.gp.online.OnlineLearning`).
         prediction_var: the GP's predictive variance (latent + noise) of the same, shape (S, K, R).
@@ -103,6 +105,7 @@ class Rollout:
     pair_separation: np.ndarray | None = None
     pair_required: np.ndarray | None = None
     position: list[int] | None = None
+    input_memory: list[int] | None = None
     state_slack_max: np.ndarray | None = None
     pair_risk: np.ndarray | None = None
     obstacle_risk: np.ndarray | None = None
@@ -149,7 +152,7 @@ class Rollout:
             if getattr(self, name) is not None:
                 arrays[name] = np.asarray(getattr(self, name))
         meta = {"method": self.method, "seed": self.seed, "wall_time_s": self.wall_time_s,
-                "config": self.config, "position": self.position}
+                "config": self.config, "position": self.position, "input_memory": self.input_memory}
         arrays["meta_json"] = np.array(json.dumps(meta))
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
@@ -164,7 +167,8 @@ class Rollout:
                 arrays = {k: data[k] for k in data.files}
             meta = json.loads(str(arrays.pop("meta_json")))
             return cls(**arrays, method=meta["method"], seed=meta["seed"],
-                       wall_time_s=meta["wall_time_s"], config=meta["config"], position=meta.get("position"))
+                       wall_time_s=meta["wall_time_s"], config=meta["config"], position=meta.get("position"),
+                       input_memory=meta.get("input_memory"))
         except Exception as exc:  # noqa: BLE001 - BadZipFile, KeyError, TypeError, ... on a damaged file
             first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             raise GpmpcError(f"rollout file {str(path)!r} cannot be read (corrupt, truncated or not "
