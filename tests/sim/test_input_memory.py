@@ -27,6 +27,9 @@ def test_the_rows_that_hold_the_last_input_are_found_and_only_those():
     table["B"][5][0] = 0.5          # the row mixes two inputs
     assert ModelSpec.from_table(table).input_memory == ()
     table = lag_model()
+    table["A"][0][4] = 0.1          # the position reads it: a velocity set by the command, the robot's state
+    assert ModelSpec.from_table(table).input_memory == ((5, 1),)
+    table = lag_model()
     table["B"][4][0] = 2.0          # twice the input: not the input itself
     table["residual"] = [2, 3, 5]   # a residual row is learned, not known
     assert ModelSpec.from_table(table).input_memory == ()

@@ -122,7 +122,9 @@ class ModelSpec:
     @property
     def input_memory(self) -> tuple[tuple[int, int], ...]:
         """The state rows that hold the last applied input, as ``(row, input index)`` pairs: rows with
-        ``A[row] = 0`` and ``B[row]`` the unit vector of one input, not a position or residual row.
+        ``A[row] = 0`` and ``B[row]`` the unit vector of one input, that no state reads (``A[:, row] = 0``)
+        and that are not a position or residual row. (A state that does drive others, such as a
+        velocity set by the command, ``v' = u``, ``p' = p + dt v``, is the robot's and keeps its weight.)
 
         Such a row (``w' = u_j``) lets a model, and its GPs through ``gp_inputs``, see the command
         before the current one: what a vehicle that realizes its commands with a lag still responds to
@@ -140,7 +142,7 @@ class ModelSpec:
         out = []
         for i, (a_row, b_row) in enumerate(zip(self.A, self.B)):
             ones = [j for j, b in enumerate(b_row) if b == 1.0]
-            if (i not in skip and not any(a_row) and len(ones) == 1
+            if (i not in skip and not any(a_row) and not any(r[i] for r in self.A) and len(ones) == 1
                     and all(b == 0.0 for j, b in enumerate(b_row) if j != ones[0])):
                 out.append((i, ones[0]))
         return tuple(out)
