@@ -13,6 +13,7 @@ from torch_gpmpc.config import load_config
 from torch_gpmpc.sim.closed_loop import simulate
 from torch_gpmpc.sim.distributed import simulate_distributed
 from torch_gpmpc.sim.metrics import compute_metrics
+from tests.helpers import lag_model
 
 HAND_WRITTEN = """name = "hand-written double integrator"
 dt = 0.1
@@ -40,14 +41,16 @@ def test_double_integrator_pair_swaps_places_safely():
     assert np.abs(rollout.states[1:, :, 2:]).max() > 0.3
 
 
-def test_distributed_double_integrator_equals_inprocess():
-    cfg = load_config(None, {"model": "double-integrator", "method": "gp-chance", "max_steps": 3,
+@pytest.mark.parametrize("model, n", [("double-integrator", 4), (lag_model(), 6)], ids=["double", "with-last-command"])
+def test_distributed_double_integrator_equals_inprocess(model, n):
+    cfg = load_config(None, {"model": model, "method": "gp-chance", "max_steps": 3,
                              "admm_max_iter": 5, "gp_iters": 5})
     rollout, report = simulate_distributed(cfg, agents_per_process=2, timeout_s=60)
     ref = simulate(cfg)
     assert not report.lost_agents
-    assert rollout.states.shape == ref.states.shape == (4, 3, 4)
+    assert rollout.states.shape == ref.states.shape == (4, 3, n)
     assert np.abs(rollout.states - ref.states).max() <= 1e-9
+    assert rollout.input_memory == ref.input_memory == (None if n == 4 else [4, 5])
 
 
 def _chain(tmp_path, samples: int, run_sets: list[str]) -> dict:
