@@ -43,7 +43,11 @@ def test_the_last_command_may_ride_along_as_states_6_to_8():
     check_planning_model(ModelSpec.load(LAG_MODEL))
     table = ModelSpec.load(LAG_MODEL).to_table()
     table["A"][3][6] = 0.05    # the velocity reads the last command: not what the vehicle's setpoint assumes
-    with pytest.raises(GpmpcError, match="last command as states 6-8"):
+    with pytest.raises(GpmpcError, match=r"last command as states 6-8.*A\[3\]\[6\] = 0.05, expected 0"):
+        check_planning_model(ModelSpec.from_table(table))
+    table = ModelSpec.load(LAG_MODEL).to_table()
+    table["residual"] = [3, 4, 5, 6]   # a GP on the last command, which is known exactly
+    with pytest.raises(GpmpcError, match="velocity rows only"):
         check_planning_model(ModelSpec.from_table(table))
 
 

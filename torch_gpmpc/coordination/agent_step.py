@@ -182,7 +182,8 @@ def cost_weights(cost: QuadraticCost | list[QuadraticCost] | None, settings: Con
         if state_weights is None and settings.terminal_cost == "stage":
             return None
         costs = [QuadraticCost(Q=1.0 if state_weights is None else state_weights, R=settings.alpha)]
-        where = ["the default cost (Q = I, R = alpha I): "]
+        where = ["the default cost (Q = I, R = alpha I): " if state_weights is None else
+                 "the default cost (Q = I but 0 on the rows that hold the last input, R = alpha I): "]
     elif cost is None:
         costs = [QuadraticCost(Q=table.Q, R=table.R, P=table.P, u_ref=table.u_ref)]
         where = ["config key 'cost', entry "]
@@ -279,7 +280,7 @@ class LocalStep:
         gps: residual models indexed by agent id (``gp`` and chance methods), else ``None``;
             a distributed agent holds ``None`` for every agent but itself.
         cost: the tracking cost: one :class:`~torch_gpmpc.control.cost.QuadraticCost` for every agent,
-            a list indexed by agent id, or ``None``: the settings' ``cost`` table, else Q = I,
+            a list indexed by agent id, or ``None``: the settings' ``cost`` table, else Q = I (0 on rows that hold the last input),
             R = alpha I, with the terminal weight of ``settings.terminal_cost`` (``lqr``: the model's
             LQR cost-to-go; ``stage``: P = Q, the paper's cost, solved as ``||X - Xref||^2 + alpha ||U||^2``).
 

@@ -48,7 +48,7 @@ class Controller:
         settings: the controller settings (default :class:`ControllerSettings`: the paper's).
         wind: the known wind, for the ``nonlinear`` baselines only.
         cost: the tracking cost (:class:`~torch_gpmpc.control.cost.QuadraticCost`), one for all agents or a
-            list of K; ``None``: the settings' (Q = I, R = alpha I, the LQR terminal weight). One model only.
+            list of K; ``None``: the settings' (Q = I but 0 on rows that hold the last input, R = alpha I, the LQR terminal weight). One model only.
 
     Attributes:
         agent_step: the per-agent step (:class:`~torch_gpmpc.coordination.agent_step.LocalStep`).

@@ -53,7 +53,9 @@ class Plant(Protocol):
     def step(self, t: int, x: Tensor, u: Tensor, noise: Tensor | None = None) -> Tensor:
         """Fly control step ``t``: apply inputs ``u`` (K, Du) planned from the measured states ``x`` (K, D)
         for one ``dt``. ``noise`` (K, R) are the run's standard-normal process-noise draws of this step
-        (a plant with its own physics may ignore them). Returns the next measured states (K, D)."""
+        (a plant with its own physics may ignore them). Returns the next measured states (K, D); rows
+        that hold the last input (:attr:`~torch_gpmpc.config.model_spec.ModelSpec.input_memory`) must
+        be ``u``."""
         ...
 
 

@@ -66,12 +66,30 @@ def check_planning_model(spec: ModelSpec) -> None:
         B = np.vstack([B, eye])
     ok = (n in (6, 9) and spec.input_dim == 3 and tuple(spec.position) == (0, 1, 2)
           and np.allclose(np.array(spec.A), A, atol=1e-9) and np.allclose(np.array(spec.B), B, atol=1e-9))
+    if ok and not set(spec.residual) <= {3, 4, 5}:
+        raise GpmpcError(f"plant=rotorpy: model {spec.name!r} has residual rows {list(spec.residual)}; the GPs learn "
+                         "the velocity rows only (residual = [3, 4, 5] or a subset): the position and the last "
+                         "command are known exactly")
     if not ok:
         raise GpmpcError(f"plant=rotorpy flies a 3D double integrator (states p, v; inputs the accelerations: "
                          f"A = [[I, dt I], [0, I]], B = [[dt^2/2 I], [dt I]], position = [0, 1, 2]), optionally "
-                         f"with the last command as states 6-8 (A rows 0, B rows I); model {spec.name!r} is not one. "
+                         f"with the last command as states 6-8 (A rows and columns 0, B rows I); model {spec.name!r} "
+                         f"is not one{_first_difference(spec, A, B)}. "
                          "Use the built-in double-integrator in 3D (dim = 3) or a model file like "
                          "examples/rotorpy/crazyflie.toml or crazyflie_lag.toml")
+
+
+def _first_difference(spec: ModelSpec, A: np.ndarray, B: np.ndarray) -> str:
+    """Where a model of the expected sizes first differs from the double integrator (A, B), e.g.
+    ``" (A[3][6] = 0.05, expected 0)"``; ``""`` for other sizes."""
+    for name, got, want in (("A", np.array(spec.A), A), ("B", np.array(spec.B), B)):
+        if got.shape != want.shape:
+            return ""
+        bad = np.argwhere(~np.isclose(got, want, atol=1e-9))
+        if len(bad):
+            i, j = bad[0]
+            return f" ({name}[{i}][{j}] = {got[i, j]:g}, expected {want[i, j]:g})"
+    return ""
 
 
 @dataclass(frozen=True)
