@@ -318,6 +318,8 @@ CLI_CASES = [
     ("config-u-max-negative", lambda t, a: run(t, "--set", "u_max=-1"), "'u_max': -1.0 is out of range"),
     ("config-r-safe-negative", lambda t, a: run(t, "--set", "r_safe=-0.1"), "'r_safe': -0.1 is out of range"),
     ("config-rho-nan", lambda t, a: run(t, "--set", "rho=NaN"), "'rho': nan is not finite"),
+    ("config-inf-word", lambda t, a: run(t, "--set", "gp_online_max_input_change=inf"), "give a large finite one"),
+    ("config-nan-word", lambda t, a: run(t, "--set", "rho=nan"), "numbers must be finite, give a number"),
     ("config-rho-zero", lambda t, a: run(t, "--set", "rho=0"), "'rho': 0.0 is out of range"),
     ("config-risk-split-one", lambda t, a: run(t, "--set", "risk_split=1"), "'risk_split'"),
     ("config-seed-negative", lambda t, a: run(t, "--seed", "-1"), "'seed': -1 is out of range"),

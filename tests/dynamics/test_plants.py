@@ -104,6 +104,30 @@ def test_online_gp_learns_the_turned_wind_and_the_frozen_one_does_not():
 
     assert online["online_prediction_rmse_after_change"] < 0.7 * frozen["online_prediction_rmse_after_change"]
     assert online["gp_update_s_per_step"] > 0 and frozen["gp_update_s_per_step"] == 0
+    # the online run also judges its GPs as fitted on its own transitions, which cannot foresee the turn
+    assert online["frozen_prediction_rmse_after_change"] > online["online_prediction_rmse_after_change"]
+    assert frozen["frozen_prediction_rmse_after_change"] is None
+    assert 0 < online["online_prediction_rmse_at_change"] and frozen["online_prediction_rmse_at_change"] > 0
+
+
+def test_an_online_run_records_its_fitted_gps_errors_on_its_own_transitions():
+    """``frozen_prediction_error`` of an online run equals the fitted GPs' prediction of the
+    transitions the run made, recomputed from its rollout (no offset estimate here)."""
+    from torch_gpmpc.gp.fit import fit_agent_gps
+
+    cfg = Config(max_steps=8, wind_change_step=3, wind_scale=0.3, noise_std=0.01, gp_iters=10,
+                 gp_online=True, gp_online_budget=100)
+    system = system_from_config(cfg)
+    gps = fit_agent_gps(cfg, system, cfg.num_agents)
+    rollout = simulate(cfg, gps=gps)
+    x, u = torch.as_tensor(rollout.states), torch.as_tensor(rollout.inputs)
+    expected = []
+    for t in range(rollout.num_steps):
+        inputs, y = system.nominal.gp_targets(x[t], u[t], x[t + 1])
+        expected.append(torch.stack([y[k] - gps[k].predict(inputs[k:k + 1])[0][0] for k in range(len(gps))]))
+    np.testing.assert_allclose(rollout.frozen_prediction_error, torch.stack(expected).numpy(), rtol=0, atol=1e-12)
+    metrics = compute_metrics(rollout)
+    assert metrics["frozen_prediction_rmse"] == pytest.approx(float(np.sqrt(np.mean(torch.stack(expected).numpy() ** 2))))
 
 
 def test_a_rotorpy_run_does_not_build_the_vortex_wind(tmp_path):

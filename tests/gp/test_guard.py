@@ -119,3 +119,34 @@ def test_learning_runs_with_unguarded_online_gps_too():
     x = torch.tensor([[0.5, 0.1]], dtype=F64)
     learning.observe(x, torch.zeros(1, 1, dtype=F64), nominal(x, torch.zeros(1, 1, dtype=F64)))
     assert learning.gps[0].model.gp.num_data == 6
+
+
+def test_online_learning_scores_the_fit_with_the_offset_a_frozen_run_would_have_estimated():
+    """``OnlineLearning.frozen_error`` equals the errors of the fit wrapped in its own offset
+    estimate, replayed by hand on the same transitions (whatever the run's own offset does); unguarded
+    online models keep no fit, so there is none."""
+    from torch_gpmpc.config.model_spec import ModelSpec
+    from torch_gpmpc.dynamics.systems import NominalModel
+    from torch_gpmpc.gp.online import OnlineLearning, online_gps
+
+    nominal = NominalModel(ModelSpec.double_integrator(dim=1, dt=0.1, u_max=2.0))
+    fit = _fitted()
+    model = OffsetCorrected(online_gps([fit], budget=20, refit_every=0)[0], drift=0.01)
+    model.offset = torch.tensor([0.03], dtype=F64)  # the run's estimate: not the fit's
+    learning = OnlineLearning([model], nominal, online=True)
+    frozen_run = OffsetCorrected(fit, drift=0.01)
+    x = torch.tensor([[0.5, 0.4]], dtype=F64)
+    for step in range(6):
+        u = torch.tensor([[0.2 - 0.1 * step]], dtype=F64)
+        x_next = nominal(x, u) + torch.tensor([[0.0, 0.07]], dtype=F64)  # a constant push the fit never saw
+        inputs, y = nominal.gp_targets(x, u, x_next)
+        expected = y - frozen_run.predict(inputs)[0]
+        frozen_run.observe(expected[0])
+        learning.observe(x, u, x_next)
+        torch.testing.assert_close(learning.frozen_error, expected, rtol=0, atol=1e-14)
+        x = x_next
+    assert abs(float(frozen_run.offset[0])) > 0.005  # the replayed estimate did move
+
+    unguarded = OnlineLearning([OnlineGP(_fitted(), budget=20)], nominal, online=True)
+    unguarded.observe(x, u, x_next)
+    assert unguarded.frozen_error is None

@@ -218,6 +218,31 @@ def test_step_times_are_summarized_by_hand_and_survive_a_round_trip(hand_rollout
     assert m["step_time_s_median"] == pytest.approx(0.025) and m["step_time_s_max"] == pytest.approx(0.04)
 
 
+def test_prediction_metrics_around_a_change_by_hand_and_after_a_round_trip(hand_rollout, tmp_path):
+    """4 steps, 1 agent, 1 row, the change at step 2: the online errors 0.1, 0.1, 0.4, 0.2 and the
+    fit's on the same transitions 0.1, 0.1, 0.4, 0.6. A file with an array this version does not know
+    (a later version's) still loads."""
+    from torch_gpmpc.sim.metrics import prediction_metrics
+
+    hand_rollout.prediction_error = np.array([0.1, 0.1, 0.4, 0.2])[:, None, None]
+    hand_rollout.prediction_var = np.full((4, 1, 1), 0.04)
+    hand_rollout.frozen_prediction_error = np.array([0.1, 0.1, 0.4, 0.6])[:, None, None]
+    hand_rollout.gp_update_time = np.zeros(4)
+    path = tmp_path / "r.npz"
+    hand_rollout.save(path)
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    np.savez(path, **arrays, a_later_array=np.ones(3))
+    m = prediction_metrics(Rollout.load(path), change_step=2)
+    assert m["online_prediction_rmse_after_change"] == pytest.approx(np.sqrt((0.16 + 0.04) / 2))
+    assert m["frozen_prediction_rmse_after_change"] == pytest.approx(np.sqrt((0.16 + 0.36) / 2))
+    assert m["online_prediction_rmse_at_change"] == pytest.approx(0.4)
+    assert m["frozen_prediction_rmse"] == pytest.approx(np.sqrt((0.01 + 0.01 + 0.16 + 0.36) / 4))
+    hand_rollout.frozen_prediction_error = None
+    m = prediction_metrics(hand_rollout, change_step=2)
+    assert m["frozen_prediction_rmse"] is None and m["frozen_prediction_rmse_after_change"] is None
+
+
 def test_obstacle_metrics_by_hand():
     import numpy as np
 

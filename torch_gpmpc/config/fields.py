@@ -156,7 +156,11 @@ def _check_type(what: str, name: str, value: Any, typ: Any) -> None:
     bases = [t for t in allowed if t is not type(None)]
     if not any(_is(base, value) for base in bases):
         expected = " or ".join(base.__name__ for base in bases)
-        raise GpmpcError(f"{what} '{name}': expected {expected}, got {type(value).__name__} {value!r}")
+        word = value.strip().lower().lstrip("+-") if isinstance(value, str) else ""
+        hint = {"inf": "; numbers must be finite, give a large finite one (e.g. 1e9)",
+                "infinity": "; numbers must be finite, give a large finite one (e.g. 1e9)",
+                "nan": "; numbers must be finite, give a number"}.get(word, "")
+        raise GpmpcError(f"{what} '{name}': expected {expected}, got {type(value).__name__} {value!r}{hint}")
 
 
 @dataclass(frozen=True)

@@ -213,8 +213,8 @@ class Transitions:
         """
         if self.state_dim != int(dim):
             raise source_error(self.source, f"state dimension D={self.state_dim} (columns of x) does not "
-                        f"match the model's D={dim}; use data collected with --dim {dim} "
-                        "or a model of the data's dimension")
+                        f"match the model's D={dim}; fit with the --model the data was collected with "
+                        "(gpmpc collect --model ...), or collect data with this model")
         if input_dim is not None and self.input_dim != int(input_dim):
             raise source_error(self.source, f"input dimension Du={self.input_dim} (columns of u) does not "
                         f"match the model's Du={input_dim}")

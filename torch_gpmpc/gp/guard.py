@@ -130,15 +130,17 @@ class GuardedOnlineGP:
         return planning_gp(self.planning_model) if evaluates_as(self, GuardedOnlineGP) else None
 
     # ------------------------------------------------------------------ judging and learning
-    def judge(self, inputs: Tensor, y: Tensor) -> None:
+    def judge(self, inputs: Tensor, y: Tensor) -> Tensor:
         """Score both models on transitions neither has learnt, inputs (n, Din) and residuals (n, R)
-        in raw units, and choose the planning model. Call it before :meth:`add` of the same rows."""
+        in raw units, and choose the planning model. Call it before :meth:`add` of the same rows.
+        Returns the frozen fit's errors ``y - mean`` (n, R) on these transitions."""
         with torch.no_grad():
-            frozen = (y - self.frozen.predict(inputs)[0]).square().sum(-1)
+            frozen_error = y - self.frozen.predict(inputs)[0]
             learner = (y - self.learner.predict(inputs)[0]).square().sum(-1)
-        self.errors.extend(zip(frozen.tolist(), learner.tolist()))
+        self.errors.extend(zip(frozen_error.square().sum(-1).tolist(), learner.tolist()))
         if len(self.errors) >= GUARD_MIN_ROWS:
             self.adopted = surely_positive([f - lr for f, lr in self.errors])
+        return frozen_error
 
     def add(self, inputs: Tensor, y: Tensor) -> None:
         """Let the learner learn rows ``inputs`` (n, Din), residuals ``y`` (n, R)

@@ -77,6 +77,8 @@ class OffsetCorrected:
         self.offset = torch.zeros_like(noise)
         self.variance = torch.full_like(noise, self.drift ** 2)
         self.error_variance = noise.clone()
+        # the estimate a run without learning would have made on this run's transitions (judge)
+        self._fit_filter = (self.offset.clone(), self.variance.clone(), self.error_variance.clone())
 
     @property
     def input_dim(self) -> int:
@@ -118,13 +120,17 @@ class OffsetCorrected:
         error = torch.as_tensor(error, dtype=self.offset.dtype).detach().reshape(-1)
         if error.shape != self.offset.shape:
             raise GpmpcError(f"offset error has {error.shape[0]} entries, expected R = {self.offset.shape[0]}")
-        prior = self.variance + self.drift ** 2
-        self.error_variance = (1 - ERROR_MEMORY) * self.error_variance + ERROR_MEMORY * error ** 2
+        self.offset, self.variance, self.error_variance = self._kalman_step(
+            (self.offset, self.variance, self.error_variance), error)
+
+    def _kalman_step(self, state: tuple[Tensor, Tensor, Tensor], error: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The filter ``state`` (offset, variance, error variance; each (R,)) after one error (R,)."""
+        offset, variance, error_variance = state
+        prior = variance + self.drift ** 2
+        error_variance = (1 - ERROR_MEMORY) * error_variance + ERROR_MEMORY * error ** 2
         model_noise = torch.as_tensor(self.noise, dtype=prior.dtype).detach().reshape(-1)
-        noise = torch.maximum(model_noise, self.error_variance)
-        gain = prior / (prior + noise)
-        self.offset = self.offset + gain * error
-        self.variance = (1 - gain) * prior
+        gain = prior / (prior + torch.maximum(model_noise, error_variance))
+        return offset + gain * error, (1 - gain) * prior, error_variance
 
     # the learning of an online model passes through
     def add(self, inputs: Tensor, y: Tensor) -> None:
@@ -133,10 +139,24 @@ class OffsetCorrected:
         what the offset does not explain, so the two never count the same error twice."""
         self.model.add(inputs, y - self.offset.to(y))
 
-    def judge(self, inputs: Tensor, y: Tensor) -> None:
+    def judge(self, inputs: Tensor, y: Tensor) -> Tensor | None:
         """Let the wrapped online model judge rows ``inputs`` (n, Din), residuals ``y`` (n, R), less
-        the offset (:meth:`GuardedOnlineGP.judge <torch_gpmpc.gp.guard.GuardedOnlineGP.judge>`)."""
-        self.model.judge(inputs, y - self.offset.to(y))
+        the offset (:meth:`GuardedOnlineGP.judge <torch_gpmpc.gp.guard.GuardedOnlineGP.judge>`).
+
+        Returns the frozen fit's errors (n, R) against the offset it would have estimated itself:
+        a second filter that sees only the fit's errors on these transitions, as in a run without
+        learning. (The run's own offset follows the planning model; once a learner has taken up a
+        change, it lags the change, and would make the fit look worse than it is.) ``None`` without
+        a frozen fit."""
+        fit_error = self.model.judge(inputs, y - self.offset.to(y))
+        if fit_error is None:
+            return None
+        residual_miss = (fit_error + self.offset.to(fit_error)).detach().to(self.offset.dtype)  # y - fit
+        errors = []
+        for row in residual_miss:  # one transition at a time, as the run's own filter
+            errors.append(row - self._fit_filter[0])
+            self._fit_filter = self._kalman_step(self._fit_filter, errors[-1])
+        return torch.stack(errors).to(fit_error)
 
     @property
     def adopted(self) -> bool:

@@ -121,8 +121,9 @@ class OnlineGP:
     adopted = True
 
     def judge(self, inputs: Tensor, y: Tensor) -> None:
-        """Nothing to choose between (a :class:`~torch_gpmpc.gp.guard.GuardedOnlineGP` judges its
-        learner against its fit here); ``inputs`` (n, Din), ``y`` (n, R)."""
+        """Nothing to choose between and no frozen fit kept (a
+        :class:`~torch_gpmpc.gp.guard.GuardedOnlineGP` judges its learner against its fit here);
+        ``inputs`` (n, Din), ``y`` (n, R). Returns ``None``."""
 
     def end_step(self) -> bool:
         """Count one control step; re-fit the hyperparameters when ``refit_every`` steps have passed.
@@ -225,6 +226,11 @@ class OnlineLearning:
         update_seconds: wall time of the updates (and refits) of each step.
         skipped: transitions not added (input change above ``max_input_change``), per agent.
         adopted_share: per step, the share of agents planning with their learner (online only).
+        frozen_error: the last step's errors of each agent's fit as it was before learning, on the
+            same transitions, (K, R), with the offset estimate it would have made itself
+            (:meth:`OffsetCorrected.judge <torch_gpmpc.gp.offset.OffsetCorrected.judge>`): learning
+            against not learning on one flight (``None`` unless every model is guarded: ``online``
+            with :func:`online_gps`' models).
     """
 
     def __init__(self, gps: list, nominal, online: bool, max_input_change: float | None = None) -> None:
@@ -233,6 +239,7 @@ class OnlineLearning:
         self.update_seconds: list[float] = []
         self.skipped = [0] * len(gps)
         self.adopted_share: list[float] = []
+        self.frozen_error: Tensor | None = None
         self._u_prev: Tensor | None = None
 
     def observe(self, x: Tensor, u: Tensor, x_next: Tensor) -> tuple[Tensor, Tensor]:
@@ -251,14 +258,17 @@ class OnlineLearning:
         start = time.perf_counter()
         if self.online:
             steady = self._steady_inputs(u)
+            frozen = []
             for k, gp in enumerate(self.gps):
-                gp.judge(inputs[k], y[k:k + 1])  # before it learns: a guarded model scores held-out rows
+                # before it learns: a guarded model scores held-out rows
+                frozen.append(gp.judge(inputs[k], y[k:k + 1]))
                 if steady[k]:
                     gp.add(inputs[k], y[k:k + 1])
                 else:
                     self.skipped[k] += 1
                 gp.end_step()
             self.adopted_share.append(sum(gp.adopted for gp in self.gps) / len(self.gps))
+            self.frozen_error = None if any(e is None for e in frozen) else torch.cat(frozen)
         corrected = [k for k, gp in enumerate(self.gps) if isinstance(gp, OffsetCorrected)]
         # the innovation of the model the next plan uses: after an online update the GP has learnt
         # what the offset did not explain (OffsetCorrected.add), near noise level here

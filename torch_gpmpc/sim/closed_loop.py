@@ -258,7 +258,7 @@ def run_closed_loop(cfg: Config, scenario: Scenario, system: TrueSystem | Plant,
             states.append(plant.true_states)
             if learning is not None:
                 error, var = learning.observe(x_prev, u, x)
-                recorder.record_prediction(t, error, var, learning.update_seconds[-1], tb)
+                recorder.record_prediction(t, error, var, learning.update_seconds[-1], tb, learning.frozen_error)
                 if tb is not None and learning.adopted_share:
                     tb.scalar("gp/online_adopted", learning.adopted_share[-1], t)
             info = recorder.record(t, res, graph.adjacency(), u, states[-1], step_s)

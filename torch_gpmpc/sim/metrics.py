@@ -348,26 +348,38 @@ def prediction_metrics(rollout: Rollout, change_step: int | None) -> dict[str, A
     ``online_prediction_rmse`` over all steps, agents and residual rows; ``online_coverage95`` (share
     of rows within 1.96 predictive standard deviations); ``gp_update_s_per_step``; with
     ``wind_change_step`` c, the same two over steps [c, c + 50) (``*_after_change``) and
-    [c - 50, c) (``*_before_change``), ``None`` where the run has no such steps."""
+    [c - 50, c) (``*_before_change``), and ``online_prediction_rmse_at_change``, step c alone (the
+    first transition in the changed world, which no model has seen), ``None`` where the run has no
+    such steps. With ``gp_online`` (:attr:`Rollout.frozen_prediction_error`),
+    ``frozen_prediction_rmse`` and ``frozen_prediction_rmse_after_change``: the GPs as fitted, with
+    the offset estimates they would have made themselves, on the same transitions (``None``
+    otherwise)."""
     error = getattr(rollout, "prediction_error", None)
     if error is None:
         return {}
     error, var = np.asarray(error), np.asarray(rollout.prediction_var)
+    frozen = getattr(rollout, "frozen_prediction_error", None)
+    frozen = None if frozen is None else np.asarray(frozen)
 
-    def rmse(sl):
-        return float(np.sqrt(np.mean(error[sl] ** 2))) if error[sl].size else None
+    def rmse(sl, err=error):
+        if err is None:
+            return None
+        return float(np.sqrt(np.mean(err[sl] ** 2))) if err[sl].size else None
 
     def coverage(sl):
         return float(np.mean(np.abs(error[sl]) <= 1.96 * np.sqrt(var[sl]))) if error[sl].size else None
 
     out = {"online_prediction_rmse": rmse(slice(None)), "online_coverage95": coverage(slice(None)),
+           "frozen_prediction_rmse": rmse(slice(None), frozen),
            "gp_update_s_per_step": _mean(np.asarray(rollout.gp_update_time, dtype=np.float64))}
     if change_step is not None:
         c = int(change_step)
         after, before = slice(c, c + CHANGE_WINDOW), slice(max(0, c - CHANGE_WINDOW), c)
         out.update({"online_prediction_rmse_after_change": rmse(after),
                     "online_coverage95_after_change": coverage(after),
-                    "online_prediction_rmse_before_change": rmse(before)})
+                    "online_prediction_rmse_before_change": rmse(before),
+                    "online_prediction_rmse_at_change": rmse(slice(c, c + 1)),
+                    "frozen_prediction_rmse_after_change": rmse(after, frozen)})
     return out
 
 

@@ -97,17 +97,24 @@ class StepRecorder:
         self.position = list(cfg.model_spec().position)
         self.violations_total = 0
         self.risk_spent = 0.0
-        self.predictions: dict[str, list] = {"error": [], "var": [], "update_s": []}
+        self.predictions: dict[str, list] = {"error": [], "var": [], "frozen_error": [], "update_s": []}
         self.coverage_sum = 0.0
 
-    def record_prediction(self, t: int, error: Tensor, var: Tensor, update_s: float, tb=None) -> None:
-        """Step t's one-step GP prediction errors and predictive variances (K, R) and the time of the
-        GP updates; to TensorBoard as ``gp/online_prediction_error`` (RMS over agents and rows) and
-        ``gp/online_coverage95`` (the share of rows within 1.96 predictive standard deviations so far)."""
+    def record_prediction(self, t: int, error: Tensor, var: Tensor, update_s: float, tb=None,
+                          frozen_error: Tensor | None = None) -> None:
+        """Step t's one-step GP prediction errors and predictive variances (K, R), the time of the
+        GP updates and, with online GPs, the frozen fits' errors on the same transitions (K, R); to
+        TensorBoard as ``gp/online_prediction_error`` (RMS over agents and rows),
+        ``gp/frozen_prediction_error`` (the same for the frozen fits) and ``gp/online_coverage95``
+        (the share of rows within 1.96 predictive standard deviations so far)."""
         p = self.predictions
         p["error"].append(error.numpy())
         p["var"].append(var.numpy())
         p["update_s"].append(update_s)
+        if frozen_error is not None:
+            p["frozen_error"].append(frozen_error.numpy())
+            if tb is not None:
+                tb.scalar("gp/frozen_prediction_error", float(frozen_error.square().mean().sqrt()), t)
         if tb is not None:
             inside = float((error.abs() <= 1.96 * var.sqrt()).double().mean())
             self.coverage_sum += inside  # every step has K x R rows: the mean of the steps' shares
@@ -223,6 +230,8 @@ class StepRecorder:
             input_memory=list(input_memory) if input_memory else None,
             prediction_error=np.asarray(pred["error"]) if pred["error"] else None,
             prediction_var=np.asarray(pred["var"]) if pred["var"] else None,
+            frozen_prediction_error=np.asarray(pred["frozen_error"])
+            if pred["frozen_error"] and len(pred["frozen_error"]) == len(pred["error"]) else None,
             gp_update_time=np.asarray(pred["update_s"]) if pred["update_s"] else None,
             step_time=stack("step_time", (0,)),
         )

@@ -8,7 +8,7 @@ I = the iteration budget (``ControllerSettings.iteration_cap``).
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +67,10 @@ class Rollout:
         prediction_error: each agent's one-step GP prediction error of the residual it observed, shape
             (S, K, R) (``None`` without GPs; :class:`~torch_gpmpc.gp.online.OnlineLearning`).
         prediction_var: the GP's predictive variance (latent + noise) of the same, shape (S, K, R).
+        frozen_prediction_error: with ``gp_online``, each agent's GP as fitted (with the offset
+            estimate it would have made itself) on the same transitions, shape (S, K, R): the same
+            flight judged without the learning (``None`` for frozen GPs, distributed runs and older
+            files).
         gp_update_time: seconds of the online GP updates per step, shape (S,) (0 for a frozen GP).
         step_time: wall-clock seconds of each control step's planning (graph, reference and
             ADMM with its local solves and safety checks; not the plant; for the distributed
@@ -111,6 +115,7 @@ class Rollout:
     obstacle_risk: np.ndarray | None = None
     prediction_error: np.ndarray | None = None
     prediction_var: np.ndarray | None = None
+    frozen_prediction_error: np.ndarray | None = None
     gp_update_time: np.ndarray | None = None
     step_time: np.ndarray | None = None
 
@@ -148,7 +153,8 @@ class Rollout:
         }
         for name in ("messages_per_iteration", "failed_solves", "failed_solves_by_kind", "fallback",
                      "unsafe_plan", "pair_separation", "pair_required", "state_slack_max", "pair_risk",
-                     "obstacle_risk", "prediction_error", "prediction_var", "gp_update_time", "step_time"):
+                     "obstacle_risk", "prediction_error", "prediction_var", "frozen_prediction_error", "gp_update_time",
+                     "step_time"):
             if getattr(self, name) is not None:
                 arrays[name] = np.asarray(getattr(self, name))
         meta = {"method": self.method, "seed": self.seed, "wall_time_s": self.wall_time_s,
@@ -166,6 +172,9 @@ class Rollout:
             with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}
             meta = json.loads(str(arrays.pop("meta_json")))
+            # arrays a later version added are skipped, so its files still load here
+            known = {f.name for f in fields(cls)}
+            arrays = {name: value for name, value in arrays.items() if name in known}
             return cls(**arrays, method=meta["method"], seed=meta["seed"],
                        wall_time_s=meta["wall_time_s"], config=meta["config"], position=meta.get("position"),
                        input_memory=meta.get("input_memory"))
