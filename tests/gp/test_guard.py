@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import torch
 
 from torch_gpmpc import ResidualGP
@@ -67,14 +69,16 @@ def test_an_update_that_predicts_held_out_points_better_is_adopted_and_refused_a
     assert torch.equal(guarded.predict(q)[0], guarded.frozen.predict(q)[0])
 
 
-def test_the_offset_estimate_passes_judged_rows_less_its_offset():
+def test_each_candidate_is_judged_less_its_own_offset_estimate():
+    """The learner less :attr:`offset` (0.3 here), the fit less the fit's own estimate (still 0)."""
     guarded = GuardedOnlineGP(OnlineGP(_fitted(), budget=30))
     model = OffsetCorrected(guarded, drift=0.01)
     model.offset = torch.tensor([0.3], dtype=F64)
     row = _points(1, 4)
-    model.judge(row, torch.sin(row) + 0.3)
+    fit_error = model.judge(row, torch.sin(row) + 0.3)
     f, lr = guarded.errors[-1]
-    assert f == lr and f < 1e-3   # both judged on the residual less the offset
+    assert lr < 1e-3 and abs(f - 0.09) < 1e-3
+    assert abs(float(fit_error[0, 0]) - 0.3) < 0.03
 
 
 def test_the_learner_must_be_better_by_two_standard_errors():
@@ -121,31 +125,41 @@ def test_learning_runs_with_unguarded_online_gps_too():
     assert learning.gps[0].model.gp.num_data == 6
 
 
-def test_online_learning_scores_the_fit_with_the_offset_a_frozen_run_would_have_estimated():
-    """``OnlineLearning.frozen_error`` equals the errors of the fit wrapped in its own offset
-    estimate, replayed by hand on the same transitions (whatever the run's own offset does); unguarded
-    online models keep no fit, so there is none."""
+def test_a_guarded_agent_plans_with_the_fit_and_its_own_estimate_or_the_learner_and_its_own():
+    """Replayed by hand on the same transitions: the fit in its own offset estimate (a frozen run's
+    model) and the learner in its own (stepped from its errors after learning). While the guard plans
+    with the fit, the agent predicts as the frozen run's model; once it adopts the learner, as the
+    learner with its estimate. ``OnlineLearning.frozen_error`` is the frozen run's model's error
+    throughout; unguarded online models keep no fit, so there is none."""
     from torch_gpmpc.config.model_spec import ModelSpec
     from torch_gpmpc.dynamics.systems import NominalModel
     from torch_gpmpc.gp.online import OnlineLearning, online_gps
 
     nominal = NominalModel(ModelSpec.double_integrator(dim=1, dt=0.1, u_max=2.0))
     fit = _fitted()
-    model = OffsetCorrected(online_gps([fit], budget=20, refit_every=0)[0], drift=0.01)
-    model.offset = torch.tensor([0.03], dtype=F64)  # the run's estimate: not the fit's
+    model = OffsetCorrected(online_gps([fit], budget=60, refit_every=0)[0], drift=0.01)
     learning = OnlineLearning([model], nominal, online=True)
     frozen_run = OffsetCorrected(fit, drift=0.01)
+    learner = OffsetCorrected(OnlineGP(copy.deepcopy(fit), budget=60), drift=0.01)
     x = torch.tensor([[0.5, 0.4]], dtype=F64)
-    for step in range(6):
-        u = torch.tensor([[0.2 - 0.1 * step]], dtype=F64)
-        x_next = nominal(x, u) + torch.tensor([[0.0, 0.07]], dtype=F64)  # a constant push the fit never saw
+    adopted = []
+    for step in range(12):
+        u = torch.tensor([[0.3 * (-1) ** step]], dtype=F64)
+        # a push the fit never saw, that depends on the state
+        x_next = nominal(x, u) + torch.tensor([[0.0, 0.5 * torch.sin(x[0, 1]).item() + 0.07]], dtype=F64)
         inputs, y = nominal.gp_targets(x, u, x_next)
+        planned = (learner if model.adopted else frozen_run).predict(inputs)[0]
+        torch.testing.assert_close(model.predict(inputs)[0], planned, rtol=0, atol=1e-14)
         expected = y - frozen_run.predict(inputs)[0]
         frozen_run.observe(expected[0])
+        learner.add(inputs, y)
+        learner.observe_learnt(inputs, y)
         learning.observe(x, u, x_next)
         torch.testing.assert_close(learning.frozen_error, expected, rtol=0, atol=1e-14)
+        adopted.append(model.adopted)
         x = x_next
-    assert abs(float(frozen_run.offset[0])) > 0.005  # the replayed estimate did move
+    assert any(adopted) and not all(adopted)
+    assert float((frozen_run.offset - learner.offset).abs().max()) > 1e-3  # two estimates, apart
 
     unguarded = OnlineLearning([OnlineGP(_fitted(), budget=20)], nominal, online=True)
     unguarded.observe(x, u, x_next)

@@ -130,12 +130,13 @@ class GuardedOnlineGP:
         return planning_gp(self.planning_model) if evaluates_as(self, GuardedOnlineGP) else None
 
     # ------------------------------------------------------------------ judging and learning
-    def judge(self, inputs: Tensor, y: Tensor) -> Tensor:
+    def judge(self, inputs: Tensor, y: Tensor, frozen_y: Tensor | None = None) -> Tensor:
         """Score both models on transitions neither has learnt, inputs (n, Din) and residuals (n, R)
-        in raw units, and choose the planning model. Call it before :meth:`add` of the same rows.
-        Returns the frozen fit's errors ``y - mean`` (n, R) on these transitions."""
+        in raw units (``frozen_y``, (n, R): the frozen model's, where it differs, as with its own
+        offset estimate), and choose the planning model. Call it before :meth:`add` of the same rows.
+        Returns the frozen fit's errors ``frozen_y - mean`` (n, R) on these transitions."""
         with torch.no_grad():
-            frozen_error = y - self.frozen.predict(inputs)[0]
+            frozen_error = (y if frozen_y is None else frozen_y) - self.frozen.predict(inputs)[0]
             learner = (y - self.learner.predict(inputs)[0]).square().sum(-1)
         self.errors.extend(zip(frozen_error.square().sum(-1).tolist(), learner.tolist()))
         if len(self.errors) >= GUARD_MIN_ROWS:

@@ -77,7 +77,7 @@ class OffsetCorrected:
         self.offset = torch.zeros_like(noise)
         self.variance = torch.full_like(noise, self.drift ** 2)
         self.error_variance = noise.clone()
-        # the estimate a run without learning would have made on this run's transitions (judge)
+        # beside a guarded online model: the fit's own estimate, from the fit's errors (judge)
         self._fit_filter = (self.offset.clone(), self.variance.clone(), self.error_variance.clone())
 
     @property
@@ -99,18 +99,29 @@ class OffsetCorrected:
         """The model's mean plus the offset (n, R), its Jacobian (n, R, Din) and its latent
         variance plus the estimate's (n, R), at ``x`` (n, Din)."""
         mean, jac, var = self.model.linearize(x)
-        return mean + self.offset.to(mean), jac, var + self.variance.to(var)
+        offset, variance = self.estimate
+        return mean + offset.to(mean), jac, var + variance.to(var)
 
     def predict(self, x: Tensor, include_noise: bool = False) -> tuple[Tensor, Tensor]:
         """Mean and variance (n, R) at ``x`` (n, Din), offset included."""
         mean, var = self.model.predict(x, include_noise=include_noise)
-        return mean + self.offset.to(mean), var + self.variance.to(var)
+        offset, variance = self.estimate
+        return mean + offset.to(mean), var + variance.to(var)
 
     def planning_gp(self) -> PlanningGP | None:
         """The wrapped model's GP with the offset on its mean and the estimate's variance on its
         variance, for a team's batched evaluation (:mod:`~torch_gpmpc.gp.batch`)."""
         view = planning_gp(self.model) if evaluates_as(self, OffsetCorrected) else None
-        return None if view is None else view.shifted(self.offset, self.variance)
+        return None if view is None else view.shifted(*self.estimate)
+
+    @property
+    def estimate(self) -> tuple[Tensor, Tensor]:
+        """The offset and its variance, each (R,), of the model planned with: while a guarded online
+        model plans with its fit, the fit's own estimate; otherwise :attr:`offset` and
+        :attr:`variance` (the only estimate of a frozen model; an online model's)."""
+        if getattr(self.model, "adopted", True):
+            return self.offset, self.variance
+        return self._fit_filter[0], self._fit_filter[1]
 
     def observe(self, error: Tensor) -> None:
         """One Kalman step from a transition's one-step prediction error ``error`` (R,): the
@@ -140,23 +151,33 @@ class OffsetCorrected:
         self.model.add(inputs, y - self.offset.to(y))
 
     def judge(self, inputs: Tensor, y: Tensor) -> Tensor | None:
-        """Let the wrapped online model judge rows ``inputs`` (n, Din), residuals ``y`` (n, R), less
-        the offset (:meth:`GuardedOnlineGP.judge <torch_gpmpc.gp.guard.GuardedOnlineGP.judge>`).
+        """Let the wrapped online model judge rows ``inputs`` (n, Din), residuals ``y`` (n, R)
+        (:meth:`GuardedOnlineGP.judge <torch_gpmpc.gp.guard.GuardedOnlineGP.judge>`), each candidate
+        with its own estimate: the learner less :attr:`offset`, the fit less the fit's estimate,
+        which then takes a Kalman step from the fit's error, as in a run without learning. (One
+        estimate for both would be unfair to one of them: an estimate moved by the learner's errors
+        stops following a change the learner has absorbed; one moved by the fit's would count that
+        change twice in the learner.)
 
-        Returns the frozen fit's errors (n, R) against the offset it would have estimated itself:
-        a second filter that sees only the fit's errors on these transitions, as in a run without
-        learning. (The run's own offset follows the planning model; once a learner has taken up a
-        change, it lags the change, and would make the fit look worse than it is.) ``None`` without
-        a frozen fit."""
-        fit_error = self.model.judge(inputs, y - self.offset.to(y))
-        if fit_error is None:
-            return None
-        residual_miss = (fit_error + self.offset.to(fit_error)).detach().to(self.offset.dtype)  # y - fit
+        Returns the fit's errors with its own estimate (n, R), ``None`` without a fit kept."""
         errors = []
-        for row in residual_miss:  # one transition at a time, as the run's own filter
-            errors.append(row - self._fit_filter[0])
-            self._fit_filter = self._kalman_step(self._fit_filter, errors[-1])
-        return torch.stack(errors).to(fit_error)
+        for i in range(inputs.shape[0]):  # one transition at a time, as the estimates step
+            row = y[i:i + 1]
+            fit_error = self.model.judge(inputs[i:i + 1], row - self.offset.to(row),
+                                         row - self._fit_filter[0].to(row))
+            if fit_error is None:
+                return None
+            errors.append(fit_error)
+            self._fit_filter = self._kalman_step(self._fit_filter, fit_error[0].detach().to(self.offset.dtype))
+        return torch.cat(errors)
+
+    def observe_learnt(self, inputs: Tensor, y: Tensor) -> None:
+        """After the wrapped online model has learnt rows ``inputs`` (n, Din), residuals ``y`` (n, R):
+        one Kalman step of :attr:`offset` per row from the learner's error on it (near noise level
+        where it learnt the row, so the learner and its estimate never count an error twice)."""
+        mean, _ = self.model.learner.predict(inputs)
+        for i in range(inputs.shape[0]):
+            self.observe(y[i] - (mean[i] + self.offset.to(mean)))
 
     @property
     def adopted(self) -> bool:

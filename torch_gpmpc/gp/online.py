@@ -120,10 +120,15 @@ class OnlineGP:
     #: chooses)
     adopted = True
 
-    def judge(self, inputs: Tensor, y: Tensor) -> None:
+    def judge(self, inputs: Tensor, y: Tensor, frozen_y: Tensor | None = None) -> None:
         """Nothing to choose between and no frozen fit kept (a
         :class:`~torch_gpmpc.gp.guard.GuardedOnlineGP` judges its learner against its fit here);
-        ``inputs`` (n, Din), ``y`` (n, R). Returns ``None``."""
+        ``inputs`` (n, Din), ``y`` and ``frozen_y`` (n, R). Returns ``None``."""
+
+    @property
+    def learner(self) -> "OnlineGP":
+        """The model that learns: this one (a guarded model keeps it beside its fit)."""
+        return self
 
     def end_step(self) -> bool:
         """Count one control step; re-fit the hyperparameters when ``refit_every`` steps have passed.
@@ -247,7 +252,9 @@ class OnlineLearning:
         states (K, D). Returns prediction errors and predictive variances, each (K, R).
 
         An agent's :class:`~torch_gpmpc.gp.offset.OffsetCorrected` model then updates its offset
-        from the error its model (after any online update) makes on this transition."""
+        estimate from its model's error on this transition: a frozen model's before, an online
+        model's after the update (a guarded model's fit keeps its own estimate,
+        :meth:`~torch_gpmpc.gp.offset.OffsetCorrected.judge`)."""
         inputs, y = self.nominal.gp_targets(x, u, x_next)
         if isinstance(inputs, Tensor):  # one model: (K, Din); a mixed team's: one (1, Din_k) per agent
             inputs = [inputs[k:k + 1] for k in range(inputs.shape[0])]
@@ -269,14 +276,12 @@ class OnlineLearning:
                 gp.end_step()
             self.adopted_share.append(sum(gp.adopted for gp in self.gps) / len(self.gps))
             self.frozen_error = None if any(e is None for e in frozen) else torch.cat(frozen)
-        corrected = [k for k, gp in enumerate(self.gps) if isinstance(gp, OffsetCorrected)]
-        # the innovation of the model the next plan uses: after an online update the GP has learnt
-        # what the offset did not explain (OffsetCorrected.add), near noise level here
-        innovations = [y[k] - mean[0] for k, (mean, _) in zip(corrected, predict_models(
-            [self.gps[k] for k in corrected], [inputs[k] for k in corrected]))] if self.online \
-            else [errors[k] for k in corrected]
-        for k, innovation in zip(corrected, innovations):
-            self.gps[k].observe(innovation)
+        for k, gp in enumerate(self.gps):  # the offset estimates
+            if isinstance(gp, OffsetCorrected):
+                if self.online:  # the learner's, from its error after learning (its fit's: in judge)
+                    gp.observe_learnt(inputs[k], y[k:k + 1])
+                else:
+                    gp.observe(errors[k])
         self.update_seconds.append(time.perf_counter() - start if self.online else 0.0)
         return torch.stack(errors), torch.stack(variances)
 
