@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 
+import pytest
 import torch
 
 from torch_gpmpc import ResidualGP
@@ -125,22 +126,25 @@ def test_learning_runs_with_unguarded_online_gps_too():
     assert learning.gps[0].model.gp.num_data == 6
 
 
-def test_a_guarded_agent_plans_with_the_fit_and_its_own_estimate_or_the_learner_and_its_own():
+@pytest.mark.parametrize("refit_every", [0, 3])
+def test_a_guarded_agent_plans_with_the_fit_and_its_own_estimate_or_the_learner_and_its_own(refit_every):
     """Replayed by hand on the same transitions: the fit in its own offset estimate (a frozen run's
-    model) and the learner in its own (stepped from its errors after learning). While the guard plans
-    with the fit, the agent predicts as the frozen run's model; once it adopts the learner, as the
-    learner with its estimate. ``OnlineLearning.frozen_error`` is the frozen run's model's error
-    throughout; unguarded online models keep no fit, so there is none."""
+    model) and the learner in its own (stepped from its error after learning and any refit). While
+    the guard plans with the fit, the agent predicts and linearizes (one model's call and the team's
+    batch, mean and variance) as the frozen run's model; once it adopts the learner, as the learner
+    with its estimate. ``OnlineLearning.frozen_error`` is the frozen run's model's error throughout;
+    unguarded online models keep no fit, so there is none."""
     from torch_gpmpc.config.model_spec import ModelSpec
     from torch_gpmpc.dynamics.systems import NominalModel
+    from torch_gpmpc.gp.batch import linearize_models
     from torch_gpmpc.gp.online import OnlineLearning, online_gps
 
     nominal = NominalModel(ModelSpec.double_integrator(dim=1, dt=0.1, u_max=2.0))
     fit = _fitted()
-    model = OffsetCorrected(online_gps([fit], budget=60, refit_every=0)[0], drift=0.01)
+    model = OffsetCorrected(online_gps([fit], budget=60, refit_every=refit_every)[0], drift=0.01)
     learning = OnlineLearning([model], nominal, online=True)
     frozen_run = OffsetCorrected(fit, drift=0.01)
-    learner = OffsetCorrected(OnlineGP(copy.deepcopy(fit), budget=60), drift=0.01)
+    learner = OffsetCorrected(OnlineGP(copy.deepcopy(fit), budget=60, refit_every=refit_every), drift=0.01)
     x = torch.tensor([[0.5, 0.4]], dtype=F64)
     adopted = []
     for step in range(12):
@@ -148,18 +152,24 @@ def test_a_guarded_agent_plans_with_the_fit_and_its_own_estimate_or_the_learner_
         # a push the fit never saw, that depends on the state
         x_next = nominal(x, u) + torch.tensor([[0.0, 0.5 * torch.sin(x[0, 1]).item() + 0.07]], dtype=F64)
         inputs, y = nominal.gp_targets(x, u, x_next)
-        planned = (learner if model.adopted else frozen_run).predict(inputs)[0]
-        torch.testing.assert_close(model.predict(inputs)[0], planned, rtol=0, atol=1e-14)
+        planned = learner if model.adopted else frozen_run
+        torch.testing.assert_close(model.predict(inputs), planned.predict(inputs), rtol=0, atol=1e-12)
+        want_mean, _, want_var = planned.linearize(inputs)
+        got_mean, _, got_var = linearize_models([model], inputs[None])
+        torch.testing.assert_close((got_mean[0], got_var[0]), (want_mean, want_var), rtol=0, atol=1e-12)
         expected = y - frozen_run.predict(inputs)[0]
         frozen_run.observe(expected[0])
         learner.add(inputs, y)
-        learner.observe_learnt(inputs, y)
+        learner.end_step()
+        learner.observe((y - learner.predict(inputs)[0])[0])
         learning.observe(x, u, x_next)
-        torch.testing.assert_close(learning.frozen_error, expected, rtol=0, atol=1e-14)
+        torch.testing.assert_close(learning.frozen_error, expected, rtol=0, atol=1e-12)
         adopted.append(model.adopted)
         x = x_next
     assert any(adopted) and not all(adopted)
     assert float((frozen_run.offset - learner.offset).abs().max()) > 1e-3  # two estimates, apart
+    if refit_every:
+        assert not torch.equal(learner.noise, frozen_run.noise)  # the refits moved the learner's noise
 
     unguarded = OnlineLearning([OnlineGP(_fitted(), budget=20)], nominal, online=True)
     unguarded.observe(x, u, x_next)

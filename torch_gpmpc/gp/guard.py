@@ -78,7 +78,7 @@ class GuardedOnlineGP:
         >>> z = torch.tensor([[0.5]], dtype=torch.float64)
         >>> for _ in range(5):       # the residual moved up by 0.3: each row is judged, then learnt
         ...     row = torch.sin(z) + 0.3
-        ...     guarded.judge(z, row)
+        ...     _ = guarded.judge(z, row)
         ...     guarded.add(z, row)
         >>> guarded.adopted
         True

@@ -124,22 +124,27 @@ class OffsetCorrected:
         return self._fit_filter[0], self._fit_filter[1]
 
     def observe(self, error: Tensor) -> None:
-        """One Kalman step from a transition's one-step prediction error ``error`` (R,): the
-        measured residual minus :meth:`predict`'s mean at that transition's GP input."""
+        """One Kalman step of :attr:`offset` from a transition's one-step prediction error ``error``
+        (R,): the measured residual minus the model's mean plus :attr:`offset` at that transition's
+        GP input. Beside a guarded online model this is the learner's estimate (its error after
+        learning, :meth:`observe_learnt`); the fit's moves in :meth:`judge`."""
         # a filter state, never part of a gradient: detached, or every later step would differentiate
         # through the whole history
         error = torch.as_tensor(error, dtype=self.offset.dtype).detach().reshape(-1)
         if error.shape != self.offset.shape:
             raise GpmpcError(f"offset error has {error.shape[0]} entries, expected R = {self.offset.shape[0]}")
+        learner = getattr(self.model, "learner", self.model)  # a guarded model's fit has its own (judge)
         self.offset, self.variance, self.error_variance = self._kalman_step(
-            (self.offset, self.variance, self.error_variance), error)
+            (self.offset, self.variance, self.error_variance), error, learner.noise)
 
-    def _kalman_step(self, state: tuple[Tensor, Tensor, Tensor], error: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """The filter ``state`` (offset, variance, error variance; each (R,)) after one error (R,)."""
+    def _kalman_step(self, state: tuple[Tensor, Tensor, Tensor], error: Tensor,
+                     noise: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The filter ``state`` (offset, variance, error variance; each (R,)) after one error (R,),
+        with the observation-noise variances ``noise`` (R,) of the model it corrects."""
         offset, variance, error_variance = state
         prior = variance + self.drift ** 2
         error_variance = (1 - ERROR_MEMORY) * error_variance + ERROR_MEMORY * error ** 2
-        model_noise = torch.as_tensor(self.noise, dtype=prior.dtype).detach().reshape(-1)
+        model_noise = torch.as_tensor(noise, dtype=prior.dtype).detach().reshape(-1)
         gain = prior / (prior + torch.maximum(model_noise, error_variance))
         return offset + gain * error, (1 - gain) * prior, error_variance
 
@@ -168,7 +173,8 @@ class OffsetCorrected:
             if fit_error is None:
                 return None
             errors.append(fit_error)
-            self._fit_filter = self._kalman_step(self._fit_filter, fit_error[0].detach().to(self.offset.dtype))
+            self._fit_filter = self._kalman_step(self._fit_filter, fit_error[0].detach().to(self.offset.dtype),
+                                                 self.model.frozen.noise)
         return torch.cat(errors)
 
     def observe_learnt(self, inputs: Tensor, y: Tensor) -> None:
