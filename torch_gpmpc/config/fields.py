@@ -157,9 +157,8 @@ def _check_type(what: str, name: str, value: Any, typ: Any) -> None:
     if not any(_is(base, value) for base in bases):
         expected = " or ".join(base.__name__ for base in bases)
         word = value.strip().lower().lstrip("+-") if isinstance(value, str) else ""
-        hint = {"inf": "; numbers must be finite, give a large finite one (e.g. 1e9)",
-                "infinity": "; numbers must be finite, give a large finite one (e.g. 1e9)",
-                "nan": "; numbers must be finite, give a number"}.get(word, "")
+        hint = ("; numbers must be finite, give a large finite one (e.g. 1e9)" if word in ("inf", "infinity")
+                else "; numbers must be finite, give a number" if word == "nan" else "")
         raise GpmpcError(f"{what} '{name}': expected {expected}, got {type(value).__name__} {value!r}{hint}")
 
 

@@ -133,9 +133,8 @@ class OffsetCorrected:
         error = torch.as_tensor(error, dtype=self.offset.dtype).detach().reshape(-1)
         if error.shape != self.offset.shape:
             raise GpmpcError(f"offset error has {error.shape[0]} entries, expected R = {self.offset.shape[0]}")
-        learner = getattr(self.model, "learner", self.model)  # a guarded model's fit has its own (judge)
         self.offset, self.variance, self.error_variance = self._kalman_step(
-            (self.offset, self.variance, self.error_variance), error, learner.noise)
+            (self.offset, self.variance, self.error_variance), error, self.learner.noise)
 
     def _kalman_step(self, state: tuple[Tensor, Tensor, Tensor], error: Tensor,
                      noise: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -177,13 +176,19 @@ class OffsetCorrected:
                                                  self.model.frozen.noise)
         return torch.cat(errors)
 
-    def observe_learnt(self, inputs: Tensor, y: Tensor) -> None:
-        """After the wrapped online model has learnt rows ``inputs`` (n, Din), residuals ``y`` (n, R):
-        one Kalman step of :attr:`offset` per row from the learner's error on it (near noise level
-        where it learnt the row, so the learner and its estimate never count an error twice)."""
-        mean, _ = self.model.learner.predict(inputs)
-        for i in range(inputs.shape[0]):
-            self.observe(y[i] - (mean[i] + self.offset.to(mean)))
+    @property
+    def learner(self):
+        """The wrapped model whose estimate :attr:`offset` is: a guarded model's learner, else the
+        model itself (a guarded model's fit has its own estimate, :meth:`judge`)."""
+        return getattr(self.model, "learner", self.model)
+
+    def observe_learnt(self, y: Tensor, learner_mean: Tensor) -> None:
+        """After the wrapped online model has learnt rows with residuals ``y`` (n, R): one Kalman
+        step of :attr:`offset` per row from :attr:`learner`'s mean there after learning,
+        ``learner_mean`` (n, R) (its error is near noise level where it learnt the row, so the
+        learner and its estimate never count an error twice)."""
+        for i in range(y.shape[0]):
+            self.observe(y[i] - (learner_mean[i] + self.offset.to(learner_mean)))
 
     @property
     def adopted(self) -> bool:

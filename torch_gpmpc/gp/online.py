@@ -276,12 +276,14 @@ class OnlineLearning:
                 gp.end_step()
             self.adopted_share.append(sum(gp.adopted for gp in self.gps) / len(self.gps))
             self.frozen_error = None if any(e is None for e in frozen) else torch.cat(frozen)
-        for k, gp in enumerate(self.gps):  # the offset estimates
-            if isinstance(gp, OffsetCorrected):
-                if self.online:  # the learner's, from its error after learning (its fit's: in judge)
-                    gp.observe_learnt(inputs[k], y[k:k + 1])
-                else:
-                    gp.observe(errors[k])
+        corrected = [k for k, gp in enumerate(self.gps) if isinstance(gp, OffsetCorrected)]
+        if self.online:  # the learners' estimates, from their errors after learning (the fits': in judge)
+            means = predict_models([self.gps[k].learner for k in corrected], [inputs[k] for k in corrected])
+            for k, (mean, _) in zip(corrected, means):
+                self.gps[k].observe_learnt(y[k:k + 1], mean)
+        else:
+            for k in corrected:
+                self.gps[k].observe(errors[k])
         self.update_seconds.append(time.perf_counter() - start if self.online else 0.0)
         return torch.stack(errors), torch.stack(variances)
 
