@@ -1,6 +1,7 @@
 """The fast solver's rescue: problems the compiled interior point leaves inaccurate (no
-convergence within its iteration cap) are solved again on the reference path, row by row, and
-the other rows keep the fast answers bit for bit."""
+convergence within its iteration cap) are solved again, cold, by the compiled solver at a relaxed
+tolerance, and what that leaves on the reference path, row by row; the other rows keep the fast
+answers bit for bit."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import torch
 from torch_gpmpc import ControllerSettings, LocalStep, ModelSpec
 from torch_gpmpc.control.examples import crossing_instance
 from torch_gpmpc.control.problem import FAIL_INACCURATE
+from torch_gpmpc.coordination.rescue import RESCUE_MAX_ITER, RESCUE_TOL
 
 
 def _step_and_data(solver: str = "fast"):
@@ -17,7 +19,7 @@ def _step_and_data(solver: str = "fast"):
     return step, data
 
 
-def test_inaccurate_rows_are_resolved_by_the_reference_path_and_the_rest_kept():
+def test_inaccurate_rows_are_solved_again_at_the_relaxed_tolerance_and_the_rest_kept():
     step, data = _step_and_data()
     layer = step.solver(2)
     fast = layer(data)
@@ -26,14 +28,28 @@ def test_inaccurate_rows_are_resolved_by_the_reference_path_and_the_rest_kept():
     capped = layer(data)
     assert bool((capped.failure == FAIL_INACCURATE).all())
     sol = step.solve(layer, data)
-    reference = LocalStep(step.settings.replace(solver="clarabel"), step.nominal).solver(2)(data)
+    relaxed = LocalStep(step.settings, step.nominal).solver(2)
+    relaxed.tol, relaxed.max_iter, relaxed.warm_start = RESCUE_TOL, RESCUE_MAX_ITER, False
     assert bool(sol.ok.all()) and step.rescued_solves == 4
-    torch.testing.assert_close(sol.X, reference.X, rtol=0, atol=0)  # the reference's own answers
-    torch.testing.assert_close(sol.X, fast.X, rtol=0, atol=1e-6)   # and the same plans as a converged fast solve
+    torch.testing.assert_close(sol.X, relaxed(data).X, rtol=0, atol=0)  # the compiled solver's own answers
+    torch.testing.assert_close(sol.X, fast.X, rtol=0, atol=1e-7)   # the plans of a solve at 1e-10
     layer.max_iter = 100
     again = step.solve(layer, data)
     torch.testing.assert_close(again.X, fast.X, rtol=0, atol=0)  # nothing to rescue: the fast answers
     assert step.rescued_solves == 4
+
+
+def test_what_the_relaxed_solve_leaves_goes_to_the_reference_path():
+    step, data = _step_and_data()
+    layer = step.solver(2)
+    fast = layer(data)
+    layer.max_iter = 3
+    step.rescue.solver("fast", 2).max_iter = 3  # the relaxed solve fails too
+    sol = step.solve(layer, data)
+    reference = LocalStep(step.settings.replace(solver="clarabel"), step.nominal).solver(2)(data)
+    assert bool(sol.ok.all()) and step.rescued_solves == 4
+    torch.testing.assert_close(sol.X, reference.X, rtol=0, atol=0)  # the reference's own answers
+    torch.testing.assert_close(sol.X, fast.X, rtol=0, atol=1e-6)   # and the same plans as a converged fast solve
 
 
 def test_a_rescued_row_keeps_its_gradient():

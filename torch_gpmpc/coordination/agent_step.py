@@ -25,8 +25,7 @@ from torch_gpmpc.control.cost import QuadraticCost
 from torch_gpmpc.control.linearize import linearize_plan
 from torch_gpmpc.control.obstacle_rows import obstacle_rows
 from torch_gpmpc.control.problem import (
-    FAIL_EXCEPTION, FAIL_INACCURATE, FAIL_NONFINITE, FAILURE_KINDS, LocalProblemData, LocalSolution, replace_rows,
-    select_problems, select_solution,
+    FAIL_EXCEPTION, FAIL_INACCURATE, FAIL_NONFINITE, FAILURE_KINDS, LocalProblemData, LocalSolution,
 )
 from torch_gpmpc.control.risk import (
     chance_quantile, collision_normals, lqr_gain, pair_margins, pair_risks, projected_variances, safe_sqrt,
@@ -37,6 +36,7 @@ from torch_gpmpc.control.solvers import make_local_solver
 from torch_gpmpc.coordination.bodies import body_radii, slot_distances
 from torch_gpmpc.coordination.consensus import slot_consensus
 from torch_gpmpc.coordination.graph import Graph
+from torch_gpmpc.coordination.rescue import SolveRescue
 from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult
 from torch_gpmpc.dynamics.methods import Method
 from torch_gpmpc.dynamics.systems import NominalModel, VortexWind
@@ -326,9 +326,8 @@ class LocalStep:
             A, B = self.nominal.A(dtype=torch.float64), self.nominal.B(dtype=torch.float64)
             self.feedback = B @ lqr_gain(A, B, 1.0, max(self.settings.alpha, 1e-9))
         self._solvers: dict[int, nn.Module] = {}
-        self._rescuers: dict[int, nn.Module] = {}  # the reference solvers of rescue_inaccurate
-        #: problems the fast solver left inaccurate and the reference path solved (a run's count)
-        self.rescued_solves = 0
+        #: the rescue of the fast solver's inaccurate solves (:meth:`rescue_inaccurate`)
+        self.rescue = SolveRescue(self.settings, self.nominal, self.constraints, self.num_obstacle_rows)
         #: failure kinds already warned about (one warning per kind per run)
         self._warned: set[str] = set()
 
@@ -493,36 +492,18 @@ class LocalStep:
                 failure_detail=f"{type(exc).__name__}: {exc}")
 
     def rescue_inaccurate(self, data: LocalProblemData, sol: LocalSolution) -> LocalSolution:
-        """``sol`` with the problems the fast solver left inaccurate re-solved by cvxpylayers with
-        clarabel (the reference path; differentiable too), where that succeeds.
+        """``sol`` with the problems the fast solver left inaccurate solved again where a rescue
+        succeeds (:class:`~.rescue.SolveRescue`); unchanged with another solver.
 
         Args:
             data: the B problems. sol: the fast solver's solution of them.
-
-        Returns:
-            The :class:`LocalSolution`; unchanged with another solver or when no row is inaccurate.
         """
-        if self.settings.solver != "fast" or sol.failure is None:
-            return sol
-        rows = (sol.failure == FAIL_INACCURATE).nonzero().flatten()
-        if not rows.numel():
-            return sol
-        num_slots = data.active.shape[1]
-        if num_slots not in self._rescuers:
-            s = self.settings
-            self._rescuers[num_slots] = make_local_solver(
-                horizon=s.horizon, dim=self.nominal.dim, num_neighbors=num_slots, nominal=self.nominal, u_max=None,
-                alpha=s.alpha, slack_penalty=s.slack_penalty, solver="clarabel", constraints=self.constraints,
-                num_halfspaces=self.num_obstacle_rows, input_rate_weight=s.input_rate_weight)
-        again = self._rescuers[num_slots](select_problems(data, rows))
-        if not bool(again.ok.any()):
-            return sol
-        self.rescued_solves += int(again.ok.sum())
-        level = logging.DEBUG if "rescued" in self._warned else logging.INFO
-        self._warned.add("rescued")
-        log.log(level, "the fast local solver did not converge for agent(s) %s; re-solved with the reference solver "
-                "(clarabel). Further re-solves are logged at debug level", rows[again.ok].tolist())
-        return replace_rows(sol, rows[again.ok], select_solution(again, again.ok.nonzero().flatten()))
+        return self.rescue(data, sol) if self.settings.solver == "fast" else sol
+
+    @property
+    def rescued_solves(self) -> int:
+        """Problems the fast solver left inaccurate and a rescue solved (a run's count)."""
+        return self.rescue.rescued
 
     def count_failures(self, sol: LocalSolution, result: StepResult | IterationStats) -> None:
         """Add this iteration's failed solves to ``result`` (anything with ``failed_solves`` and

@@ -273,21 +273,18 @@ def adapt_state(state: ADMMState, graph: Graph) -> ADMMState:
     theirs, new edges start from the current plans with zero duals."""
     if torch.equal(state.edges, graph.edges):
         return state
-    old = {tuple(e.tolist()): i for i, e in enumerate(state.edges)}
+    old = {tuple(e): i for i, e in enumerate(state.edges.tolist())}
+    pairs = [(i, old[tuple(e)]) for i, e in enumerate(graph.edges.tolist()) if tuple(e) in old]
+    kept, was = torch.tensor(pairs, dtype=torch.long).reshape(-1, 2).T  # new and old index of each kept edge
     z = state.plans[graph.edges].clone() if graph.num_edges else state.z[:0]
+    z[kept] = state.z[was]
     lam = state.lam.new_zeros(graph.num_edges, *state.lam.shape[1:])
+    lam[kept] = state.lam[was]
     pvar = rho = None
     if state.rho is not None:
-        rho = state.rho.new_full((graph.num_edges,), float("nan"))
+        rho = state.rho.new_full((graph.num_edges,), float("nan")).index_put((kept,), state.rho[was])
     if state.pvar is not None:
         pvar = state.pvar.new_full((graph.num_edges, *state.pvar.shape[1:]), float("nan"))
-    for i, e in enumerate(graph.edges.tolist()):
-        if tuple(e) in old:
-            z[i] = state.z[old[tuple(e)]]
-            lam[i] = state.lam[old[tuple(e)]]
-            if pvar is not None:
-                pvar[i] = state.pvar[old[tuple(e)]]
-            if rho is not None:
-                rho = rho.index_put((torch.tensor(i),), state.rho[old[tuple(e)]])
+        pvar[kept] = state.pvar[was]
     return ADMMState(state.plans, state.inputs, graph.edges, z, lam, pvar, rho, state.risk_left, state.applied,
                      state.solver_point)

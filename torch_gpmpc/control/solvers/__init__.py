@@ -28,6 +28,8 @@ def make_local_solver(
     num_halfspaces: int = 0,
     input_rate_weight: float = 0.0,
     warm_start: bool = True,
+    tol: float | None = None,
+    max_iter: int | None = None,
 ) -> nn.Module:
     """A new batched local-problem module for (T, n, M, model, constants, backend).
 
@@ -39,6 +41,8 @@ def make_local_solver(
     ``U_{-1}`` the data's ``u_prev`` (smooth plans for vehicles that cannot jump their acceleration).
     ``warm_start`` (``fast`` only): solve first by the exact active-set method from the previous
     call's solutions when no gradient is wanted (:mod:`~torch_gpmpc.control.solvers.ipm_active`).
+    ``tol``, ``max_iter`` (``fast`` only): the interior point's KKT tolerance and Newton-step cap
+    (``None``: 1e-10 and 100).
 
     ``solver='fast'`` (the default, as in the run configuration) gives the compiled interior
     point :class:`~torch_gpmpc.control.solvers.interior_point.InteriorPointMPC`; ``clarabel`` and
@@ -60,10 +64,11 @@ def make_local_solver(
     if solver == "fast":
         from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
 
+        stops = {name: value for name, value in (("tol", tol), ("max_iter", max_iter)) if value is not None}
         return InteriorPointMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max),
                                 float(alpha), float(slack_penalty), constraints=constraints,
                                 num_halfspaces=num_halfspaces, input_rate_weight=float(input_rate_weight),
-                                warm_start=warm_start)
+                                warm_start=warm_start, **stops)
     # cvxpy and cvxpylayers are imported only when a cvxpylayers path is asked for
     from torch_gpmpc.control.solvers.conic import CvxpyLayerMPC
 
