@@ -327,7 +327,7 @@ class LocalStep:
             self.feedback = B @ lqr_gain(A, B, 1.0, max(self.settings.alpha, 1e-9))
         self._solvers: dict[int, nn.Module] = {}
         #: the rescue of the fast solver's inaccurate solves (:meth:`rescue_inaccurate`)
-        self.rescue = SolveRescue(self.settings, self.nominal, self.constraints, self.num_obstacle_rows)
+        self.rescue = SolveRescue(self.build_solver)
         #: failure kinds already warned about (one warning per kind per run)
         self._warned: set[str] = set()
 
@@ -355,14 +355,20 @@ class LocalStep:
     def solver(self, num_slots: int) -> nn.Module:
         """This step's batched local solver for ``num_slots`` neighbour slots (built once per size)."""
         if num_slots not in self._solvers:
-            s = self.settings
-            self._solvers[num_slots] = make_local_solver(
-                horizon=s.horizon, dim=self.nominal.dim, num_neighbors=num_slots, nominal=self.nominal,
-                u_max=None, alpha=s.alpha, slack_penalty=s.slack_penalty, solver=s.solver,
-                constraints=self.constraints, num_halfspaces=self.num_obstacle_rows,
-                input_rate_weight=s.input_rate_weight, warm_start=s.solver_warm,
-            )
+            self._solvers[num_slots] = self.build_solver(num_slots, self.settings.solver)
         return self._solvers[num_slots]
+
+    def build_solver(self, num_slots: int, solver: str, **stops: Any) -> nn.Module:
+        """A new batched local solver ``solver`` (``fast``, ``clarabel`` or ``reference``) for
+        ``num_slots`` neighbour slots, with this step's model, weights and constraints; ``stops``:
+        the fast solver's ``tol`` and ``max_iter`` (:func:`~torch_gpmpc.control.solvers.make_local_solver`)."""
+        s = self.settings
+        return make_local_solver(
+            horizon=s.horizon, dim=self.nominal.dim, num_neighbors=num_slots, nominal=self.nominal,
+            u_max=None, alpha=s.alpha, slack_penalty=s.slack_penalty, solver=solver,
+            constraints=self.constraints, num_halfspaces=self.num_obstacle_rows,
+            input_rate_weight=s.input_rate_weight, warm_start=s.solver_warm, **stops,
+        )
 
     @property
     def exchanges_variance(self) -> bool:

@@ -12,16 +12,13 @@ stay failed for the caller's fallback.
 from __future__ import annotations
 
 import logging
+from typing import Callable
 
 from torch import nn
 
-from torch_gpmpc.config.settings import ControllerSettings
-from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.control.problem import (
     FAIL_INACCURATE, LocalProblemData, LocalSolution, replace_rows, select_problems, select_solution,
 )
-from torch_gpmpc.control.solvers import make_local_solver
-from torch_gpmpc.dynamics.systems import NominalModel
 
 log = logging.getLogger(__name__)
 
@@ -36,15 +33,12 @@ class SolveRescue:
     """The rescue solvers of one per-agent step (built on first use, one per kind and slot count).
 
     Args:
-        settings: the controller settings (horizon, weights, slack penalty).
-        nominal: the agents' model. constraints: their local constraints.
-        num_halfspaces: obstacle rows per problem (L).
+        build: ``build(num_slots, solver, **stops)``, a new local solver of the step's problems
+            (:meth:`~.agent_step.LocalStep.build_solver`).
     """
 
-    def __init__(self, settings: ControllerSettings, nominal: NominalModel, constraints: LocalConstraints,
-                 num_halfspaces: int) -> None:
-        self.settings, self.nominal, self.constraints = settings, nominal, constraints
-        self.num_halfspaces = num_halfspaces
+    def __init__(self, build: Callable[..., nn.Module]) -> None:
+        self._build = build
         self._solvers: dict[tuple[str, int], nn.Module] = {}
         #: problems the fast solver left inaccurate and a rescue solved (a run's count)
         self.rescued = 0
@@ -77,10 +71,6 @@ class SolveRescue:
         slots."""
         key = (kind, num_slots)
         if key not in self._solvers:
-            s = self.settings
-            self._solvers[key] = make_local_solver(
-                horizon=s.horizon, dim=self.nominal.dim, num_neighbors=num_slots, nominal=self.nominal, u_max=None,
-                alpha=s.alpha, slack_penalty=s.slack_penalty, solver=kind, constraints=self.constraints,
-                num_halfspaces=self.num_halfspaces, input_rate_weight=s.input_rate_weight,
-                **({"tol": RESCUE_TOL, "max_iter": RESCUE_MAX_ITER} if kind == "fast" else {}))
+            stops = {"tol": RESCUE_TOL, "max_iter": RESCUE_MAX_ITER} if kind == "fast" else {}
+            self._solvers[key] = self._build(num_slots, kind, **stops)
         return self._solvers[key]
