@@ -101,3 +101,85 @@ def test_the_recipe_fits_record_their_models_residual_rows():
     from torch_gpmpc.gp import fit_agent_gp
 
     assert fit_agent_gp(cfg.replace(gp_iters=1), team_system_from_config(cfg), 0).residual_rows == "x2,x3"
+
+
+# ---------------------------------------------------------------------- starts of a fit
+def _crowd_case():
+    """The 100-agent crowd's noiseless recipe (a 20 m square, 100 points per agent) and its system."""
+    cfg = Config(scenario="random", num_agents=100, circle_radius=10.0, comm_radius=2.5, noise_std=0.0)
+    return cfg, make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
+
+
+def _held_out_rmse(gp, system, box: float) -> torch.Tensor:
+    """(R,) each output row's RMSE against the true residual at 500 fresh points of the square."""
+    x = (2 * torch.rand(500, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(7)) - 1) * box
+    return (gp.predict(x)[0] - system.residual(x)).square().mean(0).sqrt()
+
+
+def test_a_later_start_replaces_the_row_the_first_left_as_noise(monkeypatch):
+    """Agent 64 of the crowd: from lengthscale 1 alone its second row ends where the residual is
+    noise (held out against the true residual: an error like the residual's own spread); the fit
+    from the starts has a far higher marginal likelihood there and learns the residual."""
+    import torch_gpmpc.gp.fit as fit
+    from torch_gpmpc.gp import fit_agent_gp
+
+    cfg, system = _crowd_case()
+    box = cfg.gp_fit_settings().box
+    monkeypatch.setattr(fit, "LENGTHSCALE_STARTS", (1.0,))
+    first = fit_agent_gp(cfg, system, 64)
+    monkeypatch.undo()
+    both = fit_agent_gp(cfg, system, 64)
+    assert float(fit._row_losses(first)[1] - fit._row_losses(both)[1]) > 1.0  # nats per point
+    first_error, error = _held_out_rmse(first, system, box), _held_out_rmse(both, system, box)
+    assert float(first_error[1]) > 0.03 and float(error[1]) < 1e-3
+
+
+def test_the_fit_keeps_each_row_of_the_start_that_wins_it_by_the_gain(monkeypatch):
+    """The fit's rows against separate fits from each start (the same code with one start): each row
+    has the hyperparameters, to the bit, of the start the rule picks, and a row no later start beats by
+    RESTART_GAIN keeps the first start's."""
+    import torch_gpmpc.gp.fit as fit
+    from torch_gpmpc.gp import fit_agent_gp
+
+    cfg, system = _crowd_case()
+    alone = {}
+    for start in fit.LENGTHSCALE_STARTS:
+        monkeypatch.setattr(fit, "LENGTHSCALE_STARTS", (start,))
+        for k in (3, 64):
+            alone[start, k] = fit_agent_gp(cfg, system, k)
+    monkeypatch.undo()
+    for k in (3, 64):
+        gp = fit_agent_gp(cfg, system, k)
+        kept = [fit.LENGTHSCALE_STARTS[0]] * 2
+        losses = fit._row_losses(alone[kept[0], k])
+        for start in fit.LENGTHSCALE_STARTS[1:]:
+            other = fit._row_losses(alone[start, k])
+            better = (losses - other) > fit.RESTART_GAIN
+            if not bool(better.any()):
+                break
+            kept = [start if b else s for b, s in zip(better.tolist(), kept)]
+            losses = torch.where(better, other, losses)
+        for row, start in enumerate(kept):
+            for mine, theirs in zip(gp.model.parameters(), alone[start, k].model.parameters()):
+                assert torch.equal(mine[row], theirs[row])
+        torch.testing.assert_close(fit._row_losses(gp), losses, rtol=0, atol=0)
+
+
+def test_a_fit_no_later_start_improves_is_the_first_starts_to_the_bit(monkeypatch):
+    """The paper's data (noise 0.1): no row gains RESTART_GAIN from a shorter start, so the fit is the
+    one from lengthscale 1 alone, bit for bit, and the callback sees its steps and the final loss once."""
+    import torch_gpmpc.gp.fit as fit
+    from torch_gpmpc.data.collect import collect_transitions
+    from torch_gpmpc.dynamics.systems import NominalModel
+
+    cfg = Config(method="gp")
+    system = make_system(cfg.dim, cfg.noise_std, cfg.wind_scale)
+    X, Y = collect_transitions(system, num_agents=1, samples=100, seed=1).residuals(NominalModel())
+    steps = []
+    gp = fit.fit_residual_gp(X, Y, iters=20, callback=lambda step, loss, hp: steps.append((step, loss)))
+    monkeypatch.setattr(fit, "LENGTHSCALE_STARTS", (1.0,))
+    alone = fit.fit_residual_gp(X, Y, iters=20)
+    a, b = gp.model.state_dict(), alone.model.state_dict()
+    assert all(torch.equal(a[key], b[key]) for key in a)
+    assert [s for s, _ in steps] == list(range(21))
+    assert steps[-1][1] == float(fit._row_losses(gp).sum())
