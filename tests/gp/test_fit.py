@@ -183,3 +183,14 @@ def test_a_fit_no_later_start_improves_is_the_first_starts_to_the_bit(monkeypatc
     assert all(torch.equal(a[key], b[key]) for key in a)
     assert [s for s, _ in steps] == list(range(21))
     assert steps[-1][1] == float(fit._row_losses(gp).sum())
+
+
+def test_a_fit_of_no_steps_keeps_the_initial_hyperparameters():
+    """``iters = 0`` asks for no optimization: no later start replaces the initial lengthscale 1."""
+    from torch_gpmpc.gp.fit import fit_residual_gp
+
+    g = torch.Generator().manual_seed(0)
+    gp = fit_residual_gp(torch.randn(40, 2, generator=g, dtype=torch.float64),
+                         0.01 * torch.randn(40, 2, generator=g, dtype=torch.float64), iters=0)
+    lengthscale = gp.model.covar_module.base_kernel.lengthscale.detach()
+    torch.testing.assert_close(lengthscale, torch.ones_like(lengthscale))

@@ -192,18 +192,20 @@ def _fit_from_starts(new_gp: Callable[[], ResidualGP], optimizer: str, iters: in
     """Fit a new GP (``new_gp()``) from each of :data:`LENGTHSCALE_STARTS` in turn, keeping per output
     row the start with the highest marginal likelihood where it beats the row kept so far by more
     than :data:`RESTART_GAIN`; the next start is tried only while the last one replaced some row.
-    ``callback`` sees the first start's steps and, as step ``iters``, the fit returned."""
+    The starts are compared after ``iters`` steps each, converged or not (``iters = 0``: the first
+    start's initial values alone). ``callback`` sees the first start's steps and, as step ``iters``,
+    the fit returned."""
     gp = new_gp()
     gp.model.covar_module.base_kernel.lengthscale = LENGTHSCALE_STARTS[0]
     _optimize(gp, optimizer, iters, callback, lr)
     losses = _row_losses(gp)
-    for start in LENGTHSCALE_STARTS[1:]:
+    for start in LENGTHSCALE_STARTS[1:] if iters > 0 else ():  # no steps: the initial values, as asked
         other = new_gp()
         other.model.covar_module.base_kernel.lengthscale = start
-        _optimize(other, optimizer, iters, None, lr, nan_level=logging.DEBUG)
         try:
+            _optimize(other, optimizer, iters, None, lr, nan_level=logging.DEBUG)
             other_losses = _row_losses(other)
-        except GpmpcError as exc:  # a start whose end the likelihood cannot even be evaluated at
+        except (GpmpcError, NanError, NotPSDError, torch.linalg.LinAlgError) as exc:  # keep the fit in hand
             log.debug("GP fit: the start from lengthscale %g failed: %s", start, exc)
             break
         gain = losses - other_losses
