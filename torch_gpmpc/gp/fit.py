@@ -199,6 +199,9 @@ def _fit_from_starts(new_gp: Callable[[], ResidualGP], optimizer: str, iters: in
     gp.model.covar_module.base_kernel.lengthscale = LENGTHSCALE_STARTS[0]
     _optimize(gp, optimizer, iters, callback, lr)
     losses = _row_losses(gp)
+    if not bool(torch.isfinite(losses).all()):  # the point the steps ended on (each step's start was finite)
+        raise GpmpcError(f"GP fit diverged (loss {float(losses.sum())}) at step {iters}; try --optimizer lbfgs, "
+                         "fewer --iters or check the data")
     for start in LENGTHSCALE_STARTS[1:] if iters > 0 else ():  # no steps: the initial values, as asked
         other = new_gp()
         other.model.covar_module.base_kernel.lengthscale = start
@@ -297,12 +300,8 @@ def _optimize(gp: ResidualGP, optimizer: str, iters: int, callback: Callback | N
             # so drop its curvature history and restart from steepest descent
             log.debug("GP fit: L-BFGS line search stalled at step %d; restarting its history", step)
             opt = new_optimizer()
-        value = float(loss.detach())
-        if not math.isfinite(value):
-            raise GpmpcError(f"GP fit diverged (loss {value}) at step {step}; try --optimizer lbfgs, "
-                             "fewer --iters or check the data")
         if callback is not None:
-            callback(step, value, hp)
+            callback(step, float(loss.detach()), hp)
 
 
 def _degenerate_rows(gp: ResidualGP) -> str:
