@@ -65,8 +65,8 @@ from torch_gpmpc.coordination.agent_step import (
 from torch_gpmpc.coordination.fallback import fallback_agents, fallback_problem, pair_safety
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.mission_risk import (
-    RISK_FLOOR, agent_charges, edge_allotments, edge_separations, obstacle_risk_bounds, pair_matrix,
-    pair_risk_bounds, row_allotments, slot_risks_from_edges, starting_budgets,
+    RISK_FLOOR, agent_charges, direction_risk_bounds, edge_allotments, edge_separations, obstacle_risk_bounds,
+    pair_matrix, pair_risk_bounds, row_allotments, slot_risks_from_edges, starting_budgets,
 )
 from torch_gpmpc.coordination.planes import (
     PlaneIterations, SafeIterates, end_multipliers, midpoint_planes, plane_geometry, plane_iteration, plane_problem,
@@ -471,6 +471,11 @@ class ADMM:
                 sep = edge_separations(state.plans.detach(), result.problem.normals.detach(), graph)
                 var = state.pvar.detach()[:, :, 0].sum(dim=1)
                 bounds = pair_risk_bounds(sep, var, edge_distances(self.settings, graph.edges))
+                cov = self._next_position_covariances(ctx.convexification, graph.num_agents)
+                if cov is not None:
+                    positions = state.plans.detach()[:, 1, self.nominal.position]
+                    along = direction_risk_bounds(positions, cov, graph.edges, edge_distances(self.settings, graph.edges))
+                    bounds = torch.fmin(bounds, along)
                 result.pair_risk = pair_matrix(bounds, graph)
         if ctx.eps_edge is None:
             return state
@@ -479,6 +484,19 @@ class ADMM:
         if result.obstacle_risk is not None:
             charges = charges + result.obstacle_risk
         return dataclasses.replace(state, risk_left=(state.risk_left - charges).clamp_min(RISK_FLOOR))
+
+    def _next_position_covariances(self, conv: Any, num_agents: int) -> Tensor | None:
+        """(K, P, P) every agent's position covariance at tau = 1 from the last iterate's
+        convexification (one per model in a mixed team), or ``None`` without margins."""
+        parts = conv if isinstance(conv, tuple) else (conv,)
+        if any(getattr(c, "next_position_cov", None) is None for c in parts):
+            return None
+        members = getattr(self.agent_step, "members", [slice(None)])
+        P = parts[0].next_position_cov.shape[-1]
+        cov = parts[0].next_position_cov.new_zeros(num_agents, P, P)
+        for c, idx in zip(parts, members):
+            cov[idx] = c.next_position_cov.detach()
+        return cov
 
     def _obstacle_risk(self, plans: Tensor, conv: Any) -> Tensor | None:
         """(K,) each agent's summed bound on hitting an obstacle of its rows at the next sample

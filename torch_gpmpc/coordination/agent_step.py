@@ -115,6 +115,8 @@ class Convexification:
             chance margins, shapes (B, L, T, D) and (B, L, T), or ``None`` (no obstacles).
         obstacle_std: the agent's standard deviation along each obstacle row, (B, L, T), or
             ``None`` (no obstacles, or a method without margins).
+        next_position_cov: the agent's position covariance at tau = 1, (B, P, P), or ``None``
+            (a method without margins): what bounds a pair's risk along any direction.
     """
 
     lin: Any
@@ -123,6 +125,7 @@ class Convexification:
     obstacle_normals: Tensor | None = None
     obstacle_bounds: Tensor | None = None
     obstacle_std: Tensor | None = None
+    next_position_cov: Tensor | None = None
 
     def obstacle_bounds_with_margins(self, eps: float | Tensor) -> Tensor | None:
         """The obstacle rows' bounds with the chance margin ``Phi^{-1}(1 - eps) std``.
@@ -451,11 +454,13 @@ class LocalStep:
         pos = self.nominal.position
         normals = on_positions(collision_normals(xbar[..., pos], state.plans[slot_nbr][..., pos], agent_ids,
                                                  slot_nbr)[:, :, 1:], pos, xbar.shape[-1])
-        own_var = sigma = None
+        own_var = sigma = position_cov = None
         if self.method.chance:
             sigma = state_covariances(self.uncertainty, lin.var, lin.dyn_A, self.feedback)[:, 1:]
             own_var = projected_variances(normals, sigma)
-        return Convexification(lin, normals, own_var, *self._obstacle_rows(xbar, sigma, agent_ids))
+            position_cov = sigma[:, 0][:, pos][:, :, pos]
+        return Convexification(lin, normals, own_var, *self._obstacle_rows(xbar, sigma, agent_ids),
+                               next_position_cov=position_cov)
 
     def _obstacle_rows(self, xbar: Tensor, sigma: Tensor | None,
                        agent_ids: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:

@@ -15,6 +15,9 @@ joint chance constraints made receding-horizon):
    tau = 1 (:func:`pair_risk_bounds`): the collision disc lies beyond the linearized half-space
    ``n^T (p_k - p_j) >= r_safe`` (n a unit vector), and ``n^T (x_k - x_j)`` is Gaussian with the
    two agents' projected variances. Whenever the pair's row holds, ``p <= eps_k + eps_j``.
+   The same bound along the pair's own direction at tau = 1 (:func:`direction_risk_bounds`) is
+   valid too, and the smaller of the two is charged: plans the rows did not pose (a fallback's
+   re-plan in its Voronoi cell) are charged what they risk, not what the stale normal suggests.
    Likewise an obstacle row ``n^T p_k >= b`` (a supporting half-space of the convex obstacle
    grown by the body radius) bounds the agent's probability of hitting it by
    ``Phi(-(n^T x_k - b) / sqrt(s_k))`` (:func:`obstacle_risk_bounds`), at most ``eps_k`` when
@@ -136,6 +139,33 @@ def pair_risk_bounds(separation: Tensor, variance: Tensor, r_safe: float | Tenso
     tail = torch.special.ndtr(-gap / torch.where(random, std, torch.ones_like(std)))
     bound = torch.where(random, tail, (gap < 0).to(gap.dtype))  # no variance: certain either way
     return bound.masked_fill(gap.isnan() | variance.isnan(), float("nan"))
+
+
+def direction_risk_bounds(positions: Tensor, covariances: Tensor, edges: Tensor, r_safe: float | Tensor) -> Tensor:
+    """Each pair's collision bound at the next sample along the direction between its applied
+    plans, ``n = (p_k - p_j) / |p_k - p_j|``: ``Phi(-(|p_k - p_j| - r_safe) / sqrt(n^T (S_k + S_j) n))``.
+
+    Any unit vector fixed before the step's noise gives a valid bound (the collision disc lies
+    beyond ``n^T (p_k - p_j) >= r_safe``), so the smaller of this and the row normal's bound is one
+    too. It matters where the applied plans were not posed against the row normals: a safety
+    fallback's re-plan in its Voronoi cell, or an earlier plane iterate, can leave a pair far
+    apart and yet close along the stale normal.
+
+    Args:
+        positions: (K, P) the applied plans' positions at tau = 1.
+        covariances: (K, P, P) the agents' position covariances at tau = 1.
+        edges: (E, 2) the pairs.
+        r_safe: the required centre distance: a number, or one per edge (E,).
+
+    Returns:
+        (E,) probabilities (:func:`pair_risk_bounds`).
+    """
+    lo, hi = edges[:, 0], edges[:, 1]
+    diff = positions[lo] - positions[hi]
+    distance = torch.linalg.vector_norm(diff, dim=-1)
+    n = diff / distance.clamp_min(1e-12)[:, None]
+    variance = torch.einsum("ep,epq,eq->e", n, covariances[lo] + covariances[hi], n)
+    return pair_risk_bounds(distance, variance, r_safe)
 
 
 def obstacle_risk_bounds(plans: Tensor, normals: Tensor, bounds: Tensor, std: Tensor) -> Tensor:
