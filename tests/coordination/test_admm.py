@@ -281,6 +281,28 @@ def test_cell_rows_price_slack_by_danger_so_a_jam_opens_its_closest_pair_first()
     assert torch.equal(a.X, b.X)
 
 
+def test_fallback_solves_only_the_agents_that_replan():
+    """The fallback's re-plans of a few agents of a batch (the other agents' problems are not
+    solved) are the whole batch's solves of those agents, to round-off."""
+    from torch_gpmpc.coordination.fallback import cell_problem
+
+    T = 6
+    x0 = torch.tensor([[-0.6, 0.0], [0.0, 0.3], [0.85, 0.0], [0.2, -0.7]], dtype=torch.float64)
+    graph = communication_graph(x0, None)
+    admm = ADMM(LocalStep(Config(method="nominal", horizon=T, r_safe=0.5), NominalModel(2)))
+    xref = x0.flip(0)[:, None].expand(4, T + 1, 2).clone()
+    ctx, state = admm.prepare(x0, xref, graph, None)
+    data = admm.agent_step.assemble(x0, xref, state, graph, ctx.rho, ctx.eps_self).data
+    posed = cell_problem(data, state.plans, state.plans[graph.slot_nbr], [0, 1])
+    layer = admm.agent_step.solver(data.active.shape[1])
+    whole = admm.agent_step.solve(layer, posed)
+    rows = torch.tensor([3, 1])
+    part = admm.agent_step.solve_agents(layer, posed, rows)
+    assert bool(part.ok.all()) and part.X.shape == (2, T + 1, 2)
+    torch.testing.assert_close(part.X, whole.X[rows], rtol=0, atol=1e-12)
+    torch.testing.assert_close(part.U, whole.U[rows], rtol=0, atol=1e-12)
+
+
 def test_buffered_voronoi_fallback_keeps_a_capped_crowd_safe():
     """ADMM capped at 2 iterations in a crowded crossing (8 agents on a circle, noiseless): the
     fallback acts on most steps; no pair comes closer than r_safe and every agent arrives."""

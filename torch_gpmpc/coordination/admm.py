@@ -446,14 +446,16 @@ class ADMM:
                                             self.nominal.momentum(graph.num_agents), unsafe,
                                             self.settings.safety_fallback)
         if bool(replan.any()):
+            rows = replan.nonzero().flatten()
             with torch.no_grad():
                 contact = slot_distances(self.settings, torch.arange(graph.num_agents), graph.slot_nbr)
-                sol = self.agent_step.solve(layer, fallback_problem(data, state.plans, state.plans[graph.slot_nbr],
-                                                                    position, cells, contact))
-            use = replan & sol.ok
-            if bool(use.any()):
-                state = dataclasses.replace(state, plans=torch.where(use[:, None, None], sol.X, state.plans),
-                                            inputs=torch.where(use[:, None, None], sol.U, state.inputs))
+                posed = fallback_problem(data, state.plans, state.plans[graph.slot_nbr], position, cells, contact)
+                sol = self.agent_step.solve_agents(layer, posed, rows)
+            solved = sol.ok.nonzero().flatten()
+            if solved.numel():
+                use = rows[solved]
+                state = dataclasses.replace(state, plans=state.plans.index_put((use,), sol.X[solved]),
+                                            inputs=state.inputs.index_put((use,), sol.U[solved]))
                 result.fallback = True
                 unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.settings.admm_tol, position)
         result.unsafe_plan = bool(unsafe.any())
@@ -472,10 +474,10 @@ class ADMM:
                 var = state.pvar.detach()[:, :, 0].sum(dim=1)
                 bounds = pair_risk_bounds(sep, var, edge_distances(self.settings, graph.edges))
                 cov = self._next_position_covariances(ctx.convexification, graph.num_agents)
-                if cov is not None:
+                if cov is not None:  # the pair's own direction: tighter where the plans left the normals
                     positions = state.plans.detach()[:, 1, self.nominal.position]
-                    along = direction_risk_bounds(positions, cov, graph.edges, edge_distances(self.settings, graph.edges))
-                    bounds = torch.fmin(bounds, along)
+                    distance = edge_distances(self.settings, graph.edges)
+                    bounds = torch.fmin(bounds, direction_risk_bounds(positions, cov, graph.edges, distance))
                 result.pair_risk = pair_matrix(bounds, graph)
         if ctx.eps_edge is None:
             return state

@@ -25,7 +25,7 @@ from torch_gpmpc.control.cost import QuadraticCost
 from torch_gpmpc.control.linearize import linearize_plan
 from torch_gpmpc.control.obstacle_rows import obstacle_rows
 from torch_gpmpc.control.problem import (
-    FAIL_EXCEPTION, FAIL_INACCURATE, FAIL_NONFINITE, FAILURE_KINDS, LocalProblemData, LocalSolution,
+    FAIL_EXCEPTION, FAIL_INACCURATE, FAIL_NONFINITE, FAILURE_KINDS, LocalProblemData, LocalSolution, select_problems,
 )
 from torch_gpmpc.control.risk import (
     chance_quantile, collision_normals, lqr_gain, pair_margins, pair_risks, projected_variances, safe_sqrt,
@@ -476,6 +476,11 @@ class LocalStep:
         normals = on_positions(normals_p, pos, xbar.shape[-1])
         std = None if sigma is None else safe_sqrt(projected_variances(normals, sigma))
         return normals, bounds, std
+
+    def solve_agents(self, layer: nn.Module, data: LocalProblemData, rows: Tensor) -> LocalSolution:
+        """The cold local solves of agents ``rows`` (int64 (B',)) of the batch ``data`` only (a safety
+        fallback's few re-plans in a crowd of a thousand), as :meth:`solve`; B' solutions."""
+        return self.solve(layer, select_problems(data, rows))
 
     def solve(self, layer: nn.Module, data: LocalProblemData, guess: Any = None) -> LocalSolution:
         """One batched local solve (``guess``: the last solve's ``solver_point``, the fast solver's

@@ -18,7 +18,9 @@ from torch import Tensor
 from torch_gpmpc.config.schema import Config
 from torch_gpmpc.config.settings import ControllerSettings
 from torch_gpmpc.config.team import TeamSpec
-from torch_gpmpc.control.problem import SHARED_SCALARS, LocalProblemData, LocalSolution, select_problems
+from torch_gpmpc.control.problem import (
+    SHARED_SCALARS, LocalProblemData, LocalSolution, select_problems, select_solution,
+)
 from torch_gpmpc.coordination.agent_step import Assembled, LocalStep, as_settings, call_layer
 from torch_gpmpc.coordination.graph import Graph
 from torch_gpmpc.coordination.state import ADMMState, IterationStats, StepResult
@@ -168,6 +170,11 @@ class TeamStep:
                  for step, sub, rows, g in zip(self.groups, layer.layers, self.members, guesses)]
         return dataclasses.replace(merge_solutions(parts, self.members),
                                    solver_point=tuple(p.solver_point for p in parts))
+
+    def solve_agents(self, layer: TeamLayer, data: LocalProblemData, rows: Tensor) -> LocalSolution:
+        """The cold local solves of agents ``rows`` (int64 (B',)): every agent is solved and ``rows``
+        are kept, since each model's solver takes its members' whole batch (mixed teams are small)."""
+        return select_solution(self.solve(layer, data), rows)
 
     def count_failures(self, sol: LocalSolution, result: StepResult | IterationStats) -> None:
         """Add failed solves to ``result`` and warn once per kind (see ``LocalStep.count_failures``)."""
