@@ -303,6 +303,68 @@ def test_fallback_solves_only_the_agents_that_replan():
     torch.testing.assert_close(part.U, whole.U[rows], rtol=0, atol=1e-12)
 
 
+def test_a_capped_step_applies_the_replans_of_its_agents_and_keeps_the_rest():
+    """Eight agents on a circle crossing at once and three far from them, ADMM capped at one
+    iteration (copies): a step ends in the fallback, which re-plans some of the eight. Its applied plans equal those of re-planning the whole batch and keeping
+    the named agents' solves (to round-off); an agent whose re-plan fails keeps the plan it had."""
+    import dataclasses
+    import functools
+    import math
+
+    from torch_gpmpc.control.problem import select_problems, select_solution
+
+    T, K = 8, 8
+    angle = torch.arange(K, dtype=torch.float64) * 2 * math.pi / K
+    circle = 1.2 * torch.stack([angle.cos(), angle.sin()], dim=-1)
+    far = torch.tensor([[10.0, 0.0], [10.0, 3.0], [-10.0, 0.0]], dtype=torch.float64)  # never re-plan
+    x0 = torch.cat([far, circle])
+    K = x0.shape[0]
+    xref = torch.cat([far + 1.0, -circle])[:, None].expand(K, T + 1, 2).clone()
+    cfg = Config(method="nominal", horizon=T, admm_coupling="copies", admm_max_iter=1)
+
+    def step_with(solve_agents):
+        """The first step of the crossing that ends in the fallback (the steps before it never call
+        ``solve_agents``, so every variant reaches the same one)."""
+        admm = ADMM(LocalStep(cfg, NominalModel(2)))
+        admm.agent_step.solve_agents = functools.partial(solve_agents, admm.agent_step)
+        x, warm = x0, None
+        for _ in range(30):
+            res = admm.solve_step(x, xref, communication_graph(x, None), warm=warm)
+            if res.fallback or res.unsafe_plan:
+                return res
+            x, warm = res.plans[:, 1], res.state
+        raise AssertionError("no step ended in the fallback")
+
+    def subset(step, layer, data, rows):
+        return step.solve(layer, select_problems(data, rows))
+
+    def whole_batch(step, layer, data, rows):
+        return select_solution(step.solve(layer, data), rows)
+
+    def none_solved(step, layer, data, rows):
+        sol = subset(step, layer, data, rows)
+        return dataclasses.replace(sol, ok=torch.zeros_like(sol.ok))
+
+    def first_fails(step, layer, data, rows):
+        sol = subset(step, layer, data, rows)
+        ok = sol.ok.clone()
+        ok[0] = False
+        return dataclasses.replace(sol, ok=ok)
+
+    mine = step_with(subset)
+    assert mine.fallback
+    torch.testing.assert_close(mine.plans, step_with(whole_batch).plans, rtol=0, atol=1e-12)
+    kept = step_with(none_solved)  # what the step applies when no re-plan succeeds
+    replanned = (mine.plans - kept.plans).abs().amax(dim=(1, 2)) > 0
+    assert bool(replanned.any()) and not bool(replanned[:3].any())
+    partial = step_with(first_fails)
+    first = int(replanned.nonzero()[0])
+    torch.testing.assert_close(partial.plans[first], kept.plans[first], rtol=0, atol=0)
+    rest = replanned.clone()
+    rest[first] = False
+    torch.testing.assert_close(partial.plans[rest], mine.plans[rest], rtol=0, atol=0)
+
+
 def test_buffered_voronoi_fallback_keeps_a_capped_crowd_safe():
     """ADMM capped at 2 iterations in a crowded crossing (8 agents on a circle, noiseless): the
     fallback acts on most steps; no pair comes closer than r_safe and every agent arrives."""

@@ -115,8 +115,9 @@ def test_a_crowd_is_charged_only_what_its_applied_plans_risk():
     safety fallback re-plans agents in their Voronoi cells on some steps, and the step's collision
     normals then no longer describe their plans; along a stale normal a pair well apart can look
     closer than r_safe (a bound near 1 at a safe pair-step: 0.94 spent in all, none of it where
-    plans fell short of their rows, when only the normals' bound was taken). Pair-steps that keep their rows
-    cost what their rows allow, so the run spends no more than its budget there."""
+    plans fell short of their rows, when only the normals' bound was taken). Measured here: what
+    the run spends outside its shortfall stays within the budget (not guaranteed in general: the
+    rows' margins use the variance along the normal, the charge the smaller of two bounds)."""
     from torch_gpmpc.sim.closed_loop import simulate
     from torch_gpmpc.sim.metrics import compute_metrics
 

@@ -474,7 +474,9 @@ class ADMM:
                 var = state.pvar.detach()[:, :, 0].sum(dim=1)
                 bounds = pair_risk_bounds(sep, var, edge_distances(self.settings, graph.edges))
                 cov = self._next_position_covariances(ctx.convexification, graph.num_agents)
-                if cov is not None:  # the pair's own direction: tighter where the plans left the normals
+                # the pair's own direction: tighter where the plans left the normals (both bounds are
+                # NaN together, on NaN plans or variances, so fmin never turns an uncounted NaN into a charge)
+                if cov is not None:
                     positions = state.plans.detach()[:, 1, self.nominal.position]
                     distance = edge_distances(self.settings, graph.edges)
                     bounds = torch.fmin(bounds, direction_risk_bounds(positions, cov, graph.edges, distance))

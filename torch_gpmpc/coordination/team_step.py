@@ -173,7 +173,7 @@ class TeamStep:
 
     def solve_agents(self, layer: TeamLayer, data: LocalProblemData, rows: Tensor) -> LocalSolution:
         """The cold local solves of agents ``rows`` (int64 (B',)): every agent is solved and ``rows``
-        are kept, since each model's solver takes its members' whole batch (mixed teams are small)."""
+        are kept (mixed teams are small: splitting ``rows`` by model would save little)."""
         return select_solution(self.solve(layer, data), rows)
 
     def count_failures(self, sol: LocalSolution, result: StepResult | IterationStats) -> None:
