@@ -489,16 +489,21 @@ class ADMM:
             charges = charges + result.obstacle_risk
         return dataclasses.replace(state, risk_left=(state.risk_left - charges).clamp_min(RISK_FLOOR))
 
+    def _per_model(self, conv: Any) -> list[tuple[Any, Any]]:
+        """The last iterate's convexification ``conv`` with the agents it covers: one pair per model
+        of a mixed team (its ``members``), else ``[(conv, slice(None))]``."""
+        parts = conv if isinstance(conv, tuple) else (conv,)
+        return list(zip(parts, getattr(self.agent_step, "members", [slice(None)])))
+
     def _next_position_covariances(self, conv: Any, num_agents: int) -> Tensor | None:
         """(K, P, P) every agent's position covariance at tau = 1 from the last iterate's
         convexification (one per model in a mixed team), or ``None`` without margins."""
-        parts = conv if isinstance(conv, tuple) else (conv,)
-        if any(getattr(c, "next_position_cov", None) is None for c in parts):
+        models = self._per_model(conv)
+        if any(getattr(c, "next_position_cov", None) is None for c, _ in models):
             return None
-        members = getattr(self.agent_step, "members", [slice(None)])
-        P = parts[0].next_position_cov.shape[-1]
-        cov = parts[0].next_position_cov.new_zeros(num_agents, P, P)
-        for c, idx in zip(parts, members):
+        P = models[0][0].next_position_cov.shape[-1]
+        cov = models[0][0].next_position_cov.new_zeros(num_agents, P, P)
+        for c, idx in models:
             cov[idx] = c.next_position_cov.detach()
         return cov
 
@@ -510,13 +515,12 @@ class ADMM:
             plans: (K, T+1, n) the applied plans.
             conv: the last iterate's convexification; a mixed team's is one per model.
         """
-        parts = conv if isinstance(conv, tuple) else (conv,)
-        if any(getattr(c, "obstacle_std", None) is None for c in parts):
+        models = self._per_model(conv)
+        if any(getattr(c, "obstacle_std", None) is None for c, _ in models):
             return None
-        members = getattr(self.agent_step, "members", [slice(None)])  # a mixed team's agents per model
         pos = self.nominal.position
         risk = plans.new_zeros(plans.shape[0])
-        for c, idx in zip(parts, members):
+        for c, idx in models:
             risk[idx] = obstacle_risk_bounds(plans[idx][..., pos], c.obstacle_normals[..., pos], c.obstacle_bounds,
                                              c.obstacle_std)
         return risk
