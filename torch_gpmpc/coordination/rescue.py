@@ -4,13 +4,15 @@ The compiled interior point (``solver = fast``) stops at 100 Newton steps or at 
 A few problems with heavily softened rows or inputs at their bound do not get there (the
 Reliability page's cases). :class:`SolveRescue` solves those rows again: first by the compiled
 solver, cold, at :data:`RESCUE_TOL` with up to :data:`RESCUE_MAX_ITER` Newton steps (milliseconds),
-then what that leaves by cvxpylayers with clarabel (the reference path; its first use imports cvxpy
-and builds a layer per neighbour-slot count, seconds). Both are differentiable; rows neither solves
-stay failed for the caller's fallback.
+then what that leaves by cvxpylayers with clarabel (the reference path: a layer per neighbour-slot
+count, built on first use in about 0.1 s). Both are differentiable; rows neither solves stay failed
+for the caller's fallback. The reference path's modules (cvxpy, cvxpylayers: about 1.7 s to import)
+are imported when the rescue is set up, with the controller, so that no control step stalls on them.
 """
 
 from __future__ import annotations
 
+import importlib
 import logging
 from typing import Callable
 
@@ -35,9 +37,12 @@ class SolveRescue:
     Args:
         build: ``build(num_slots, solver, **stops)``, a new local solver of the step's problems
             (:meth:`~.agent_step.LocalStep.build_solver`).
+        preload: import the reference path's modules now (:func:`preload_reference_path`).
     """
 
-    def __init__(self, build: Callable[..., nn.Module]) -> None:
+    def __init__(self, build: Callable[..., nn.Module], preload: bool = True) -> None:
+        if preload:
+            preload_reference_path()
         self._build = build
         self._solvers: dict[tuple[str, int], nn.Module] = {}
         #: problems the fast solver left inaccurate and a rescue solved (a run's count)
@@ -74,3 +79,10 @@ class SolveRescue:
             stops = {"tol": RESCUE_TOL, "max_iter": RESCUE_MAX_ITER} if kind == "fast" else {}
             self._solvers[key] = self._build(num_slots, kind, **stops)
         return self._solvers[key]
+
+
+def preload_reference_path() -> None:
+    """Import the last rung's solver module (cvxpy and cvxpylayers, about 1.7 s) now rather than
+    inside the first control step that needs it: a real-time step must not stall on an import
+    (measured: one 1.75 s step in a 100-agent crowd whose other steps took 0.1 s)."""
+    importlib.import_module("torch_gpmpc.control.solvers.conic")

@@ -68,6 +68,36 @@ def test_a_guess_from_another_problem_still_gives_that_problems_optimum():
         assert bool(sol.ok.all()) and (sol.X - ref.X).abs().max() < 1e-7 and (sol.U - ref.U).abs().max() < 1e-6
 
 
+@pytest.mark.parametrize("family", ["input-norm-and-box", "input-box"])
+def test_a_diverging_warm_solve_stops_at_once_and_is_solved_cold(family, monkeypatch):
+    """A guess whose first Newton step moves an input by more than ``DIVERGED_STEP`` times the input
+    bound is given up after that round (not after ``ACTIVE_SET_ROUNDS``) and solved cold; a guess
+    off by less keeps its rounds and solves warm."""
+    from torch_gpmpc.control.solvers import ipm_active, ipm_threads
+
+    nominal, c, data, _ = family_problem("double-integrator-3d", family)
+    layer, cold = solver_for(nominal, c), solver_for(nominal, c).with_warm_start(False)
+    good = layer(data).solver_point
+    rounds = []
+    active_set_batch = ipm_threads.active_set_batch
+
+    def recorded(*args):
+        active_set_batch(*args)
+        rounds.append((bool(args[-3][0]), int(args[-2][0])))
+
+    monkeypatch.setattr(ipm_threads, "active_set_batch", recorded)
+    bound = float(c.input_norm) if c.input_norm is not None else float(max(c.input_box))
+    ref = cold(data)
+    assert ipm_active.DIVERGED_STEP < 1000  # the first guess is off by more than the stop allows
+    for offset, warm in ((1000 * bound, False), (0.1 * bound, True)):
+        guess = good.copy()
+        guess.u += offset  # inputs far off the optimum, the classes still the optimum's
+        sol = layer(data, guess=guess)
+        assert layer.last_warm_rows == int(warm)
+        assert rounds[-1][0] if warm else rounds[-1] == (False, 1)
+        assert bool(sol.ok.all()) and (sol.X - ref.X).abs().max() < 1e-7 and (sol.U - ref.U).abs().max() < 1e-6
+
+
 def test_gradients_are_taken_on_the_cold_path_and_are_unchanged():
     nominal, c, data, _ = family_problem("double-integrator-3d", "all")
     layer, cold = solver_for(nominal, c), solver_for(nominal, c).with_warm_start(False)

@@ -15,8 +15,9 @@ written in the interior-point kernel's layout (:mod:`~torch_gpmpc.control.solver
 and accepted only if that kernel's own KKT error (:func:`~.ipm_residuals.kkt_error`) is below the
 target and every slack and multiplier has its sign: an accepted point is the optimum to the same
 test the interior point applies, reached with exact complementarity (no barrier). Problems that
-do not get there within ``max_rounds`` rounds (a guess too far off, a degenerate active set) are
-reported unconverged and the caller solves them cold.
+do not get there within ``max_rounds`` rounds (a guess too far off, a degenerate active set), or
+whose Newton step leaves the inputs' bound by far (:data:`DIVERGED_STEP`), are reported
+unconverged and the caller solves them cold.
 
 This is the classic warm start of active-set QP solvers (qpOASES' homotopy from the previous
 active set, OSQP's polish step, which solves the same reduced KKT system for its guessed active
@@ -45,6 +46,15 @@ INACTIVE, ACTIVE, SATURATED = 0, 1, 2
 #: only when violated by more than this, an active multiplier leaves only when below -this (so
 #: round-off on a degenerate row cannot make the classes cycle).
 HYSTERESIS = 1e-13
+
+#: A round whose Newton step moves some input by more than this many times the input bound (the
+#: norm bound, else the largest box bound) has diverged: the guessed classes are far from the
+#: optimum's (a plan saturated at its bound meeting new neighbour rows), and the rounds left would
+#: not reach it. The problem is then solved cold at once. Measured on the crowds' problems: the
+#: largest step of any solve that converged was 20 times the bound (100 agents, 30 steps) and 9
+#: (1000 agents, 20 steps); the failing solves of one 1000-agent iteration stop after 4.1 rounds
+#: instead of 7.6, and the crowds' plans are the same bits.
+DIVERGED_STEP = 100.0
 
 
 @_jit
@@ -130,6 +140,14 @@ def _gradient(i, u, A, G, sbi, D, R, Tq, nb, Du, xs, row) -> int:
 
 
 @_jit
+def _input_bound(u_max2: float, box, Tq: int, nb: int) -> float:
+    """The size of the inputs' bound: the norm bound, else the largest box bound, else inf."""
+    if Tq:
+        return np.sqrt(u_max2)
+    return absmax(box) if nb else np.inf
+
+
+@_jit
 def _initial_classes(w, z, R, Tq, nb, Ts, off, cls, zc) -> None:
     """Classes and multipliers from a primal-dual point in the kernel's layout (the guess): a row
     is active where its multiplier exceeds its slack, saturated where also its slack variable
@@ -207,6 +225,7 @@ def _solve_one(H, g0, A, width, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v
     scale_p = 1.0 + max(absmax(bt), 0.0 if Tq == 0 else u_max2, absmax(box), 0.0 if Ts == 0 else v_max * v_max)
     eps_g = HYSTERESIS * scale_p
     eps_z = HYSTERESIS * (1.0 + penalty)
+    max_step = DIVERGED_STEP * _input_bound(u_max2, box, Tq, nb)
     _initial_classes(w, z, R, Tq, nb, Ts, off, cls, zc)
     err = np.inf
     factored_h = False  # S holds the Cholesky factor of H itself (no norm row curved it)
@@ -286,7 +305,7 @@ def _solve_one(H, g0, A, width, N, bt, rho, wy, G, h, sbi, D, Du, box, u_max2, v
         for j in range(n):
             u[j] += x[j]
             step = max(step, abs(x[j]))
-        if not step < np.inf:
+        if not step < np.inf or step > max_step:  # NaN, or diverged
             return False, rnd + 1, err
         for i in range(mc):
             zn[i] = 0.0 if cls[i] == INACTIVE else _zmax(i, R, Tq, nb, penalty, v_max)
