@@ -5,7 +5,7 @@ A few problems with heavily softened rows or inputs at their bound do not get th
 Reliability page's cases). :class:`SolveRescue` solves those rows again: first by the compiled
 solver, cold, at :data:`RESCUE_TOL` with up to :data:`RESCUE_MAX_ITER` Newton steps (milliseconds),
 then what that leaves by cvxpylayers with clarabel (the reference path: a layer per neighbour-slot
-count, built on first use in about 0.1 s). Both are differentiable; rows neither solves stay failed
+count, built on first use in about 1 s). Both are differentiable; rows neither solves stay failed
 for the caller's fallback. The reference path's modules (cvxpy, cvxpylayers: about 1.7 s to import)
 are imported when the rescue is set up, with the controller, so that no control step stalls on them.
 """
