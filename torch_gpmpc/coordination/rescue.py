@@ -6,7 +6,7 @@ Reliability page's cases). :class:`SolveRescue` solves those rows again: first b
 solver, cold, at :data:`RESCUE_TOL` with up to :data:`RESCUE_MAX_ITER` Newton steps (milliseconds),
 then what that leaves by cvxpylayers with clarabel (the reference path: a layer per neighbour-slot
 count, built on first use in about 1 s). Both are differentiable; rows neither solves stay failed
-for the caller's fallback. The reference path's modules (cvxpy, cvxpylayers: about 1.7 s to import)
+for the caller's fallback. The reference path's modules (cvxpy, cvxpylayers: 0.6-1.8 s to import, by what the process has loaded)
 are imported when the rescue is set up, with the controller, so that no control step stalls on them.
 """
 
@@ -40,7 +40,7 @@ class SolveRescue:
         preload: import the reference path's modules now (:func:`preload_reference_path`).
     """
 
-    def __init__(self, build: Callable[..., nn.Module], preload: bool = True) -> None:
+    def __init__(self, build: Callable[..., nn.Module], preload: bool = False) -> None:
         if preload:
             preload_reference_path()
         self._build = build
@@ -82,7 +82,8 @@ class SolveRescue:
 
 
 def preload_reference_path() -> None:
-    """Import the last rung's solver module (cvxpy and cvxpylayers, about 1.7 s) now rather than
-    inside the first control step that needs it: a real-time step must not stall on an import
-    (measured: one 1.75 s step in a 100-agent crowd whose other steps took 0.1 s)."""
+    """Import the last rung's solver module (cvxpy and cvxpylayers) now rather than inside the first
+    control step that needs it: a real-time step must not stall on an import (measured: 1.77 s in a
+    1000-agent run's profile; the 100-agent crowd's seed-1 step that needed it took 1.75 s with the
+    import and 1.15 s without, the rest being the layer build)."""
     importlib.import_module("torch_gpmpc.control.solvers.conic")

@@ -69,7 +69,8 @@ def make_local_solver(
                                 float(alpha), float(slack_penalty), constraints=constraints,
                                 num_halfspaces=num_halfspaces, input_rate_weight=float(input_rate_weight),
                                 warm_start=warm_start, **stops)
-    # cvxpy and cvxpylayers are imported only when a cvxpylayers path is asked for
+    # cvxpy and cvxpylayers are imported only when a cvxpylayers path is asked for (or preloaded by the
+    # fast solver's rescue, coordination.rescue)
     from torch_gpmpc.control.solvers.conic import CvxpyLayerMPC
 
     return CvxpyLayerMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max), float(alpha),
