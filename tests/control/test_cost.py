@@ -65,7 +65,7 @@ def _direct_cvxpy(model, data, rho: float):
     return X.value, U.value
 
 
-@pytest.mark.parametrize("solver", ["fast", "clarabel"])
+@pytest.mark.parametrize("solver", ["fast", "clarabel", "direct"])
 @pytest.mark.parametrize("seed", [0, 1])
 def test_stated_cost_equals_a_direct_cvxpy_solve(solver, seed):
     model, data = _instance(seed)

@@ -238,6 +238,12 @@ def select_solution(solution: LocalSolution, rows: Tensor) -> LocalSolution:
                          state_slack=pick(solution.state_slack), multipliers=pick(solution.multipliers))
 
 
+def wants_grad(data: LocalProblemData) -> bool:
+    """Whether a gradient is to reach one of ``data``'s tensors (autograd on, one requires it)."""
+    return torch.is_grad_enabled() and any(isinstance(v, Tensor) and v.requires_grad
+                                           for v in (getattr(data, f.name) for f in fields(data)))
+
+
 def replace_rows(solution: LocalSolution, rows: Tensor, other: LocalSolution) -> LocalSolution:
     """``solution`` with its rows ``rows`` (int64 (B',)) taken from ``other`` (B' rows), out of place
     (gradients flow to both); a field ``other`` lacks keeps ``solution``'s."""
@@ -340,6 +346,26 @@ def acceptance_failures(data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor,
     these small arrays would cost more than the compiled solve it checks.
     """
     return torch.from_numpy(AcceptanceCheck(data, nominal_B, constraints).codes(X, U, Y, slack)).to(X.device)
+
+
+def solve_verdicts(data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor, nominal_B: Tensor,
+                   constraints: LocalConstraints, converged: np.ndarray, valid: np.ndarray | None = None
+                   ) -> tuple[Tensor, Tensor, Tensor]:
+    """``(failure, ok, slack_active)``, each (B,), of a solver's plans for ``data``: the acceptance rule
+    (:func:`acceptance_failures`), then invalid input data (``valid`` (B,) False) as non-finite and
+    unconverged solves (``converged`` (B,) False) as inaccurate; ``slack_active``: an accepted solve
+    that softened a collision row of an active slot. In NumPy: a dozen torch calls on (B,) flags
+    cost more than the check itself."""
+    failure = acceptance_failures(data, X, U, Y, slack, nominal_B, constraints).cpu().numpy()
+    if valid is not None:
+        failure = np.where(valid, failure, FAIL_NONFINITE)
+    failure = np.where(~converged & (failure == 0), FAIL_INACCURATE, failure)
+    ok = failure == 0
+    used = slack.detach().cpu().numpy() * data.active.detach().cpu().numpy()[:, :, None]
+    slack_active = (used > SLACK_ACTIVE_TOL).reshape(ok.shape[0], -1).any(axis=1) & ok
+    device = X.device
+    return (torch.from_numpy(failure).to(device), torch.from_numpy(ok).to(device),
+            torch.from_numpy(slack_active).to(device))
 
 
 class AcceptanceCheck:

@@ -330,7 +330,7 @@ class LocalStep:
             self.feedback = B @ lqr_gain(A, B, 1.0, max(self.settings.alpha, 1e-9))
         self._solvers: dict[int, nn.Module] = {}
         #: the rescue of the fast solver's inaccurate solves (:meth:`rescue_inaccurate`)
-        self.rescue = SolveRescue(self.build_solver, preload=self.settings.solver == "fast")
+        self.rescue = SolveRescue(self.build_solver)
         #: failure kinds already warned about (one warning per kind per run)
         self._warned: set[str] = set()
 

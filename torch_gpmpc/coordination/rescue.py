@@ -4,22 +4,22 @@ The compiled interior point (``solver = fast``) stops at 100 Newton steps or at 
 A few problems with heavily softened rows or inputs at their bound do not get there (the
 Reliability page's cases). :class:`SolveRescue` solves those rows again: first by the compiled
 solver, cold, at :data:`RESCUE_TOL` with up to :data:`RESCUE_MAX_ITER` Newton steps (milliseconds),
-then what that leaves by cvxpylayers with clarabel (the reference path: a layer per neighbour-slot
-count, built on first use in about 1 s). Both are differentiable; rows neither solves stay failed
-for the caller's fallback. The reference path's modules (cvxpy, cvxpylayers: 0.6-1.8 s to import, by what the process has loaded)
-are imported when the rescue is set up, with the controller, so that no control step stalls on them.
+then what that leaves by Clarabel: handed the same condensed problem directly
+(:class:`~torch_gpmpc.control.solvers.direct_clarabel.DirectClarabelMPC`, about a millisecond a
+problem, nothing to build) when no gradient is wanted, else through cvxpylayers (the differentiable
+reference path: a layer per neighbour-slot count, built on first use in about a second). Rows neither
+rung solves stay failed for the caller's fallback.
 """
 
 from __future__ import annotations
 
-import importlib
 import logging
 from typing import Callable
 
 from torch import nn
 
 from torch_gpmpc.control.problem import (
-    FAIL_INACCURATE, LocalProblemData, LocalSolution, replace_rows, select_problems, select_solution,
+    FAIL_INACCURATE, LocalProblemData, LocalSolution, replace_rows, select_problems, select_solution, wants_grad,
 )
 
 log = logging.getLogger(__name__)
@@ -37,12 +37,9 @@ class SolveRescue:
     Args:
         build: ``build(num_slots, solver, **stops)``, a new local solver of the step's problems
             (:meth:`~.agent_step.LocalStep.build_solver`).
-        preload: import the reference path's modules now (:func:`preload_reference_path`).
     """
 
-    def __init__(self, build: Callable[..., nn.Module], preload: bool = False) -> None:
-        if preload:
-            preload_reference_path()
+    def __init__(self, build: Callable[..., nn.Module]) -> None:
         self._build = build
         self._solvers: dict[tuple[str, int], nn.Module] = {}
         #: problems the fast solver left inaccurate and a rescue solved (a run's count)
@@ -55,7 +52,7 @@ class SolveRescue:
         if sol.failure is None:
             return sol
         rows = (sol.failure == FAIL_INACCURATE).nonzero().flatten()
-        for kind in ("fast", "clarabel"):
+        for kind in ("fast", "clarabel" if wants_grad(data) else "direct"):
             if not rows.numel():
                 break
             again = self.solver(kind, data.active.shape[1])(select_problems(data, rows))
@@ -65,25 +62,18 @@ class SolveRescue:
             log.log(logging.DEBUG if self._logged else logging.INFO,
                     "the fast local solver did not converge for agent(s) %s; re-solved with %s. Further re-solves "
                     "are logged at debug level", rows[again.ok].tolist(),
-                    f"its tolerance relaxed to {RESCUE_TOL:g}" if kind == "fast" else "the reference solver (clarabel)")
+                    f"its tolerance relaxed to {RESCUE_TOL:g}" if kind == "fast" else "clarabel")
             self._logged = True
             sol = replace_rows(sol, rows[again.ok], select_solution(again, again.ok.nonzero().flatten()))
             rows = rows[~again.ok]
         return sol
 
     def solver(self, kind: str, num_slots: int) -> nn.Module:
-        """The rescue solver ``kind`` (``fast``: first, ``clarabel``: last) for ``num_slots`` neighbour
-        slots."""
+        """The rescue solver ``kind`` (``fast``: first; ``direct`` or, for gradients, ``clarabel``: last)
+        for ``num_slots`` neighbour slots."""
         key = (kind, num_slots)
         if key not in self._solvers:
             stops = {"tol": RESCUE_TOL, "max_iter": RESCUE_MAX_ITER} if kind == "fast" else {}
             self._solvers[key] = self._build(num_slots, kind, **stops)
         return self._solvers[key]
 
-
-def preload_reference_path() -> None:
-    """Import the last rung's solver module (cvxpy and cvxpylayers) now rather than inside the first
-    control step that needs it: a real-time step must not stall on an import (measured: 1.77 s in a
-    1000-agent run's profile; the 100-agent crowd's seed-1 step that needed it took 1.75 s with the
-    import and 1.15 s without, the rest being the layer build)."""
-    importlib.import_module("torch_gpmpc.control.solvers.conic")

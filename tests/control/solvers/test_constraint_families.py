@@ -2,7 +2,7 @@
 norm, general state rows, workspace, per-problem half-spaces, all at once) on the single and double
 integrator in 2D and 3D and on model files with a non-diagonal B:
 
-* plans of both solvers match a direct cvxpy solve of the problem in its natural form (every state
+* plans of the solvers (fast, clarabel through cvxpylayers, direct Clarabel) match a direct cvxpy solve of the problem in its natural form (every state
   constraint softened by its own slack at the exact-penalty weight) to 1e-6;
 * the fast solver's gradients with respect to rho, z, the collision bounds and the half-space
   bounds match central differences;
@@ -193,6 +193,17 @@ def test_clarabel_layer_matches_the_direct_solve_with_every_family(model):
 
 
 @pytest.mark.parametrize("family", FAMILIES)
+@pytest.mark.parametrize("model", ["single-integrator-3d", "double-integrator-2d", "model-file-skewed-B-3d"])
+def test_direct_clarabel_plans_match_the_direct_solve(model, family):
+    nominal, c, data, _ = family_problem(model, family)
+    X_ref, U_ref = direct_solve(data, nominal, c)
+    sol = solver_for(nominal, c, "direct")(data)
+    assert bool(sol.ok.all())
+    assert np.abs(sol.X[0].numpy() - X_ref).max() < 1e-6
+    assert np.abs(sol.U[0].numpy() - U_ref).max() < 1e-5
+
+
+@pytest.mark.parametrize("family", FAMILIES)
 @pytest.mark.parametrize("model", ["double-integrator-3d", "model-file-skewed-B-2d"])
 def test_fast_gradients_match_central_differences(model, family):
     """d/d(rho, z_own, z_nbr, bounds, halfspace_bounds, x0) of a fixed functional of the plan."""
@@ -231,7 +242,7 @@ OUTSIDE = {  # a start outside each state family (the others keep the unconstrai
 }
 
 
-@pytest.mark.parametrize("backend", ["fast", "clarabel"])
+@pytest.mark.parametrize("backend", ["fast", "clarabel", "direct"])
 @pytest.mark.parametrize("family", list(OUTSIDE))
 def test_a_start_outside_the_state_constraints_gives_a_finite_plan_and_reported_slack(family, backend):
     nominal, c, data, _ = family_problem("double-integrator-2d", family)
@@ -246,6 +257,6 @@ def test_a_start_outside_the_state_constraints_gives_a_finite_plan_and_reported_
     assert bool(torch.isfinite(sol.X).all()) and bool(torch.isfinite(sol.U).all())
     assert float(sol.state_slack[0, 0]) > 0.1  # the plan cannot be back inside after one step
     assert float(sol.state_slack[0, -1]) < float(sol.state_slack[0, 0])  # and steers back
-    if backend == "fast":
+    if backend != "clarabel":
         X_ref, _ = direct_solve(data, nominal, c)
         assert np.abs(sol.X[0].numpy() - X_ref).max() < 1e-6

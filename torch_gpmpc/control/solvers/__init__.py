@@ -3,8 +3,9 @@ to :class:`~torch_gpmpc.control.problem.LocalSolution` for a batch of agents.
 
 :func:`make_local_solver` is the only place that names the backends: ``fast`` (the
 structure-exploiting interior point :class:`~.interior_point.InteriorPointMPC`, compiled with
-numba) and ``clarabel`` / ``reference`` (the cvxpylayers reference path
-:class:`~.conic.CvxpyLayerMPC`, imported only when asked for).
+numba), ``clarabel`` / ``reference`` (the cvxpylayers reference path
+:class:`~.conic.CvxpyLayerMPC`, imported only when asked for) and ``direct`` (Clarabel without cvxpy
+and without gradients, :class:`~.direct_clarabel.DirectClarabelMPC`: the fast solver's last rescue).
 """
 
 from __future__ import annotations
@@ -50,6 +51,8 @@ def make_local_solver(
     :class:`~torch_gpmpc.control.solvers.conic.CvxpyLayerMPC` (same problem, inputs and outputs;
     building one takes about a second, so keep it). Each call builds a new module, owned by the
     caller (a :class:`~torch_gpmpc.coordination.agent_step.LocalStep` keeps one per slot count).
+    ``direct`` gives :class:`~torch_gpmpc.control.solvers.direct_clarabel.DirectClarabelMPC`: the same
+    problem handed to Clarabel without cvxpy, nothing to build, no gradients.
 
     Examples:
         >>> import torch
@@ -69,8 +72,13 @@ def make_local_solver(
                                 float(alpha), float(slack_penalty), constraints=constraints,
                                 num_halfspaces=num_halfspaces, input_rate_weight=float(input_rate_weight),
                                 warm_start=warm_start, **stops)
-    # cvxpy and cvxpylayers are imported only when a cvxpylayers path is asked for (or preloaded by the
-    # fast solver's rescue, coordination.rescue)
+    if solver == "direct":
+        from torch_gpmpc.control.solvers.direct_clarabel import DirectClarabelMPC
+
+        return DirectClarabelMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max),
+                                 float(alpha), float(slack_penalty), constraints=constraints,
+                                 num_halfspaces=num_halfspaces, input_rate_weight=float(input_rate_weight))
+    # cvxpy and cvxpylayers are imported only when a cvxpylayers path is asked for
     from torch_gpmpc.control.solvers.conic import CvxpyLayerMPC
 
     return CvxpyLayerMPC(horizon, dim, num_neighbors, nominal, None if u_max is None else float(u_max), float(alpha),

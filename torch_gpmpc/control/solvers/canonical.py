@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.control.cost import horizon_weights
 from torch_gpmpc.control.problem import ConsensusTerms, LocalProblemData
 
@@ -231,3 +232,20 @@ def with_state_rows(canon: CanonicalData, rows: list[tuple[Tensor, Tensor]]) -> 
         w_y=torch.cat([canon.w_y, canon.w_y.new_zeros(B, L, T, D)], dim=1), y0=canon.y0,
         normals=torch.cat([canon.normals, *[n for n, _ in rows]], dim=1),
         bounds=torch.cat([canon.bounds, *[b for _, b in rows]], dim=1), g_u=canon.g_u, H_cost=canon.H_cost)
+
+
+def state_row_blocks(data: LocalProblemData, constraints: LocalConstraints, num_halfspaces: int,
+                     horizon: int, dim: int) -> list[tuple[Tensor, Tensor]]:
+    """The soft state rows of ``data``'s B problems as slot blocks for :func:`with_state_rows`: the
+    data's L half-spaces (when ``num_halfspaces``), then ``constraints``' constant rows expanded
+    over B and the T = ``horizon`` steps; each block ``(normals (B, L', T, D), bounds (B, L', T))``."""
+    rows = []
+    if num_halfspaces:
+        rows.append((data.halfspace_normals, data.halfspace_bounds))
+    if constraints.num_rows:
+        batch = data.x0.shape[0]
+        normals, bounds = constraints.rows(dim, data.x0.dtype, data.x0.device)
+        L = normals.shape[0]
+        rows.append((normals[None, :, None].expand(batch, L, horizon, dim),
+                     bounds[None, :, None].expand(batch, L, horizon)))
+    return rows

@@ -28,13 +28,11 @@ from torch_gpmpc.control.solvers.ipm_batch import (
 )
 from torch_gpmpc.control.solvers.repeated import KernelSettings, RepeatedSolve
 from torch_gpmpc.control.solvers.canonical import (  # noqa: F401 (condense_dynamics: re-exported)
-    CanonicalData, CondensedCache, CostTermsCache, canonicalize, condense_dynamics, with_state_rows,
+    CanonicalData, CondensedCache, CostTermsCache, canonicalize, condense_dynamics, state_row_blocks,
+    with_state_rows,
 )
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.control.problem import (
-    FAIL_INACCURATE, FAIL_NONFINITE, SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures,
-    planned_cost,
-)
+from torch_gpmpc.control.problem import LocalProblemData, LocalSolution, planned_cost, solve_verdicts
 from torch_gpmpc.dynamics.systems import NominalModel
 
 logger = logging.getLogger(__name__)
@@ -293,7 +291,7 @@ class InteriorPointMPC(nn.Module):
         beta = self.input_rate_weight
         canon = with_state_rows(canonicalize(data, self._input_matrix(data), self._condensed, beta, self.alpha,
                                              self._cost_terms),
-                                self._state_rows(data, batch))
+                                state_row_blocks(data, self.constraints, self.num_halfspaces, T, D))
         inputs = (canon.G, canon.h, canon.c_x, canon.l_x, canon.rho_y, canon.w_y, canon.normals, canon.bounds,
                   canon.g_u, canon.H_cost)
         arrays = kernel_arrays(inputs)
@@ -324,7 +322,11 @@ class InteriorPointMPC(nn.Module):
         X = torch.cat([x0[:, None], (batched_mv(canon.G, u) + canon.h).view(batch, T, D)], dim=1)
         U = u.view(batch, T, self.input_dim)
         Y = torch.cat([canon.y0[:, :, None], y1], dim=2)
-        failure, ok, slack_active = self._verdicts(data, X, U, Y, slack, valid, converged)
+        failure, ok, slack_active = solve_verdicts(data, X, U, Y, slack, self._B, self.constraints,
+                                                   converged.cpu().numpy(), valid)
+        if not bool(ok.all()):  # ADMM counts and warns (once per kind); keep the details here
+            logger.debug("InteriorPointMPC: %d of %d local problems rejected (tol %g, %d iterations)",
+                         int((~ok).sum()), ok.shape[0], self.tol, self.max_iter)
         cost = planned_cost(data, X, U, xref, self.alpha, beta)
         state_slack = self.constraints.state_violation(X, data.halfspace_normals, data.halfspace_bounds)
         return LocalSolution(X=X, U=U, Y=Y, slack=slack, slack_active=slack_active, ok=ok, cost=cost,
@@ -340,11 +342,12 @@ class InteriorPointMPC(nn.Module):
         Args:
             data: the problems as last solved by this layer (shapes as in :meth:`forward`).
         """
-        batch = data.validate(self.horizon, self.dim, self.num_neighbors, self.input_dim, self.num_halfspaces)
+        data.validate(self.horizon, self.dim, self.num_neighbors, self.input_dim, self.num_halfspaces)
         B = self._input_matrix(data)
         canon = with_state_rows(canonicalize(data, B, self._condensed, self.input_rate_weight, self.alpha,
                                              self._cost_terms),
-                                self._state_rows(data, batch))
+                                state_row_blocks(data, self.constraints, self.num_halfspaces, self.horizon,
+                                                 self.dim))
         G, normals = kernel_arrays((canon.G, canon.normals))
         kernel = KernelSettings((self.alpha, self.input_rate_weight), self._limits, self.slack_penalty, self.tol,
                                 self.max_iter)
@@ -356,38 +359,6 @@ class InteriorPointMPC(nn.Module):
         if self._B is None or self._B.dtype != data.x0.dtype or self._B.device != data.x0.device:
             self._B = self.nominal.B(data.x0.dtype, data.x0.device)
         return self._B
-
-    def _verdicts(self, data: LocalProblemData, X: Tensor, U: Tensor, Y: Tensor, slack: Tensor, valid: np.ndarray,
-                  converged: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """``(failure, ok, slack_active)``, each (B,): the acceptance rule of the cvxpylayers path,
-        then invalid input data (``valid`` False) as non-finite and unconverged solves as inaccurate;
-        ``slack_active``: an accepted solve that softened a collision row of an active slot.
-        In NumPy: a dozen torch calls on (B,) flags cost more than the check itself."""
-        failure = acceptance_failures(data, X, U, Y, slack, self._B, self.constraints).cpu().numpy()
-        failure = np.where(valid, failure, FAIL_NONFINITE)
-        failure = np.where(~converged.cpu().numpy() & (failure == 0), FAIL_INACCURATE, failure)
-        ok = failure == 0
-        used = slack.detach().cpu().numpy() * data.active.detach().cpu().numpy()[:, :, None]
-        slack_active = (used > SLACK_ACTIVE_TOL).reshape(ok.shape[0], -1).any(axis=1) & ok
-        if not ok.all():  # ADMM counts and warns (once per kind); keep the details here
-            logger.debug("InteriorPointMPC: %d of %d local problems rejected (tol %g, %d iterations)",
-                         int((~ok).sum()), ok.shape[0], self.tol, self.max_iter)
-        device = X.device
-        return (torch.from_numpy(failure).to(device), torch.from_numpy(ok).to(device),
-                torch.from_numpy(slack_active).to(device))
-
-    def _state_rows(self, data: LocalProblemData, batch: int) -> list[tuple[Tensor, Tensor]]:
-        """The soft state rows as slot blocks: the data's half-spaces, then the constant rows."""
-        T = self.horizon
-        rows = []
-        if self.num_halfspaces:
-            rows.append((data.halfspace_normals, data.halfspace_bounds))
-        if self.constraints.num_rows:
-            normals, bounds = self.constraints.rows(self.dim, data.x0.dtype, data.x0.device)
-            L = normals.shape[0]
-            rows.append((normals[None, :, None].expand(batch, L, T, self.dim),
-                         bounds[None, :, None].expand(batch, L, T)))
-        return rows
 
 
 def _valid_rows(arrays: list[np.ndarray], y0: Tensor) -> np.ndarray:
