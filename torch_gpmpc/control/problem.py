@@ -183,8 +183,9 @@ class LocalSolution:
             not computed.
         solver_point: the solver's primal-dual points of this batch (opaque; the fast solver's),
             to pass as the next solve's ``guess`` (its warm start); ``None`` if the solver keeps none.
-        multipliers: the collision rows' multipliers, shape (B, M, T) (the fast solver's; NaN rows
-            where another solver answered); ``None`` where the solver does not report them.
+        multipliers: the collision rows' multipliers, shape (B, M, T) (the fast solver's and the
+            direct Clarabel solver's; NaN rows where a solver without them answered); ``None`` where
+            the solver does not report them.
 
     Examples:
         >>> from torch_gpmpc import NominalModel, make_local_solver

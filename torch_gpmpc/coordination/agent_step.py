@@ -362,7 +362,7 @@ class LocalStep:
         return self._solvers[num_slots]
 
     def build_solver(self, num_slots: int, solver: str, **stops: Any) -> nn.Module:
-        """A new batched local solver ``solver`` (``fast``, ``clarabel`` or ``reference``) for
+        """A new batched local solver ``solver`` (``fast``, ``clarabel``, ``reference`` or ``direct``) for
         ``num_slots`` neighbour slots, with this step's model, weights and constraints; ``stops``:
         the fast solver's ``tol`` and ``max_iter`` (:func:`~torch_gpmpc.control.solvers.make_local_solver`)."""
         s = self.settings
@@ -487,8 +487,8 @@ class LocalStep:
         warm start, or ``None``); an exception escaping the layer fails every agent (kind
         ``exception``) instead of ending the run. Input errors (GpmpcError) still raise. With
         ``solver = fast``, problems the compiled solver leaves inaccurate (no convergence within
-        its iteration cap: rare, on problems with heavily softened rows) are solved again by the
-        reference path (:meth:`rescue_inaccurate`)."""
+        its iteration cap: rare, on problems with heavily softened rows) are solved again
+        (:meth:`rescue_inaccurate`)."""
         try:
             return self.rescue_inaccurate(data, call_layer(layer, data, guess))
         except GpmpcError:

@@ -11,7 +11,7 @@ import torch
 
 from torch_gpmpc import CvxpyLayerMPC, GpmpcError, InteriorPointMPC, NominalModel
 from torch_gpmpc.control.examples import crossing_instance
-from torch_gpmpc.control.problem import LocalProblemData
+from torch_gpmpc.control.problem import FAIL_NONE, FAIL_NONFINITE, LocalProblemData
 from torch_gpmpc.control.solvers.direct_clarabel import DirectClarabelMPC
 
 
@@ -57,9 +57,12 @@ def test_a_gradient_request_is_refused_by_name():
         assert bool(DirectClarabelMPC(*_args(1))(LocalProblemData(**{**data.__dict__, "x0": x0})).ok.all())
 
 
-def test_non_finite_data_fails_that_problem_only():
+@pytest.mark.parametrize("field", ["x0", "bounds", "z_nbr", "xref"])
+def test_non_finite_data_fails_that_problem_only_as_non_finite(field):
     data = crossing_instance(batch=3, num_neighbors=1, method="nominal").problem_data()
-    x0 = data.x0.clone()
-    x0[1, 0] = float("nan")
-    sol = DirectClarabelMPC(*_args(1))(LocalProblemData(**{**data.__dict__, "x0": x0}))
+    value = getattr(data, field).clone()
+    value[1].view(-1)[-1] = float("nan")  # the last entry: xref[0] is not in the problem
+    sol = DirectClarabelMPC(*_args(1))(LocalProblemData(**{**data.__dict__, field: value}))
     assert sol.ok.tolist() == [True, False, True]
+    assert sol.failure.tolist() == [FAIL_NONE, FAIL_NONFINITE, FAIL_NONE]  # as the fast solver says
+    assert bool(torch.isfinite(sol.X).all()) and bool(torch.isfinite(sol.Y).all())

@@ -35,8 +35,8 @@ from torch_gpmpc.errors import GpmpcError
 
 #: Clarabel's settings: at its defaults, and at tolerances 1e-10, inputs were off by 4e-5 on a crossing
 #: instance; tolerances 1e-12 with a shorter step (0.9 of the way to the cone boundary, as the
-#: cvxpylayers path's) agreed with the cvxpylayers path and the fast solver to 1e-7
-#: (tests/test_direct_clarabel.py)
+#: cvxpylayers path's) agreed with the cvxpylayers path and the fast solver to 1e-6 in the plans and
+#: 1e-5 in the inputs (tests/control/solvers/test_direct_clarabel.py)
 SETTINGS = {"tol_gap_abs": 1e-12, "tol_gap_rel": 1e-12, "tol_feas": 1e-12, "tol_ktratio": 1e-10,
             "max_step_fraction": 0.9, "verbose": False}
 #: the statuses whose point is taken (then judged by the acceptance rule like every solver's)
@@ -103,10 +103,11 @@ class DirectClarabelMPC(nn.Module):
         slack = np.zeros((batch, M, T))
         multipliers = np.full((batch, M, T), np.nan)
         converged = np.zeros(batch, dtype=bool)
-        for b in range(batch):
+        valid = np.isfinite(canon.y0.reshape(batch, -1).sum(1).cpu().numpy())
+        for a in arrays.values():
+            valid &= np.isfinite(a.reshape(batch, -1).sum(1))
+        for b in np.flatnonzero(valid):
             one = {name: a[b] for name, a in arrays.items()}
-            if not all(np.isfinite(a).all() for a in one.values()):
-                continue
             solution = self._solve_one(one)
             if solution is None:
                 continue
@@ -116,7 +117,7 @@ class DirectClarabelMPC(nn.Module):
             slack[b] = x[n + M * T * D:n + M * T * D + M * T].reshape(M, T)
             multipliers[b] = z[:M * T].reshape(M, T)
             converged[b] = True
-        return self._solution(data, canon, B, u, y, slack, multipliers, converged)
+        return self._solution(data, canon, B, u, y, slack, multipliers, converged, valid)
 
     def _solve_one(self, one: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
         """Clarabel's primal point x and the rows' duals z of one problem (arrays of
@@ -146,65 +147,100 @@ class DirectClarabelMPC(nn.Module):
         P_u = (2.0 * one["c_x"] * G.T @ G + 2.0 * self.alpha * np.eye(n)
                + 2.0 * self.input_rate_weight * first_diff.T @ first_diff + one["H_cost"])
         q_u = 2.0 * one["c_x"] * G.T @ h - G.T @ one["l_x"] + one["g_u"]
-        P = sp.block_diag([sp.csc_matrix(np.triu(P_u)), sp.diags(np.repeat(one["rho_y"][:M], T * D)),
-                           sp.csc_matrix((ns + nsig, ns + nsig))], format="csc")
+        upper = np.triu_indices(n)
+        P = _csc(np.concatenate([P_u[upper], np.repeat(one["rho_y"][:M], T * D)]),
+                 np.concatenate([upper[0], n + np.arange(ny)]), np.concatenate([upper[1], n + np.arange(ny)]), nx, nx)
         q = np.concatenate([q_u, -one["w_y"][:M].ravel(), np.full(ns + nsig, self.slack_penalty)])
 
+        # A as (value, row, column) triplets, one block of rows after another (one sparse build: scipy's
+        # per-call cost made block-by-block assembly the larger part of a small problem's solve)
         Gt = G.reshape(T, D, n)
-        blocks, rhs, cones = [], [], []
+        A = _Triplets()
         # collision and state rows (nonnegative): -(n' G_t) u + c_j n' Y_jt - s_jt <= n' h_t - bound
-        rows = np.zeros((ns, nx))
-        rows[:, :n] = -np.einsum("jtd,tdn->jtn", normals, Gt).reshape(ns, n)
-        for j in range(M):
-            for t in range(T):
-                rows[j * T + t, n + (j * T + t) * D:n + (j * T + t + 1) * D] = normals[j, t]
-        rows[:, n + ny:n + ny + ns] = -np.eye(ns)
-        blocks.append(rows)
-        rhs.append(np.einsum("jtd,td->jt", normals, h.reshape(T, D)).ravel() - bounds.ravel())
+        A.dense(-np.einsum("jtd,tdn->jtn", normals, Gt).reshape(ns, n), row=0, col=0)
+        A.add(normals[:M].ravel(), np.repeat(np.arange(M * T), D), n + np.arange(ny))
+        A.add(-np.ones(ns), np.arange(ns), n + ny + np.arange(ns))
+        rhs = [np.einsum("jtd,td->jt", normals, h.reshape(T, D)).ravel() - bounds.ravel()]
         # s >= 0 and sigma >= 0
-        blocks.append(np.hstack([np.zeros((ns + nsig, n + ny)), -np.eye(ns + nsig)]))
+        A.add(-np.ones(ns + nsig), ns + np.arange(ns + nsig), n + ny + np.arange(ns + nsig))
         rhs.append(np.zeros(ns + nsig))
-        cones.append(clarabel.NonnegativeConeT(2 * ns + nsig))
+        cones = [clarabel.NonnegativeConeT(2 * ns + nsig)]
+        row = 2 * ns + nsig
         if c.input_box is not None:  # U_t,i <= box_i and -U_t,i <= box_i
             box = np.tile(np.asarray(c.input_box, dtype=np.float64), T)
-            blocks.append(np.hstack([np.vstack([np.eye(n), -np.eye(n)]), np.zeros((2 * n, nx - n))]))
+            A.add(np.concatenate([np.ones(n), -np.ones(n)]), row + np.arange(2 * n), np.tile(np.arange(n), 2))
             rhs.append(np.concatenate([box, box]))
             cones.append(clarabel.NonnegativeConeT(2 * n))
-        if c.input_norm is not None:  # (u_max, U_t) in the second-order cone
-            for t in range(T):
-                block = np.zeros((Du + 1, nx))
-                block[1:, t * Du:(t + 1) * Du] = -np.eye(Du)
-                blocks.append(block)
-                rhs.append(np.concatenate([[c.input_norm], np.zeros(Du)]))
-                cones.append(clarabel.SecondOrderConeT(Du + 1))
+            row += 2 * n
+        if c.input_norm is not None:  # (u_max, U_t) in the second-order cone, t = 0..T-1
+            per_step = np.arange(T * (Du + 1)).reshape(T, Du + 1)[:, 1:].ravel()  # the U_t rows of each cone
+            A.add(-np.ones(n), row + per_step, np.arange(n))
+            rhs.append(np.tile(np.concatenate([[c.input_norm], np.zeros(Du)]), T))
+            cones.extend(clarabel.SecondOrderConeT(Du + 1) for _ in range(T))
+            row += T * (Du + 1)
         if soft_norm:  # ((v^2 + 1)/2 + v sigma_t, X_t[idx], (v^2 - 1)/2 + v sigma_t) in the cone
             v, idx = float(c.norm_bound), list(c.norm_indices)
             for t in range(T):
-                block = np.zeros((len(idx) + 2, nx))
-                block[0, n + ny + ns + t] = block[-1, n + ny + ns + t] = -v
-                block[1:-1, :n] = -Gt[t, idx]
-                blocks.append(block)
+                sigma = n + ny + ns + t
+                A.add(np.array([-v, -v]), np.array([row, row + len(idx) + 1]), np.array([sigma, sigma]))
+                A.dense(-Gt[t, idx], row=row + 1, col=0)
                 rhs.append(np.concatenate([[(v * v + 1.0) / 2.0], h.reshape(T, D)[t, idx], [(v * v - 1.0) / 2.0]]))
                 cones.append(clarabel.SecondOrderConeT(len(idx) + 2))
-        A = sp.csc_matrix(np.vstack(blocks))
-        return P, q, A, np.concatenate(rhs), cones
+                row += len(idx) + 2
+        return P, q, A.csc(row, nx), np.concatenate(rhs), cones
 
     def _solution(self, data: LocalProblemData, canon: CanonicalData, B: Tensor, u: np.ndarray, y: np.ndarray,
-                  slack: np.ndarray, multipliers: np.ndarray, converged: np.ndarray) -> LocalSolution:
-        """The :class:`LocalSolution` of the solved points (unsolved problems keep zeros and fail)."""
+                  slack: np.ndarray, multipliers: np.ndarray, converged: np.ndarray, valid: np.ndarray
+                  ) -> LocalSolution:
+        """The :class:`LocalSolution` of the solved points: unsolved problems fail (inaccurate), problems
+        with non-finite data fail as such with zero plans and copies (as the fast solver's: finite)."""
         batch, T, D = u.shape[0], self.horizon, self.dim
         like = data.x0
         u_t = torch.from_numpy(u).to(like)
         X = torch.cat([data.x0[:, None], (canon.G @ u_t[..., None])[..., 0].add(canon.h).view(batch, T, D)], dim=1)
         U = u_t.view(batch, T, self.input_dim)
         Y = torch.cat([canon.y0[:, :, None], torch.from_numpy(y).to(like)], dim=2)
+        keep = torch.from_numpy(valid).to(like.device)
+        X, Y = torch.where(keep[:, None, None], X, 0.0), torch.where(keep[:, None, None, None], Y, 0.0)
         slack_t = torch.from_numpy(slack).to(like)
-        failure, ok, slack_active = solve_verdicts(data, X, U, Y, slack_t, B, self.constraints, converged)
+        failure, ok, slack_active = solve_verdicts(data, X, U, Y, slack_t, B, self.constraints, converged, valid)
         return LocalSolution(
             X=X, U=U, Y=Y, slack=slack_t, slack_active=slack_active, ok=ok,
             cost=planned_cost(data, X, U, data.xref, self.alpha, self.input_rate_weight), failure=failure,
             state_slack=self.constraints.state_violation(X, data.halfspace_normals, data.halfspace_bounds),
             multipliers=torch.from_numpy(multipliers).to(like))
+
+
+class _Triplets:
+    """A sparse matrix collected as (value, row, column) triplets, built once (:meth:`csc`)."""
+
+    def __init__(self) -> None:
+        self.values: list[np.ndarray] = []
+        self.rows: list[np.ndarray] = []
+        self.cols: list[np.ndarray] = []
+
+    def add(self, values: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> None:
+        """Entries ``values`` at ``(rows, cols)`` (equal lengths)."""
+        self.values.append(values)
+        self.rows.append(rows)
+        self.cols.append(cols)
+
+    def dense(self, block: np.ndarray, row: int, col: int) -> None:
+        """A dense ``block`` (r, c) with its top-left entry at ``(row, col)``."""
+        r, c = np.indices(block.shape)
+        self.add(block.ravel(), row + r.ravel(), col + c.ravel())
+
+    def csc(self, num_rows: int, num_cols: int) -> sp.csc_matrix:
+        """The (num_rows, num_cols) matrix."""
+        return _csc(np.concatenate(self.values), np.concatenate(self.rows), np.concatenate(self.cols),
+                    num_rows, num_cols)
+
+
+def _csc(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, num_rows: int, num_cols: int) -> sp.csc_matrix:
+    """The CSC matrix of the triplets (duplicates summed, zeros dropped: Clarabel factors what is stored)."""
+    matrix = sp.csc_matrix((values, (rows, cols)), shape=(num_rows, num_cols))
+    matrix.eliminate_zeros()
+    return matrix
 
 
 def _settings() -> "clarabel.DefaultSettings":
