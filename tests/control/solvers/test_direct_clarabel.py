@@ -66,3 +66,11 @@ def test_non_finite_data_fails_that_problem_only_as_non_finite(field):
     assert sol.ok.tolist() == [True, False, True]
     assert sol.failure.tolist() == [FAIL_NONE, FAIL_NONFINITE, FAIL_NONE]  # as the fast solver says
     assert bool(torch.isfinite(sol.X).all()) and bool(torch.isfinite(sol.Y).all())
+
+
+def test_make_local_solver_builds_it_and_names_every_backend_on_a_wrong_one():
+    from torch_gpmpc import make_local_solver
+
+    assert isinstance(make_local_solver(13, 2, 1, NominalModel(2), 2.0, 1e-3, solver="direct"), DirectClarabelMPC)
+    with pytest.raises(GpmpcError, match="fast, clarabel, reference, direct"):
+        make_local_solver(13, 2, 1, NominalModel(2), 2.0, 1e-3, solver="Direct")

@@ -14,6 +14,10 @@ from torch import nn
 
 from torch_gpmpc.control.constraints import LocalConstraints
 from torch_gpmpc.dynamics.systems import NominalModel
+from torch_gpmpc.errors import GpmpcError
+
+#: The backends :func:`make_local_solver` builds.
+BACKENDS = ("fast", "clarabel", "reference", "direct")
 
 
 def make_local_solver(
@@ -64,6 +68,8 @@ def make_local_solver(
         >>> tuple(sol.X.shape), tuple(sol.U.shape), bool(sol.ok.all())
         ((3, 14, 2), (3, 13, 2), True)
     """
+    if solver not in BACKENDS:
+        raise GpmpcError(f"solver: {solver!r} is not a local solver; choose from {', '.join(BACKENDS)}")
     if solver == "fast":
         from torch_gpmpc.control.solvers.interior_point import InteriorPointMPC
 
