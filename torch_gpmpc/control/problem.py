@@ -239,6 +239,24 @@ def select_solution(solution: LocalSolution, rows: Tensor) -> LocalSolution:
                          state_slack=pick(solution.state_slack), multipliers=pick(solution.multipliers))
 
 
+def check_layer_sizes(name: str, horizon: int, dim: int, num_neighbors: int, num_halfspaces: int,
+                      nominal_dim: int, alpha: float, slack_penalty: float, input_rate_weight: float) -> None:
+    """The checks every local solver ``name`` makes of its sizes and weights (one message per kind).
+
+    Raises:
+        GpmpcError: a size out of range (T, D >= 1; M, L >= 0), a model of another dimension, or
+            ``alpha``, ``slack_penalty`` not > 0 or ``input_rate_weight`` < 0.
+    """
+    if horizon < 1 or dim < 1 or num_neighbors < 0 or num_halfspaces < 0:
+        raise GpmpcError(f"{name} needs horizon >= 1, dim >= 1, num_neighbors >= 0, num_halfspaces >= 0; "
+                         f"got {horizon}, {dim}, {num_neighbors}, {num_halfspaces}")
+    if nominal_dim != dim:
+        raise GpmpcError(f"nominal model has dim {nominal_dim}, {name} dim is {dim}")
+    if alpha <= 0 or slack_penalty <= 0 or input_rate_weight < 0:
+        raise GpmpcError(f"{name}: alpha and slack_penalty must be > 0 and input_rate_weight >= 0; got "
+                         f"{alpha}, {slack_penalty}, {input_rate_weight}")
+
+
 def wants_grad(data: LocalProblemData) -> bool:
     """Whether a gradient is to reach one of ``data``'s tensors (autograd on, one requires it)."""
     return torch.is_grad_enabled() and any(isinstance(v, Tensor) and v.requires_grad

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -92,6 +93,30 @@ class CanonicalData:
     bounds: Tensor
     g_u: Tensor
     H_cost: Tensor
+
+    def kernel_inputs(self) -> tuple[Tensor, ...]:
+        """The fields a solver reads, in the compiled kernels' order (:data:`KERNEL_FIELDS`)."""
+        return tuple(getattr(self, name) for name in KERNEL_FIELDS)
+
+
+#: The :class:`CanonicalData` fields the solvers read, in the compiled kernels' argument order.
+KERNEL_FIELDS = ("G", "h", "c_x", "l_x", "rho_y", "w_y", "normals", "bounds", "g_u", "H_cost")
+
+
+def finite_problems(arrays: list[np.ndarray], y0: Tensor) -> np.ndarray:
+    """Which problems have finite canonical data (``arrays``: :meth:`CanonicalData.kernel_inputs` as
+    NumPy arrays, and the step-0 copies y0 (B, M, D)) and ``rho > 0`` on every slot, (B,) bool (NumPy,
+    on the arrays the kernel reads: a few calls, where the same test in torch cost more than a warm
+    solve)."""
+    B = arrays[1].shape[0]
+    total = y0.detach().cpu().numpy().reshape(B, -1).sum(1)
+    for a in arrays:
+        total = total + a.reshape(B, -1).sum(1)
+    valid = np.isfinite(total)
+    rho_y = arrays[KERNEL_FIELDS.index("rho_y")]
+    if rho_y.size:
+        valid &= (rho_y > 0).all(1)
+    return valid
 
 
 def stated_cost_terms(data: LocalProblemData, G: Tensor, h: Tensor, alpha: float) -> tuple[Tensor, Tensor]:

@@ -23,7 +23,7 @@ from torch_gpmpc.dynamics.systems import NominalModel
 
 from torch_gpmpc.control.problem import (
     ConsensusTerms, FAIL_EXCEPTION, FAIL_NONE, SLACK_ACTIVE_TOL, LocalProblemData, LocalSolution, acceptance_failures,
-    planned_cost,
+    check_layer_sizes, planned_cost,
 )
 from torch_gpmpc.control.cost import horizon_weights
 
@@ -134,15 +134,9 @@ class CvxpyLayerMPC(nn.Module):
         super().__init__()
         if solver not in SOLVER_ARGS:
             raise GpmpcError(f"solver: {solver!r} is not a cvxpylayers path; choose from {', '.join(SOLVER_ARGS)}")
-        if horizon < 1 or dim < 1 or num_neighbors < 0:
-            raise GpmpcError(f"CvxpyLayerMPC needs horizon >= 1, dim >= 1, num_neighbors >= 0; got "
-                             f"{horizon}, {dim}, {num_neighbors}")
-        if nominal.dim != dim:
-            raise GpmpcError(f"nominal model has dim {nominal.dim}, CvxpyLayerMPC dim is {dim}")
+        check_layer_sizes("CvxpyLayerMPC", horizon, dim, num_neighbors, num_halfspaces, nominal.dim, alpha,
+                          slack_penalty, input_rate_weight)
         self.constraints = constraints or LocalConstraints.of(nominal.spec, u_max)
-        if alpha <= 0 or slack_penalty <= 0 or num_halfspaces < 0 or input_rate_weight < 0:
-            raise GpmpcError(f"alpha and slack_penalty must be > 0, num_halfspaces and input_rate_weight >= 0; "
-                             f"got {alpha}, {slack_penalty}, {num_halfspaces}, {input_rate_weight}")
         self.horizon, self.dim, self.num_neighbors = horizon, dim, num_neighbors
         self.num_halfspaces = int(num_halfspaces)
         self.nominal, self.u_max, self.alpha = nominal, self.constraints.input_norm, float(alpha)

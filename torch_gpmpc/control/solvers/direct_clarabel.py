@@ -28,8 +28,12 @@ import torch
 from torch import Tensor, nn
 
 from torch_gpmpc.control.constraints import LocalConstraints
-from torch_gpmpc.control.problem import LocalProblemData, LocalSolution, planned_cost, solve_verdicts, wants_grad
-from torch_gpmpc.control.solvers.canonical import CanonicalData, canonicalize, state_row_blocks, with_state_rows
+from torch_gpmpc.control.problem import (
+    LocalProblemData, LocalSolution, check_layer_sizes, planned_cost, solve_verdicts, wants_grad,
+)
+from torch_gpmpc.control.solvers.canonical import (
+    KERNEL_FIELDS, CanonicalData, canonicalize, finite_problems, state_row_blocks, with_state_rows,
+)
 from torch_gpmpc.dynamics.systems import NominalModel
 from torch_gpmpc.errors import GpmpcError
 
@@ -64,14 +68,8 @@ class DirectClarabelMPC(nn.Module):
                  alpha: float, slack_penalty: float = 1e4, constraints: LocalConstraints | None = None,
                  num_halfspaces: int = 0, input_rate_weight: float = 0.0) -> None:
         super().__init__()
-        if horizon < 1 or dim < 1 or num_neighbors < 0 or num_halfspaces < 0:
-            raise GpmpcError(f"DirectClarabelMPC needs horizon >= 1, dim >= 1, num_neighbors >= 0, "
-                             f"num_halfspaces >= 0; got {horizon}, {dim}, {num_neighbors}, {num_halfspaces}")
-        if nominal.dim != dim:
-            raise GpmpcError(f"nominal model has dim {nominal.dim}, DirectClarabelMPC dim is {dim}")
-        if alpha <= 0 or slack_penalty <= 0 or input_rate_weight < 0:
-            raise GpmpcError(f"alpha and slack_penalty must be > 0 and input_rate_weight >= 0; got "
-                             f"{alpha}, {slack_penalty}, {input_rate_weight}")
+        check_layer_sizes("DirectClarabelMPC", horizon, dim, num_neighbors, num_halfspaces, nominal.dim, alpha,
+                          slack_penalty, input_rate_weight)
         self.constraints = constraints or LocalConstraints.of(nominal.spec, u_max)
         self.horizon, self.dim, self.num_neighbors = horizon, dim, num_neighbors
         self.num_halfspaces = int(num_halfspaces)
@@ -95,17 +93,15 @@ class DirectClarabelMPC(nn.Module):
         with torch.no_grad():
             canon = with_state_rows(canonicalize(data, B, beta=self.input_rate_weight, alpha=self.alpha),
                                     state_row_blocks(data, self.constraints, self.num_halfspaces, T, D))
-        arrays = {name: np.ascontiguousarray(getattr(canon, name).cpu().numpy(), dtype=np.float64)
-                  for name in ("G", "h", "c_x", "l_x", "rho_y", "w_y", "normals", "bounds", "g_u", "H_cost")}
+        inputs = [np.ascontiguousarray(t.cpu().numpy(), dtype=np.float64) for t in canon.kernel_inputs()]
+        valid = finite_problems(inputs, canon.y0)
+        arrays = dict(zip(KERNEL_FIELDS, inputs))
         n = T * self.input_dim
         u = np.zeros((batch, n))
         y = np.zeros((batch, M, T, D))
         slack = np.zeros((batch, M, T))
         multipliers = np.full((batch, M, T), np.nan)
         converged = np.zeros(batch, dtype=bool)
-        valid = np.isfinite(canon.y0.reshape(batch, -1).sum(1).cpu().numpy())
-        for a in arrays.values():
-            valid &= np.isfinite(a.reshape(batch, -1).sum(1))
         for b in np.flatnonzero(valid):
             one = {name: a[b] for name, a in arrays.items()}
             solution = self._solve_one(one)

@@ -28,11 +28,13 @@ from torch_gpmpc.control.solvers.ipm_batch import (
 )
 from torch_gpmpc.control.solvers.repeated import KernelSettings, RepeatedSolve
 from torch_gpmpc.control.solvers.canonical import (  # noqa: F401 (condense_dynamics: re-exported)
-    CanonicalData, CondensedCache, CostTermsCache, canonicalize, condense_dynamics, state_row_blocks,
+    CanonicalData, CondensedCache, CostTermsCache, canonicalize, condense_dynamics, finite_problems, state_row_blocks,
     with_state_rows,
 )
 from torch_gpmpc.errors import GpmpcError
-from torch_gpmpc.control.problem import LocalProblemData, LocalSolution, planned_cost, solve_verdicts
+from torch_gpmpc.control.problem import (
+    LocalProblemData, LocalSolution, check_layer_sizes, planned_cost, solve_verdicts,
+)
 from torch_gpmpc.dynamics.systems import NominalModel
 
 logger = logging.getLogger(__name__)
@@ -236,15 +238,11 @@ class InteriorPointMPC(nn.Module):
                  constraints: LocalConstraints | None = None, num_halfspaces: int = 0,
                  input_rate_weight: float = 0.0, warm_start: bool = True) -> None:
         super().__init__()
-        if horizon < 1 or dim < 1 or num_neighbors < 0 or num_halfspaces < 0:
-            raise GpmpcError(f"InteriorPointMPC needs horizon >= 1, dim >= 1, num_neighbors >= 0, num_halfspaces >= 0; "
-                             f"got {horizon}, {dim}, {num_neighbors}, {num_halfspaces}")
-        if nominal.dim != dim:
-            raise GpmpcError(f"nominal model has dim {nominal.dim}, InteriorPointMPC dim is {dim}")
+        check_layer_sizes("InteriorPointMPC", horizon, dim, num_neighbors, num_halfspaces, nominal.dim, alpha,
+                          slack_penalty, input_rate_weight)
+        if tol <= 0 or max_iter < 1:
+            raise GpmpcError(f"InteriorPointMPC: tol must be > 0 and max_iter >= 1; got {tol}, {max_iter}")
         self.constraints = constraints or LocalConstraints.of(nominal.spec, u_max)
-        if alpha <= 0 or slack_penalty <= 0 or tol <= 0 or max_iter < 1 or input_rate_weight < 0:
-            raise GpmpcError(f"alpha, slack_penalty, tol must be > 0, max_iter >= 1 and input_rate_weight >= 0; got "
-                             f"{alpha}, {slack_penalty}, {tol}, {max_iter}, {input_rate_weight}")
         self.horizon, self.dim, self.num_neighbors = horizon, dim, num_neighbors
         self.num_halfspaces = int(num_halfspaces)
         self.nominal, self.input_dim = nominal, nominal.input_dim
@@ -292,14 +290,12 @@ class InteriorPointMPC(nn.Module):
         canon = with_state_rows(canonicalize(data, self._input_matrix(data), self._condensed, beta, self.alpha,
                                              self._cost_terms),
                                 state_row_blocks(data, self.constraints, self.num_halfspaces, T, D))
-        inputs = (canon.G, canon.h, canon.c_x, canon.l_x, canon.rho_y, canon.w_y, canon.normals, canon.bounds,
-                  canon.g_u, canon.H_cost)
+        inputs = canon.kernel_inputs()
         arrays = kernel_arrays(inputs)
-        valid = _valid_rows(arrays, canon.y0)
+        valid = finite_problems(arrays, canon.y0)
         if not valid.all():
             canon = _benign_rows(canon, torch.from_numpy(valid).to(data.x0.device))
-            inputs = (canon.G, canon.h, canon.c_x, canon.l_x, canon.rho_y, canon.w_y, canon.normals, canon.bounds,
-                      canon.g_u, canon.H_cost)
+            inputs = canon.kernel_inputs()
             arrays = kernel_arrays(inputs)
         arrays = arrays + list(self._structure(arrays[0], arrays[6]))
         stats: dict = {}
@@ -359,21 +355,6 @@ class InteriorPointMPC(nn.Module):
         if self._B is None or self._B.dtype != data.x0.dtype or self._B.device != data.x0.device:
             self._B = self.nominal.B(data.x0.dtype, data.x0.device)
         return self._B
-
-
-def _valid_rows(arrays: list[np.ndarray], y0: Tensor) -> np.ndarray:
-    """Which problems have finite canonical data (``arrays`` as :func:`kernel_arrays`, and the
-    step-0 copies y0 (B, M, D)) and ``rho > 0`` on every slot, (B,) bool (NumPy, on the arrays the
-    kernel reads: a few calls, where the same test in torch cost more than a warm solve)."""
-    B = arrays[1].shape[0]
-    total = y0.detach().cpu().numpy().reshape(B, -1).sum(1)
-    for a in arrays:
-        total = total + a.reshape(B, -1).sum(1)
-    valid = np.isfinite(total)
-    rho_y = arrays[4]
-    if rho_y.size:
-        valid &= (rho_y > 0).all(1)
-    return valid
 
 
 def _benign_rows(canon: CanonicalData, valid: Tensor) -> CanonicalData:
