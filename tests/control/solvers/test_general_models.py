@@ -90,9 +90,9 @@ def direct_solve(data: LocalProblemData, nominal: NominalModel):
 
 
 CASES = {
-    "double-integrator-2d": (NominalModel(double_integrator(2, 0.1, 2.0)), ("fast", "clarabel")),
-    "double-integrator-3d": (NominalModel(double_integrator(3, 0.1, 2.0)), ("fast", "clarabel")),
-    "model-file-box-and-speed-limit": (NominalModel(box_model()), ("fast", "clarabel")),
+    "double-integrator-2d": (NominalModel(double_integrator(2, 0.1, 2.0)), ("fast", "clarabel", "direct")),
+    "double-integrator-3d": (NominalModel(double_integrator(3, 0.1, 2.0)), ("fast", "clarabel", "direct")),
+    "model-file-box-and-speed-limit": (NominalModel(box_model()), ("fast", "clarabel", "direct")),
 }
 
 
