@@ -28,6 +28,7 @@ import torch
 from torch import Tensor, nn
 
 from torch_gpmpc.control.constraints import LocalConstraints
+from torch_gpmpc.control.numpy_views import as_array
 from torch_gpmpc.control.problem import (
     LocalProblemData, LocalSolution, check_layer_sizes, planned_cost, solve_verdicts, wants_grad,
 )
@@ -93,7 +94,7 @@ class DirectClarabelMPC(nn.Module):
         with torch.no_grad():
             canon = with_state_rows(canonicalize(data, B, beta=self.input_rate_weight, alpha=self.alpha),
                                     state_row_blocks(data, self.constraints, self.num_halfspaces, T, D))
-        inputs = [np.ascontiguousarray(t.cpu().numpy(), dtype=np.float64) for t in canon.kernel_inputs()]
+        inputs = [as_array(t) for t in canon.kernel_inputs()]
         valid = finite_problems(inputs, canon.y0)
         arrays = dict(zip(KERNEL_FIELDS, inputs))
         n = T * self.input_dim
