@@ -207,7 +207,7 @@ def test_obstacle_problem_keeps_the_neighbours_plans_fixed():
 
 def test_buffered_voronoi_cells_closed_form_and_the_re_plan_keeps_each_agent_in_its_half():
     from torch_gpmpc.control.solvers import make_local_solver
-    from torch_gpmpc.coordination.fallback import cell_agents, cell_planes, cell_problem, leaves_cell
+    from torch_gpmpc.coordination.fallback import cell_agents, cell_exits, cell_planes, cell_problem
     from torch_gpmpc.coordination.state import initial_state
 
     # two agents at (-1, 0) and (1, 0), bound 0.5: agent 0's cell is x <= -0.25, agent 1's x >= 0.25
@@ -219,7 +219,7 @@ def test_buffered_voronoi_cells_closed_form_and_the_re_plan_keeps_each_agent_in_
     torch.testing.assert_close(m[:, 0], torch.zeros(2, dtype=torch.float64))
     bounds = torch.full((2, 1), 0.5, dtype=torch.float64)
     plans[0, 1, 0], plans[1, 1, 0] = -0.2, 0.3  # agent 0 steps over its plane, agent 1 stays inside
-    assert leaves_cell(plans, graph, bounds, 1e-3, [0, 1]).tolist() == [True, False]
+    assert cell_exits(plans, graph, bounds, 1e-3, [0, 1]).any(dim=1).tolist() == [True, False]
     assert cell_agents(torch.tensor([False, False]), graph).tolist() == [True, True]
     assert cell_agents(torch.tensor([False, True]), graph).tolist() == [False, False]  # a neighbour with momentum
 

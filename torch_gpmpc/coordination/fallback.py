@@ -1,12 +1,15 @@
-"""The safety fallback: what an agent re-plans when ADMM stops unconverged, and the test that
-decides who re-plans.
+"""The safety fallback: what an agent re-plans when ADMM stops on plans not known to be safe, and
+the rule that decides who re-plans.
 
 Agents that can stop at once (and whose neighbours can) re-plan inside their buffered Voronoi
-cells (Zhou et al. 2017) when their plans leave them; the others re-plan against their
-neighbours' latest plans as fixed obstacles when their pair is unsafe at tau = 1. Both
-backends apply the same rule (:func:`fallback_agents`, :func:`fallback_problem`). A cell row's
-slack is priced by how far its pair has eaten into its margin (:func:`danger_weights`), so an
-agent squeezed between pairs already inside their bounds opens the closest pair first.
+cells (Zhou et al. 2017): those whose own row of a pair is short at tau = 1, and, again and again,
+each neighbour whose plan leaves its cell towards an agent that re-plans (:func:`fallback_agents`).
+The rest keep their plans. The others re-plan against their neighbours' latest plans as fixed
+obstacles when their pair is unsafe at tau = 1. Both backends apply the same rule
+(:func:`fallback_agents`; the distributed world closes the agents' seeds over the graph,
+:func:`replanning_from_seeds`). A cell row's slack is priced by how far its pair has eaten into its
+margin (:func:`danger_weights`), so an agent squeezed between pairs already inside their bounds
+opens the closest pair first.
 """
 
 from __future__ import annotations
@@ -72,8 +75,8 @@ def cell_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, p
     ``b_tau`` the row's bound, chance margin included), and no consensus pull.
 
     At tau = 1 two agents of a pair keep ``(b_k + b_j) / 2`` between them whether one or both
-    re-plan, as long as every agent that does not re-plan is inside its cell (the fallback's
-    trigger, :func:`leaves_cell`) and no re-plan needs slack. Staying where it is lies inside the
+    re-plan, as long as an agent that does not re-plan is inside its cell towards one that does
+    (:func:`fallback_agents`) and no re-plan needs slack. Staying where it is lies inside the
     cell, so an agent that can stop at once (no velocity state) always has a re-plan without slack,
     wind permitting.
 
@@ -128,9 +131,9 @@ def danger_weights(own_plans: Tensor, nbr_plans: Tensor, bounds: Tensor, contact
     return ratio.clamp(1.0, MAX_DANGER_WEIGHT)
 
 
-def leaves_cell(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, position: list[int]) -> Tensor:
-    """Which agents' own plans leave their buffered Voronoi cells (:func:`cell_planes`) at tau = 1
-    (the step applied) by more than ``tol``.
+def cell_exits(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, position: list[int]) -> Tensor:
+    """Where the agents' own plans leave their buffered Voronoi cells (:func:`cell_planes`) at
+    tau = 1 (the step applied) by more than ``tol``, per neighbour slot.
 
     Args:
         plans: (K, T+1, D) the agents' own plans (tau = 0: the measured states).
@@ -140,11 +143,49 @@ def leaves_cell(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, positio
         position: the state indices of the position.
 
     Returns:
-        (K,) bool.
+        (K, M) bool: agent k's plan crosses its cell's face towards slot m's neighbour.
     """
     n, m = cell_planes(plans, plans[graph.slot_nbr], position)  # (K, M, P), (K, M)
     height = (n * plans[:, None, 1, position]).sum(-1)
-    return ((height < m + 0.5 * bounds - tol) & graph.active).any(dim=1)
+    return (height < m + 0.5 * bounds - tol) & graph.active
+
+
+def own_rows_unsafe(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, position: list[int]) -> Tensor:
+    """(K,) bool: agents whose plan at tau = 1 is closer to a neighbour's than the agent's *own* row
+    bound for that pair asks, less ``tol``. A pair that neither end flags is as far apart as the
+    larger of its two bounds asks (:func:`pair_safety`'s test), and each agent decides it alone.
+
+    Args: as :func:`cell_exits`.
+    """
+    gap = torch.linalg.vector_norm(plans[:, None, 1, position] - plans[graph.slot_nbr][:, :, 1, position], dim=-1)
+    return ((gap < bounds - tol) & graph.active).any(dim=1)
+
+
+def replanning_closure(seeds: Tensor, exits: Tensor, graph: Graph) -> Tensor:
+    """The smallest set of agents that holds ``seeds`` and every agent whose plan leaves its cell
+    towards a member (``exits`` (K, M), :func:`cell_exits`).
+
+    Args:
+        seeds: (K,) bool, the agents that must re-plan.
+        exits: (K, M) bool. graph: the communication graph.
+
+    Returns:
+        (K,) bool. Grows by at least one agent per round, so it ends within K rounds.
+    """
+    members = seeds.clone()
+    while True:
+        grown = members | (exits & members[graph.slot_nbr]).any(dim=1)
+        if torch.equal(grown, members):
+            return members
+        members = grown
+
+
+def replanning_from_seeds(cells: Tensor, seeds: Tensor, exits_by_id: Tensor, graph: Graph) -> Tensor:
+    """(K,) bool, who re-plans (:func:`fallback_agents`' rule) from what each agent found alone
+    (:func:`fallback_seeds`, as the distributed agents send it to the world): ``cells`` (K,),
+    ``seeds`` (K,) and ``exits_by_id`` (K, K), agent k's plan leaving its cell towards agent j."""
+    slot_exits = exits_by_id.gather(1, graph.slot_nbr) & graph.active
+    return torch.where(cells, replanning_closure(seeds, slot_exits, graph), seeds)
 
 
 def cell_agents(momentum: Tensor, graph: Graph) -> Tensor:
@@ -157,9 +198,28 @@ def cell_agents(momentum: Tensor, graph: Graph) -> Tensor:
     return ~momentum & ~nbr_momentum
 
 
+def fallback_seeds(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, position: list[int],
+                   cells: Tensor, unsafe: Tensor) -> tuple[Tensor, Tensor]:
+    """What each agent knows alone before the team settles who re-plans: ``(seeds (K,), exits
+    (K, M))``: a cell agent is a seed when one of its own rows is not kept at tau = 1
+    (:func:`own_rows_unsafe`), any other agent when ``unsafe``; ``exits`` are the cell agents'
+    :func:`cell_exits` (other agents' rows False). Arguments as :func:`fallback_agents`."""
+    seeds = torch.where(cells, own_rows_unsafe(plans, graph, bounds, tol, position), unsafe)
+    exits = cell_exits(plans, graph, bounds, tol, position) & cells[:, None]
+    return seeds, exits
+
+
 def fallback_agents(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, position: list[int],
                     momentum: Tensor, unsafe: Tensor, rule: str) -> tuple[Tensor, Tensor]:
-    """Who re-plans after an unconverged stop, and how (the rule both backends apply).
+    """Who re-plans after a stop on plans not known to be safe, and how (the rule both backends apply).
+
+    Cell agents (:func:`cell_agents`) re-plan inside their cells when they are in
+    :func:`replanning_closure` of the seeds (:func:`fallback_seeds`): an agent whose own row is not
+    kept at tau = 1, and, again and again, a neighbour whose plan leaves its cell towards an agent
+    that re-plans. Every other agent keeps its plan. A pair is then safe at tau = 1: both keep (no
+    row of theirs was short), both re-plan (each inside its cell), or one re-plans inside its cell
+    and the other's plan is inside its own cell towards it (else it would re-plan too). The other
+    agents re-plan when ``unsafe``, against their neighbours' plans as fixed obstacles.
 
     Args:
         plans: (K, T+1, D) the agents' own plans. graph: the communication graph.
@@ -169,13 +229,13 @@ def fallback_agents(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, pos
         rule: the ``safety_fallback`` setting, ``cells`` or ``obstacles``.
 
     Returns:
-        ``(replan, cells)``, each (K,) bool: cell agents (:func:`cell_agents`) re-plan when their
-        plan leaves its cell (:func:`leaves_cell`), the others when ``unsafe``.
+        ``(replan, cells)``, each (K,) bool.
     """
     cells = cell_agents(momentum, graph) if rule == "cells" else torch.zeros_like(unsafe)
     if not bool(cells.any()):
         return unsafe, cells
-    return torch.where(cells, leaves_cell(plans, graph, bounds, tol, position), unsafe), cells
+    seeds, exits = fallback_seeds(plans, graph, bounds, tol, position, cells, unsafe)
+    return torch.where(cells, replanning_closure(seeds, exits, graph), seeds), cells
 
 
 def fallback_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, position: list[int],

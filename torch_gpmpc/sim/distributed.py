@@ -46,9 +46,10 @@ from torch_gpmpc.control.problem import FAILURE_KINDS
 from torch_gpmpc.coordination.distributed.launch import reap, spawn_agents
 from torch_gpmpc.coordination.distributed.protocol import (
     CMD_STEP, CMD_STOP, DEFAULT_SETUP_TIMEOUT_S, DEFAULT_TIMEOUT_S, DTYPE, FLOAT_BYTES, MAX_AGENTS, Kind,
-    Telemetry, rank_of, residual_size, sensing_size, tag, telemetry_size,
+    Telemetry, rank_of, replan_seeds_size, residual_size, sensing_size, tag, telemetry_size,
 )
 from torch_gpmpc.coordination.distributed.transport import Network, destroy_group, env_rank, free_port, init_group
+from torch_gpmpc.coordination.fallback import replanning_from_seeds
 from torch_gpmpc.coordination.penalty import should_stop
 from torch_gpmpc.coordination.agent_step import message_size
 from torch_gpmpc.coordination.graph import Graph
@@ -183,7 +184,7 @@ class RemotePlanner:
             log.error("world: every agent is lost; ending the run at step %d", t)
             return None
         self._send_sensing(t, x, xref, graph)
-        res = self._decide_iterations(t)
+        res = self._decide_iterations(t, graph)
         self._collect(t, res)
         res.messages = message_size(self.cfg.controller_settings(), self.cfg.state_dim) * graph.degrees()
         res.lost_agents = sorted(self.lost)
@@ -204,8 +205,9 @@ class RemotePlanner:
             sends.append((msg, rank_of(k, self.per), tag(Kind.SENSE, 0, k)))
         self.net.exchange(sends, [], self.timeout_s)
 
-    def _decide_iterations(self, t: int) -> StepResult:
-        """Reduce the agents' residuals each iteration and broadcast the stop decision."""
+    def _decide_iterations(self, t: int, graph: Graph) -> StepResult:
+        """Reduce the agents' residuals each iteration and broadcast the stop decision; after a stop
+        on plans not known to be safe, settle who re-plans (:meth:`_settle_replanning`)."""
         cfg, K, T = self.cfg, self.num_agents, self.cfg.horizon
         res = StepResult(plans=self.last_plan, inputs=torch.zeros(K, T, cfg.input_dim, dtype=DTYPE), state=None,
                          iterations=0, converged=False)
@@ -225,12 +227,43 @@ class RemotePlanner:
             res.converged = should_stop(*ratios, cfg)
             out_of_time = deadline is not None and time.perf_counter() > deadline
             stop = 2.0 if res.converged else (1.0 if it == cfg.iteration_cap or out_of_time else 0.0)
-            decision = [primal, dual, stop]
+            settle = stop > 0 and self._may_replan(res, graph)
+            decision = [primal, dual, stop, float(settle)]
             self.net.exchange([(torch.tensor(decision, dtype=DTYPE), rank_of(k, self.per),
                                 tag(Kind.DECIDE, 0, k)) for k in self._live()], [], self.timeout_s)
+            if settle:
+                self._settle_replanning(t, graph)
             if stop > 0:
                 return res
         return res
+
+    def _may_replan(self, res: StepResult, graph: Graph) -> bool:
+        """Whether the step stopped on plans not known to be jointly safe (the in-process
+        :meth:`~torch_gpmpc.coordination.admm.ADMM.solve_step`'s test): with planes, no iterate had
+        every half held (a team dual level below 1); with copies, no convergence."""
+        if not graph.num_edges:
+            return False
+        if self.cfg.admm_coupling == "planes":
+            return not any(d < 1.0 for d in res.dual_residuals)
+        return not res.converged
+
+    def _settle_replanning(self, t: int, graph: Graph) -> None:
+        """Collect every live agent's fallback seeds and cell exits, and tell each whether it
+        re-plans (:func:`~torch_gpmpc.coordination.fallback.fallback_agents`' rule: the closure
+        needs the whole graph, one reduce like the stop decision's)."""
+        K = self.num_agents
+        live = self._live()
+        got = self.net.exchange([], [((replan_seeds_size(K),), rank_of(k, self.per), tag(Kind.REPLAN_SEEDS, k))
+                                     for k in live], 2 * self.timeout_s + 5.0)
+        self._mark_lost(t)
+        cells, seeds, exits = torch.zeros(K, dtype=torch.bool), torch.zeros(K, dtype=torch.bool), \
+            torch.zeros(K, K, dtype=torch.bool)
+        for k, vec in zip(live, got):
+            if vec is not None:
+                cells[k], seeds[k], exits[k] = vec[0] > 0.5, vec[1] > 0.5, vec[2:] > 0.5
+        replan = replanning_from_seeds(cells, seeds, exits, graph)
+        self.net.exchange([(replan[k:k + 1].to(DTYPE), rank_of(k, self.per), tag(Kind.REPLAN, 0, k))
+                           for k in self._live()], [], self.timeout_s)
 
     def _collect(self, t: int, res: StepResult) -> None:
         """Telemetry of every live agent: inputs, plans and counters into ``res``."""

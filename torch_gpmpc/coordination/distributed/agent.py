@@ -40,11 +40,11 @@ from torch_gpmpc.coordination.consensus import copies_update
 from torch_gpmpc.coordination.penalty import starting_penalties
 from torch_gpmpc.coordination.bodies import slot_distances
 from torch_gpmpc.coordination.agent_step import edge_copies, fall_back_to_previous, slot_risks
-from torch_gpmpc.coordination.fallback import fallback_agents, fallback_problem, pair_safety
+from torch_gpmpc.coordination.fallback import cell_agents, fallback_problem, fallback_seeds, pair_safety
 from torch_gpmpc.coordination.controller import make_agent_step
 from torch_gpmpc.gp.offset import OffsetCorrected
 from torch_gpmpc.gp.online import OnlineLearning, run_models
-from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry
+from torch_gpmpc.coordination.distributed.protocol import DTYPE, TELEMETRY_KEYS, Telemetry, replan_seeds_size
 from torch_gpmpc.coordination.graph import graph_from_edges
 from torch_gpmpc.coordination.planes import (
     PlaneTerms, SafeIterates, agent_rows, end_multipliers, midpoint_planes, plane_iteration, plane_problem,
@@ -510,43 +510,58 @@ class AgentController:
             pvar[self.slot_e[m], self.slot_a[m]] = own[0, m]
         return pvar
 
-    def check_safety(self, converged: bool) -> None:
-        """Judge the own plan at tau = 1 against the neighbours' latest plans; after an
-        unconverged stop, re-plan (inside its buffered Voronoi cell if it is a cell agent and its
-        plan leaves it, else against its neighbours' plans if unsafe; as the in-process
-        :class:`~torch_gpmpc.coordination.admm.ADMM` does; here each agent sees only its own
-        pairs and its neighbours' plans before their own fallback; their re-planned plans arrive by
-        :meth:`take_applied_plans` where :attr:`fallback_possible`)."""
+    def check_safety(self, settle: bool) -> None:
+        """Judge the own plan at tau = 1 against the neighbours' latest plans; with ``settle`` (the
+        world's word that the step stopped on plans not known to be safe) also prepare
+        :meth:`replan_seeds`, the agent's part of the team's decision who re-plans (the in-process
+        :class:`~torch_gpmpc.coordination.admm.ADMM`'s rule, :func:`~.fallback.fallback_agents`;
+        here each agent sees only its own pairs and its neighbours' plans before their own
+        fallback; their re-planned plans arrive by :meth:`take_applied_plans`)."""
         self.fallback_possible = False
+        self._seeds = torch.zeros(replan_seeds_size(self.num_agents), dtype=DTYPE)
+        self._fallback_cells = None
         if not self.graph.num_edges or not self.result.iterations:
             return
+        self.fallback_possible = settle
         k, state, tol = self.k, self.state, self.cfg.admm_tol
         position = self.local.nominal.position
         bounds = self.assembled.data.bounds[:, :, 0].detach()
         self._judged_bounds = bounds.new_full((self.num_agents, bounds.shape[1]), float("-inf"))
         self._judged_bounds[k] = bounds[0]
-        full_bounds = self._judged_bounds
-        unsafe, _, _ = pair_safety(state.plans, self.graph, full_bounds, tol, position)
-        replan = torch.zeros_like(unsafe)
-        # with planes every iterate whose halves held is jointly safe: only a step without one re-plans.
-        # Both conditions come from the world's decisions, so every agent of the team knows them.
-        self.fallback_possible = (self._safe.best() is None) if self.planes else not converged
-        if self.fallback_possible:
-            replan, cells = fallback_agents(state.plans, self.graph, full_bounds, tol, position,
-                                            self.team_nominal.momentum(self.num_agents), unsafe,
-                                            self.cfg.safety_fallback)
-        if bool(replan[k]):
-            contact = slot_distances(self.local.settings, torch.tensor([k]), self.graph.slot_nbr[k:k + 1])
-            data = fallback_problem(self.assembled.data, state.plans[k:k + 1], state.plans[self.graph.slot_nbr[k:k + 1]],
-                                    position, cells[k:k + 1], contact)
-            sol = self.local.solve(self.layer, data)
-            if bool(sol.ok[0]):
-                plans, inputs = state.plans.clone(), state.inputs.clone()
-                plans[k], inputs[k] = sol.X[0], sol.U[0]
-                self.state = dataclasses.replace(state, plans=plans, inputs=inputs)
-                self.counters["fallback"] = 1.0
-                unsafe, _, _ = pair_safety(self.state.plans, self.graph, full_bounds, tol, position)
+        unsafe, _, _ = pair_safety(state.plans, self.graph, self._judged_bounds, tol, position)
         self.counters["unsafe_plan"] = float(bool(unsafe[k]))
+        if not settle:
+            return
+        momentum = self.team_nominal.momentum(self.num_agents)
+        cells = cell_agents(momentum, self.graph) if self.cfg.safety_fallback == "cells" else torch.zeros_like(unsafe)
+        seeds, exits = fallback_seeds(state.plans, self.graph, self._judged_bounds, tol, position, cells, unsafe)
+        self._fallback_cells = cells
+        self._seeds[0], self._seeds[1] = float(cells[k]), float(seeds[k])
+        self._seeds[2 + self.graph.slot_nbr[k][exits[k]]] = 1.0
+
+    def replan_seeds(self) -> Tensor:
+        """The agent's fallback message to the world, prepared by :meth:`check_safety`
+        (:func:`~torch_gpmpc.coordination.distributed.protocol.replan_seeds_size` numbers)."""
+        return self._seeds
+
+    def replan(self, decided: bool) -> None:
+        """Re-plan (inside its buffered Voronoi cell if it is a cell agent, else against its
+        neighbours' plans as fixed obstacles) when the team ``decided`` it must."""
+        if not decided or self._fallback_cells is None:
+            return
+        k, state = self.k, self.state
+        position = self.local.nominal.position
+        contact = slot_distances(self.local.settings, torch.tensor([k]), self.graph.slot_nbr[k:k + 1])
+        data = fallback_problem(self.assembled.data, state.plans[k:k + 1], state.plans[self.graph.slot_nbr[k:k + 1]],
+                                position, self._fallback_cells[k:k + 1], contact)
+        sol = self.local.solve(self.layer, data)
+        if bool(sol.ok[0]):
+            plans, inputs = state.plans.clone(), state.inputs.clone()
+            plans[k], inputs[k] = sol.X[0], sol.U[0]
+            self.state = dataclasses.replace(state, plans=plans, inputs=inputs)
+            self.counters["fallback"] = 1.0
+            unsafe, _, _ = pair_safety(self.state.plans, self.graph, self._judged_bounds, self.cfg.admm_tol, position)
+            self.counters["unsafe_plan"] = float(bool(unsafe[k]))
 
     def take_applied_plans(self, received: dict[int, Tensor | None]) -> None:
         """After a step that may have re-planned (:attr:`fallback_possible`), the plans the neighbours

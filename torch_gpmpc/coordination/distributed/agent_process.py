@@ -170,7 +170,7 @@ class AgentHost:
             comm_time += time.perf_counter() - t0
             for k, decision in zip(self.agents, decisions):
                 self.controllers[k].keep_safe_plan(decision)
-            stop = float(decisions[0][2])
+            stop, settle = float(decisions[0][2]), float(decisions[0][3]) > 0.5
             if stop > 0.5:
                 if self.cfg.admm_coupling == "planes":  # the neighbours' last plans, for the safety check
                     received, seconds = self._exchange_own_plans(Kind.FINAL_PLAN, self.agents)
@@ -179,9 +179,27 @@ class AgentHost:
                     comm_time += seconds
                 for k in self.agents:
                     self.controllers[k].result.converged = stop > 1.5
-                    self.controllers[k].check_safety(stop > 1.5)
+                    self.controllers[k].check_safety(settle)
+                if settle:
+                    comm_time += self._settle_replanning()
                 comm_time += self._exchange_applied_plans()
                 return comm_time
+
+    def _settle_replanning(self) -> float:
+        """Send the world each hosted agent's fallback seeds and let those it names re-plan (the
+        world closes the seeds over the graph, :mod:`torch_gpmpc.sim.distributed`); returns the
+        communication time."""
+        t0 = time.perf_counter()
+        sends = []
+        for k in self.agents:
+            seeds = self.controllers[k].replan_seeds()
+            self.controllers[k].counters["plan_bytes"] += FLOAT_BYTES * seeds.numel()
+            sends.append((seeds, 0, tag(Kind.REPLAN_SEEDS, k)))
+        decided = self._receive(1, Kind.REPLAN, max(4 * self.timeout_s, 60.0), sends)
+        seconds = time.perf_counter() - t0
+        for k, flag in zip(self.agents, decided):
+            self.controllers[k].replan(bool(flag[0] > 0.5))
+        return seconds
 
     def _exchange_applied_plans(self) -> float:
         """After a step that may have re-planned (every agent of the team knows whether it may), each

@@ -79,6 +79,8 @@ class Kind(enum.IntEnum):
     ROWS = 10
     FINAL_PLAN = 11
     APPLIED_PLAN = 12
+    REPLAN_SEEDS = 13
+    REPLAN = 14
 
 
 #: Commands in the first entry of the sensing message.
@@ -113,9 +115,16 @@ def residual_size(cfg: Config) -> int:
 
 
 def decision_size(cfg: Config) -> int:
-    """Numbers in one decision message (world -> agent, every ADMM iteration): primal, dual, stop
-    (the same for every configuration)."""
-    return 3
+    """Numbers in one decision message (world -> agent, every ADMM iteration): primal, dual, stop,
+    and whether the team settles who re-plans after this stop (the same for every configuration)."""
+    return 4
+
+
+def replan_seeds_size(num_agents: int) -> int:
+    """Numbers in one agent's fallback message (agent -> world, after a stop on plans not known to
+    be safe): whether it keeps to a cell, whether it must re-plan, and per agent id whether its plan
+    leaves its cell towards that neighbour (:func:`~torch_gpmpc.coordination.fallback.fallback_seeds`)."""
+    return 2 + num_agents
 
 
 def telemetry_size(cfg: Config) -> int:

@@ -1,0 +1,73 @@
+"""Who re-plans in the safety fallback: the closure of the short rows over the cell exits."""
+
+import torch
+
+from torch_gpmpc.coordination.fallback import (
+    cell_exits, fallback_agents, own_rows_unsafe, pair_safety, replanning_closure, replanning_from_seeds,
+)
+from torch_gpmpc.coordination.graph import communication_graph
+
+POS = [0, 1]
+
+
+def _team(positions: list[list[float]], steps: list[list[float]]) -> tuple:
+    """``(plans (K, 2, 2), graph)``: plans from the positions (tau = 0) one step on (tau = 1)."""
+    x0 = torch.tensor(positions, dtype=torch.float64)
+    plans = torch.stack([x0, x0 + torch.tensor(steps, dtype=torch.float64)], dim=1)
+    return plans, communication_graph(x0, None)
+
+
+def test_a_chain_of_cell_exits_joins_the_re_plan_and_nothing_else():
+    """Five agents on a line 1 m apart, bound 0.5: agents 1 and 2 step 0.3 towards each other
+    (their rows ask 0.5, they keep 0.4: both seeds); agent 3 steps 0.3 left, out of its cell towards
+    agent 2 (it joins), agent 4 then steps out of its cell towards agent 3 (it joins too); agent 0
+    stays inside its cell and keeps its plan."""
+    plans, graph = _team([[0.0, 0], [1.0, 0], [2.0, 0], [3.0, 0], [4.0, 0]],
+                         [[0.0, 0], [0.3, 0], [-0.3, 0], [-0.8, 0], [-1.3, 0]])
+    bounds = torch.where(graph.active, 0.5, float("-inf")).to(torch.float64)
+    seeds = own_rows_unsafe(plans, graph, bounds, 1e-3, POS)
+    assert seeds.tolist() == [False, True, True, False, False]
+    exits = cell_exits(plans, graph, bounds, 1e-3, POS)
+    assert replanning_closure(seeds, exits, graph).tolist() == [False, True, True, True, True]
+    unsafe, _, _ = pair_safety(plans, graph, bounds, 1e-3, POS)
+    replan, cells = fallback_agents(plans, graph, bounds, 1e-3, POS, torch.zeros(5, dtype=torch.bool), unsafe, "cells")
+    assert replan.tolist() == [False, True, True, True, True] and bool(cells.all())
+    # the world's form (the distributed backend's messages, by agent id) gives the same set
+    by_id = torch.zeros(5, 5, dtype=torch.bool)
+    k, m = torch.nonzero(exits, as_tuple=True)
+    by_id[k, graph.slot_nbr[k, m]] = True
+    assert torch.equal(replanning_from_seeds(cells, seeds, by_id, graph), replan)
+
+
+def test_every_pair_is_safe_after_the_re_plan_on_random_teams():
+    """On random teams with random steps and unequal row bounds: every agent whose own row is short
+    re-plans; no agent that keeps its plan leaves its cell towards one that re-plans; and every pair
+    that keeps both plans is as far apart as the larger of its two bounds asks (less tol). So after
+    the re-plans (each inside its cell) every pair keeps (b_k + b_j) / 2 or more at tau = 1."""
+    gen = torch.Generator().manual_seed(0)
+    tol = 1e-3
+    checked = joined = 0
+    for _ in range(200):
+        K = 12
+        x0 = torch.rand(K, 2, generator=gen, dtype=torch.float64) * 4.0
+        step = (torch.rand(K, 2, generator=gen, dtype=torch.float64) - 0.5) * 0.6
+        plans = torch.stack([x0, x0 + step], dim=1)
+        graph = communication_graph(x0, 2.5)
+        if not graph.num_edges:
+            continue
+        bounds = torch.where(graph.active, 0.4 + 0.2 * torch.rand(graph.active.shape, generator=gen,
+                                                                    dtype=torch.float64), float("-inf"))
+        unsafe, _, _ = pair_safety(plans, graph, bounds, tol, POS)
+        replan, _ = fallback_agents(plans, graph, bounds, tol, POS, torch.zeros(K, dtype=torch.bool), unsafe, "cells")
+        seeds = own_rows_unsafe(plans, graph, bounds, tol, POS)
+        assert bool((replan | ~seeds).all())
+        joined += int((replan & ~seeds).sum())
+        exits = cell_exits(plans, graph, bounds, tol, POS)
+        towards_member = exits & replan[graph.slot_nbr] & graph.active
+        assert not bool((towards_member & ~replan[:, None]).any())
+        k, m = torch.nonzero(graph.active & ~replan[:, None] & ~replan[graph.slot_nbr], as_tuple=True)
+        j = graph.slot_nbr[k, m]
+        gap = torch.linalg.vector_norm(plans[k, 1] - plans[j, 1], dim=-1)
+        assert bool((gap >= bounds[k, m] - tol).all())
+        checked += int(k.numel())
+    assert checked > 500 and joined > 50  # the closure did reach past the seeds
