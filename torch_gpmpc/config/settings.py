@@ -184,10 +184,12 @@ class ControllerSettings:
         pair_buffer: extra distance the collision rows ask beyond ``r_safe`` (or ``r_k + r_j``),
             for example ``admm_tol``, so that plans whose copies agree only to the consensus
             tolerance still keep ``r_safe``; metrics and risk bounds judge ``r_safe`` itself.
-        safety_fallback: the re-plan after an unconverged ADMM stop: ``cells`` (agents that can
-            stop at once, among neighbours that can too, re-plan inside buffered Voronoi cells;
-            agents with momentum against their neighbours' plans as fixed obstacles) or
-            ``obstacles`` (every agent of a pair unsafe at tau = 1 against its neighbours' plans).
+        safety_fallback: the re-plan after a stop on plans not known to be jointly safe:
+            ``cells`` (among agents that can stop at once, with neighbours that can too, those with
+            a row short at tau = 1 and the neighbours whose plans leave their buffered Voronoi
+            cells towards them re-plan inside their cells; agents with momentum in a pair unsafe
+            at tau = 1 against their neighbours' plans as fixed obstacles) or ``obstacles`` (every
+            agent of a pair unsafe at tau = 1 against its neighbours' plans).
     Examples:
         >>> from torch_gpmpc import ControllerSettings
         >>> s = ControllerSettings(horizon=10, eps=0.05)

@@ -353,10 +353,12 @@ class ADMM:
             max_iter: iteration cap (defaults to ``settings.iteration_cap``).
             tol: absolute primal tolerance of the stopping rule (defaults to ``settings.admm_tol``;
                 0 never stops early). Penalty balancing always uses the configured tolerances.
-            safety_fallback: when ADMM stops unconverged, re-plan agents that can stop at once
-                (among neighbours that can too) inside their buffered Voronoi cells when their
-                plans leave them, and other agents of pairs unsafe at tau = 1 against their
-                neighbours' latest plans (:func:`~.fallback.fallback_problem`).
+            safety_fallback: when ADMM stops on plans not known to be jointly safe, re-plan the
+                agents :func:`~.fallback.fallback_agents` names: among agents that can stop at
+                once (with neighbours that can too), those with a row short at tau = 1 and the
+                neighbours whose plans leave their buffered Voronoi cells towards them, inside
+                their cells; other agents of pairs unsafe at tau = 1 against their neighbours'
+                latest plans (:func:`~.fallback.fallback_problem`).
         """
         s = self.settings
         ctx, state = self.prepare(x0, xref, graph, warm, rho, risk_split, tol)
@@ -434,9 +436,10 @@ class ADMM:
     def _check_safety(self, state: ADMMState, data, graph: Graph, layer, result: StepResult,
                       fallback: bool) -> ADMMState:
         """Judge the applied plans at tau = 1 (own plans, not copies); with ``fallback`` (a stop on
-        plans not known to be safe), re-plan (:func:`~.fallback.fallback_problem`) every cell agent
-        (:func:`~.fallback.cell_agents`) whose plan leaves its buffered Voronoi cell at tau = 1,
-        and every other agent in a pair unsafe at tau = 1."""
+        plans not known to be safe), re-plan (:func:`~.fallback.fallback_problem`) the agents
+        :func:`~.fallback.fallback_agents` names: cell agents with a short row at tau = 1 and the
+        cell agents whose plans leave their cells towards them, and every other agent in a pair
+        unsafe at tau = 1."""
         bounds = data.bounds[:, :, 0].detach()
         position = self.nominal.position
         unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.settings.admm_tol, position)
