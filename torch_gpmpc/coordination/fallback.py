@@ -180,12 +180,17 @@ def replanning_closure(seeds: Tensor, exits: Tensor, graph: Graph) -> Tensor:
         members = grown
 
 
-def replanning_from_seeds(cells: Tensor, seeds: Tensor, exits_by_id: Tensor, graph: Graph) -> Tensor:
+def replanning(cells: Tensor, seeds: Tensor, exits: Tensor, graph: Graph) -> Tensor:
     """(K,) bool, who re-plans (:func:`fallback_agents`' rule) from what each agent found alone
-    (:func:`fallback_seeds`, as the distributed agents send it to the world): ``cells`` (K,),
-    ``seeds`` (K,) and ``exits_by_id`` (K, K), agent k's plan leaving its cell towards agent j."""
-    slot_exits = exits_by_id.gather(1, graph.slot_nbr) & graph.active
-    return torch.where(cells, replanning_closure(seeds, slot_exits, graph), seeds)
+    (:func:`fallback_seeds`): cell agents in :func:`replanning_closure` of the seeds, every other
+    agent when it is a seed. ``cells``, ``seeds`` (K,) bool; ``exits`` (K, M) bool per slot."""
+    return torch.where(cells, replanning_closure(seeds, exits, graph), seeds)
+
+
+def replanning_from_seeds(cells: Tensor, seeds: Tensor, exits_by_id: Tensor, graph: Graph) -> Tensor:
+    """:func:`replanning` from the distributed agents' messages to the world, whose exits are by
+    agent id: ``exits_by_id`` (K, K), agent k's plan leaving its cell towards agent j."""
+    return replanning(cells, seeds, exits_by_id.gather(1, graph.slot_nbr) & graph.active, graph)
 
 
 def cell_agents(momentum: Tensor, graph: Graph) -> Tensor:
@@ -196,6 +201,12 @@ def cell_agents(momentum: Tensor, graph: Graph) -> Tensor:
     nbr_momentum = (momentum[graph.slot_nbr] & graph.active).any(dim=1) if graph.num_slots else \
         torch.zeros_like(momentum)
     return ~momentum & ~nbr_momentum
+
+
+def fallback_cells(momentum: Tensor, graph: Graph, rule: str) -> Tensor:
+    """(K,) bool: the agents that re-plan inside cells under the ``safety_fallback`` ``rule``:
+    :func:`cell_agents` for ``cells``, none for ``obstacles``."""
+    return cell_agents(momentum, graph) if rule == "cells" else torch.zeros_like(momentum)
 
 
 def fallback_seeds(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, position: list[int],
@@ -231,11 +242,11 @@ def fallback_agents(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, pos
     Returns:
         ``(replan, cells)``, each (K,) bool.
     """
-    cells = cell_agents(momentum, graph) if rule == "cells" else torch.zeros_like(unsafe)
+    cells = fallback_cells(momentum, graph, rule)
     if not bool(cells.any()):
         return unsafe, cells
     seeds, exits = fallback_seeds(plans, graph, bounds, tol, position, cells, unsafe)
-    return torch.where(cells, replanning_closure(seeds, exits, graph), seeds), cells
+    return replanning(cells, seeds, exits, graph), cells
 
 
 def fallback_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, position: list[int],

@@ -40,7 +40,7 @@ from torch_gpmpc.coordination.consensus import copies_update
 from torch_gpmpc.coordination.penalty import starting_penalties
 from torch_gpmpc.coordination.bodies import slot_distances
 from torch_gpmpc.coordination.agent_step import edge_copies, fall_back_to_previous, slot_risks
-from torch_gpmpc.coordination.fallback import cell_agents, fallback_problem, fallback_seeds, pair_safety
+from torch_gpmpc.coordination.fallback import fallback_cells, fallback_problem, fallback_seeds, pair_safety
 from torch_gpmpc.coordination.controller import make_agent_step
 from torch_gpmpc.gp.offset import OffsetCorrected
 from torch_gpmpc.gp.online import OnlineLearning, run_models
@@ -532,8 +532,7 @@ class AgentController:
         self.counters["unsafe_plan"] = float(bool(unsafe[k]))
         if not settle:
             return
-        momentum = self.team_nominal.momentum(self.num_agents)
-        cells = cell_agents(momentum, self.graph) if self.cfg.safety_fallback == "cells" else torch.zeros_like(unsafe)
+        cells = fallback_cells(self.team_nominal.momentum(self.num_agents), self.graph, self.cfg.safety_fallback)
         seeds, exits = fallback_seeds(state.plans, self.graph, self._judged_bounds, tol, position, cells, unsafe)
         self._fallback_cells = cells
         self._seeds[0], self._seeds[1] = float(cells[k]), float(seeds[k])
