@@ -207,7 +207,7 @@ def test_obstacle_problem_keeps_the_neighbours_plans_fixed():
 
 def test_buffered_voronoi_cells_closed_form_and_the_re_plan_keeps_each_agent_in_its_half():
     from torch_gpmpc.control.solvers import make_local_solver
-    from torch_gpmpc.coordination.fallback import cell_agents, cell_exits, cell_planes, cell_problem
+    from torch_gpmpc.coordination.fallback import cell_exits, cell_planes, cell_problem, cell_slots
     from torch_gpmpc.coordination.state import initial_state
 
     # two agents at (-1, 0) and (1, 0), bound 0.5: agent 0's cell is x <= -0.25, agent 1's x >= 0.25
@@ -220,8 +220,8 @@ def test_buffered_voronoi_cells_closed_form_and_the_re_plan_keeps_each_agent_in_
     bounds = torch.full((2, 1), 0.5, dtype=torch.float64)
     plans[0, 1, 0], plans[1, 1, 0] = -0.2, 0.3  # agent 0 steps over its plane, agent 1 stays inside
     assert cell_exits(plans, graph, bounds, 1e-3, [0, 1]).any(dim=1).tolist() == [True, False]
-    assert cell_agents(torch.tensor([False, False]), graph).tolist() == [True, True]
-    assert cell_agents(torch.tensor([False, True]), graph).tolist() == [False, False]  # a neighbour with momentum
+    assert cell_slots(torch.tensor([False, False]), graph).tolist() == [[True], [True]]
+    assert cell_slots(torch.tensor([False, True]), graph).tolist() == [[False], [False]]  # a pair with momentum
 
     # both re-plan at once, heading straight at each other: each keeps to its half at every step
     T = 6
@@ -246,7 +246,7 @@ def test_cell_rows_price_slack_by_danger_so_a_jam_opens_its_closest_pair_first()
     on the left) sends it towards its 0.6 m neighbour; priced by danger ((b - c) / (d - c): 5 for the
     0.6 m pair, 1.43 for the 0.85 m pair, contact c = 0.5) it opens the closest pair instead."""
     from torch_gpmpc.control.solvers import make_local_solver
-    from torch_gpmpc.coordination.fallback import MAX_DANGER_WEIGHT, cell_problem, danger_weights
+    from torch_gpmpc.coordination.fallback import MAX_DANGER_WEIGHT, cell_problem, danger_weights, fallback_problem
 
     T = 6
     x0 = torch.tensor([[-0.6, 0.0], [0.0, 0.0], [0.85, 0.0]], dtype=torch.float64)
@@ -272,6 +272,13 @@ def test_cell_rows_price_slack_by_danger_so_a_jam_opens_its_closest_pair_first()
     assert abs(float(priced.X[1, 1, 0]) - 0.2) < 1e-3  # away at full speed: its bound kept, 0.85 m to the other
     closest = lambda sol: float(torch.pdist(sol.X[:, 1]).min())  # noqa: E731
     assert closest(priced) > closest(equal) + 0.1
+    # the close pair (0, 1) with momentum (its rows against the neighbour's plan, the far pair a
+    # cell): the squeezed agent prices both rows on one scale and still opens the close pair
+    slot_nbr = graph.slot_nbr
+    cells = graph.active & ~(((torch.arange(3)[:, None] == 1) & (slot_nbr == 0))
+                             | ((torch.arange(3)[:, None] == 0) & (slot_nbr == 1)))
+    mixed = solve(fallback_problem(data, state.plans, nbr, [0, 1], cells, contact=0.5))
+    assert bool(mixed.ok.all()) and abs(float(mixed.X[1, 1, 0]) - 0.2) < 1e-3
     # pairs outside their bounds keep weight 1: the re-plan is the unpriced one to the bit
     far = x0 * 3.0
     ctx, state = admm.prepare(far, xref, communication_graph(far, None), None)

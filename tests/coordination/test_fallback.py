@@ -3,7 +3,7 @@
 import torch
 
 from torch_gpmpc.coordination.fallback import (
-    cell_exits, fallback_agents, own_rows_unsafe, pair_safety, replanning_closure, replanning_from_seeds,
+    cell_exits, cell_slots, fallback_agents, own_rows_unsafe, pair_safety, replanning_closure, replanning_from_seeds,
 )
 from torch_gpmpc.coordination.graph import communication_graph
 
@@ -29,45 +29,72 @@ def test_a_chain_of_cell_exits_joins_the_re_plan_and_nothing_else():
     assert seeds.tolist() == [False, True, True, False, False]
     exits = cell_exits(plans, graph, bounds, 1e-3, POS)
     assert replanning_closure(seeds, exits, graph).tolist() == [False, True, True, True, True]
-    unsafe, _, _ = pair_safety(plans, graph, bounds, 1e-3, POS)
-    replan, cells = fallback_agents(plans, graph, bounds, 1e-3, POS, torch.zeros(5, dtype=torch.bool), unsafe, "cells")
-    assert replan.tolist() == [False, True, True, True, True] and bool(cells.all())
+    replan, cells = fallback_agents(plans, graph, bounds, 1e-3, POS, torch.zeros(5, dtype=torch.bool), "cells")
+    assert replan.tolist() == [False, True, True, True, True] and torch.equal(cells, graph.active)
     # the world's form (the distributed backend's messages, by agent id) gives the same set
     by_id = torch.zeros(5, 5, dtype=torch.bool)
     k, m = torch.nonzero(exits, as_tuple=True)
     by_id[k, graph.slot_nbr[k, m]] = True
-    assert torch.equal(replanning_from_seeds(cells, seeds, by_id, graph), replan)
+    assert torch.equal(replanning_from_seeds(seeds, by_id, graph), replan)
 
 
 def test_every_pair_is_safe_after_the_re_plan_on_random_teams():
-    """On random teams with random steps and unequal row bounds: every agent whose own row is short
-    re-plans; no agent that keeps its plan leaves its cell towards one that re-plans; and every pair
-    that keeps both plans is as far apart as the larger of its two bounds asks (less tol). So after
-    the re-plans (each inside its cell) every pair keeps (b_k + b_j) / 2 or more at tau = 1."""
+    """On random teams with random steps, unequal row bounds and (in half the teams) some agents
+    with momentum: every agent whose own row of a cell pair is short re-plans, and both agents of an
+    unsafe pair with momentum; no agent that keeps its plan leaves its cell towards a cell
+    neighbour that re-plans; and every cell pair that keeps both plans is as far apart as the larger
+    of its two bounds asks (less tol). So after the re-plans (each inside its cells) every cell pair
+    keeps (b_k + b_j) / 2 or more at tau = 1."""
     gen = torch.Generator().manual_seed(0)
     tol = 1e-3
-    checked = joined = 0
-    for _ in range(200):
+    checked = joined = mixed = 0
+    for team in range(400):
         K = 12
         x0 = torch.rand(K, 2, generator=gen, dtype=torch.float64) * 4.0
         step = (torch.rand(K, 2, generator=gen, dtype=torch.float64) - 0.5) * 0.6
         plans = torch.stack([x0, x0 + step], dim=1)
         graph = communication_graph(x0, 2.5)
+        momentum = (torch.rand(K, generator=gen) < 0.3) & torch.tensor(team % 2 == 1)
         if not graph.num_edges:
             continue
         bounds = torch.where(graph.active, 0.4 + 0.2 * torch.rand(graph.active.shape, generator=gen,
                                                                     dtype=torch.float64), float("-inf"))
-        unsafe, _, _ = pair_safety(plans, graph, bounds, tol, POS)
-        replan, _ = fallback_agents(plans, graph, bounds, tol, POS, torch.zeros(K, dtype=torch.bool), unsafe, "cells")
-        seeds = own_rows_unsafe(plans, graph, bounds, tol, POS)
+        unsafe, sep, req = pair_safety(plans, graph, bounds, tol, POS)
+        replan, cells = fallback_agents(plans, graph, bounds, tol, POS, momentum, "cells")
+        assert torch.equal(cells, cell_slots(momentum, graph))
+        seeds = own_rows_unsafe(plans, graph, torch.where(cells, bounds, float("-inf")), tol, POS)
         assert bool((replan | ~seeds).all())
-        joined += int((replan & ~seeds).sum())
+        k, m = torch.nonzero(graph.active & ~cells, as_tuple=True)  # pairs with momentum
+        j = graph.slot_nbr[k, m]
+        assert bool(replan[k[sep[k, j] < req[k, j] - tol]].all())
+        # without cells, exactly the agents of unsafe pairs re-plan
+        assert torch.equal(fallback_agents(plans, graph, bounds, tol, POS, momentum, "obstacles")[0], unsafe)
+        joined += int((replan & ~seeds & ~unsafe).sum())
         exits = cell_exits(plans, graph, bounds, tol, POS)
-        towards_member = exits & replan[graph.slot_nbr] & graph.active
+        towards_member = exits & replan[graph.slot_nbr] & cells
         assert not bool((towards_member & ~replan[:, None]).any())
-        k, m = torch.nonzero(graph.active & ~replan[:, None] & ~replan[graph.slot_nbr], as_tuple=True)
+        k, m = torch.nonzero(cells & ~replan[:, None] & ~replan[graph.slot_nbr], as_tuple=True)
         j = graph.slot_nbr[k, m]
         gap = torch.linalg.vector_norm(plans[k, 1] - plans[j, 1], dim=-1)
         assert bool((gap >= bounds[k, m] - tol).all())
         checked += int(k.numel())
-    assert checked > 500 and joined > 50  # the closure did reach past the seeds
+        mixed += int((momentum.any() & ~momentum & (cells.any(dim=1)) & (graph.active & ~cells).any(dim=1)).sum())
+    assert checked > 500 and joined > 50 and mixed > 100  # the closure reached past the seeds; mixed agents met
+
+
+def test_a_cell_pair_is_kept_when_one_of_its_agents_has_a_neighbour_with_momentum():
+    """Four agents on a line, bound 0.5, complete graph; agent 3 has momentum. Agents 0 and 1 step
+    towards each other (their rows are short: seeds). Agent 2's plan leaves its cell towards agent 1
+    (bisector 1.6, its cell x >= 1.85; it plans 1.7) while the pair keeps 1.0 apart at tau = 1, so
+    the pair is not unsafe; agent 1 may re-plan up to its own face at 1.35, 0.35 from agent 2's plan.
+    Agent 2 has a neighbour with momentum, yet the pair (1, 2) is a cell pair: agent 2 re-plans."""
+    plans, graph = _team([[0.0, 0], [1.0, 0], [2.2, 0], [3.4, 0]], [[0.3, 0], [-0.3, 0], [-0.5, 0], [0.0, 0]])
+    bounds = torch.where(graph.active, 0.5, float("-inf")).to(torch.float64)
+    momentum = torch.tensor([False, False, False, True])
+    slots = cell_slots(momentum, graph)
+    nbr = graph.slot_nbr
+    assert torch.equal(slots, graph.active & (nbr != 3) & torch.tensor([True, True, True, False])[:, None])
+    unsafe, _, _ = pair_safety(plans, graph, bounds, 1e-3, POS)
+    assert unsafe.tolist() == [True, True, False, False]
+    replan, cells = fallback_agents(plans, graph, bounds, 1e-3, POS, momentum, "cells")
+    assert replan.tolist() == [True, True, True, False] and torch.equal(cells, slots)

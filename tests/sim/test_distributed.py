@@ -121,7 +121,7 @@ def test_agent_controllers_reproduce_the_buffered_voronoi_fallback():
             assert all(a.fallback_possible == (not res.converged) for a in agents)
             if not res.converged:  # the world's closure of the seeds, then the applied plans
                 seeds = torch.stack([a.replan_seeds() for a in agents]) > 0.5
-                replan = replanning_from_seeds(seeds[:, 0], seeds[:, 1], seeds[:, 2:], communication_graph(x, None))
+                replan = replanning_from_seeds(seeds[:, 0], seeds[:, 1:], communication_graph(x, None))
                 for a, decided in zip(agents, replan.tolist()):
                     a.replan(decided)
                 applied = {k: agents[k].own_plan().clone() for k in range(K)}
@@ -252,9 +252,9 @@ def test_cli_distributed_equals_inprocess_and_counts_bytes(tmp_path):
     assert m["bytes_sent_per_agent_per_iteration"] == [copy_bytes + 32.0] * K
     assert m["bytes_sent_per_agent_per_iteration_mean"] == copy_bytes + 32.0
     # once at t = 0, and after each capped step (which may have re-planned) the agent's fallback seeds
-    # to the world (2 + K numbers) and the plans the agents apply
+    # to the world (1 + K numbers) and the plans the agents apply
     capped = int((~np.asarray(ref.converged, dtype=bool)).sum())
-    per_capped = 8 * (T + 1) * D * (K - 1) + 8 * (2 + K)
+    per_capped = 8 * (T + 1) * D * (K - 1) + 8 * (1 + K)
     assert capped > 0 and m["plan_exchange_bytes_per_agent"] == [8 * (T + 1) * D * (K - 1) + per_capped * capped] * K
     assert np.array_equal(messages, np.full((3, K), (2 * (T + 1) * D + T) * (K - 1)))
     assert m["backend"] == "distributed" and m["processes"] == 3 and m["lost_agents"] == []

@@ -185,10 +185,10 @@ class ControllerSettings:
             for example ``admm_tol``, so that plans whose copies agree only to the consensus
             tolerance still keep ``r_safe``; metrics and risk bounds judge ``r_safe`` itself.
         safety_fallback: the re-plan after a stop on plans not known to be jointly safe:
-            ``cells`` (among agents that can stop at once, with neighbours that can too, those with
-            a row short at tau = 1 and the neighbours whose plans leave their buffered Voronoi
-            cells towards them re-plan inside their cells; agents with momentum in a pair unsafe
-            at tau = 1 against their neighbours' plans as fixed obstacles) or ``obstacles`` (every
+            ``cells`` (in pairs of agents that can both stop at once, an agent with its row short
+            at tau = 1 and the agents whose plans leave their buffered Voronoi cells towards it
+            re-plan inside their cells; in pairs with momentum, the agents of a pair unsafe at
+            tau = 1 against the neighbour's plan as a fixed obstacle) or ``obstacles`` (every
             agent of a pair unsafe at tau = 1 against its neighbours' plans).
     Examples:
         >>> from torch_gpmpc import ControllerSettings

@@ -354,11 +354,11 @@ class ADMM:
             tol: absolute primal tolerance of the stopping rule (defaults to ``settings.admm_tol``;
                 0 never stops early). Penalty balancing always uses the configured tolerances.
             safety_fallback: when ADMM stops on plans not known to be jointly safe, re-plan the
-                agents :func:`~.fallback.fallback_agents` names: among agents that can stop at
-                once (with neighbours that can too), those with a row short at tau = 1 and the
-                neighbours whose plans leave their buffered Voronoi cells towards them, inside
-                their cells; other agents of pairs unsafe at tau = 1 against their neighbours'
-                latest plans (:func:`~.fallback.fallback_problem`).
+                agents :func:`~.fallback.fallback_agents` names: in pairs of agents that can both
+                stop at once, those with a row short at tau = 1 and the agents whose plans leave
+                their buffered Voronoi cells towards them, inside their cells; agents of unsafe
+                pairs with momentum against the neighbour's latest plan
+                (:func:`~.fallback.fallback_problem`).
         """
         s = self.settings
         ctx, state = self.prepare(x0, xref, graph, warm, rho, risk_split, tol)
@@ -437,17 +437,16 @@ class ADMM:
                       fallback: bool) -> ADMMState:
         """Judge the applied plans at tau = 1 (own plans, not copies); with ``fallback`` (a stop on
         plans not known to be safe), re-plan (:func:`~.fallback.fallback_problem`) the agents
-        :func:`~.fallback.fallback_agents` names: cell agents with a short row at tau = 1 and the
-        cell agents whose plans leave their cells towards them, and every other agent in a pair
-        unsafe at tau = 1."""
+        :func:`~.fallback.fallback_agents` names: agents with a short row of a cell pair at
+        tau = 1 and the agents whose plans leave their cells towards them, and every agent in an
+        unsafe pair with momentum."""
         bounds = data.bounds[:, :, 0].detach()
         position = self.nominal.position
         unsafe, sep, req = pair_safety(state.plans.detach(), graph, bounds, self.settings.admm_tol, position)
         replan = torch.zeros_like(unsafe)
         if fallback:
             replan, cells = fallback_agents(state.plans.detach(), graph, bounds, self.settings.admm_tol, position,
-                                            self.nominal.momentum(graph.num_agents), unsafe,
-                                            self.settings.safety_fallback)
+                                            self.nominal.momentum(graph.num_agents), self.settings.safety_fallback)
         if bool(replan.any()):
             rows = replan.nonzero().flatten()
             with torch.no_grad():

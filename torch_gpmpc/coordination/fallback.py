@@ -1,11 +1,12 @@
 """The safety fallback: what an agent re-plans when ADMM stops on plans not known to be safe, and
 the rule that decides who re-plans.
 
-Agents that can stop at once (and whose neighbours can) re-plan inside their buffered Voronoi
-cells (Zhou et al. 2017): those whose own row of a pair is short at tau = 1, and, again and again,
-each neighbour whose plan leaves its cell towards an agent that re-plans (:func:`fallback_agents`).
-The rest keep their plans. The others re-plan against their neighbours' latest plans as fixed
-obstacles when their pair is unsafe at tau = 1. Both backends apply the same rule
+A pair of agents that can both stop at once keeps to buffered Voronoi cells (Zhou et al. 2017,
+:func:`cell_slots`): an agent re-plans when its own row of such a pair is short at tau = 1, and,
+again and again, when its plan leaves its cell towards an agent that re-plans
+(:func:`fallback_agents`). An agent in a pair with momentum re-plans when that pair is unsafe at
+tau = 1. A re-plan keeps to the cells of its agent's cell pairs and treats its other neighbours'
+latest plans as fixed obstacles; the rest keep their plans. Both backends apply the same rule
 (:func:`fallback_agents`; the distributed world closes the agents' seeds over the graph,
 :func:`replanning_from_seeds`). A cell row's slack is priced by how far its pair has eaten into its
 margin (:func:`danger_weights`), so an agent squeezed between pairs already inside their bounds
@@ -99,22 +100,28 @@ def cell_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, p
     cell = obstacle_problem(dataclasses.replace(data, normals=normals), obstacles)
     if contact is None:
         return cell
-    w = danger_weights(own_plans.detach(), nbr_plans.detach(), data.bounds.detach()[:, :, 0], contact, position)
-    # scaling a row by w prices its slack w times higher; the copies' pin scales by w^2 so that
-    # moving a copy relieves the row no more than before
-    return dataclasses.replace(cell, normals=cell.normals * w[..., None, None], bounds=cell.bounds * w[..., None],
-                               rho_nbr=cell.rho_nbr * w ** 2)
+    return priced_by_danger(cell, danger_weights(own_plans.detach(), nbr_plans.detach(),
+                                                 data.bounds.detach()[:, :, 0], contact, position))
 
 
-#: The largest factor by which a cell row's slack is priced above the others'.
+def priced_by_danger(problem: LocalProblemData, w: Tensor) -> LocalProblemData:
+    """The problems with each collision row's slack priced ``w`` (B, M) times higher: the row
+    scaled by ``w``, and the copies' pin by ``w^2`` so that moving a copy relieves the row no more
+    than before."""
+    return dataclasses.replace(problem, normals=problem.normals * w[..., None, None],
+                               bounds=problem.bounds * w[..., None], rho_nbr=problem.rho_nbr * w ** 2)
+
+
+#: The largest factor by which a row's slack in a re-plan with cells is priced above the others'.
 MAX_DANGER_WEIGHT = 10.0
 
 
 def danger_weights(own_plans: Tensor, nbr_plans: Tensor, bounds: Tensor, contact: Tensor | float,
                    position: list[int]) -> Tensor:
-    """How much more each cell row's slack should cost, (B, M): ``(b - c) / (d - c)`` clipped to
-    ``[1, MAX_DANGER_WEIGHT]``, with ``d`` the pair's measured distance, ``b`` its tau = 1 bound and
-    ``c`` its contact distance (the largest weight where ``d <= c``; 1, no change, where ``d >= b``).
+    """How much more each row's slack in a re-plan with cells should cost, (B, M):
+    ``(b - c) / (d - c)`` clipped to ``[1, MAX_DANGER_WEIGHT]``, with ``d`` the pair's measured
+    distance, ``b`` its tau = 1 bound and ``c`` its contact distance (the largest weight where
+    ``d <= c``; 1, no change, where ``d >= b``).
     Rows of pairs already inside their bounds cannot all be met at once in a jam; with equal
     prices an agent squeezed between a neighbour at 0.3 m and one at 0.8 m is indifferent between
     them (the L1 slack trades one for the other) and tracking decides. Pricing by how far a pair
@@ -180,96 +187,108 @@ def replanning_closure(seeds: Tensor, exits: Tensor, graph: Graph) -> Tensor:
         members = grown
 
 
-def replanning(cells: Tensor, seeds: Tensor, exits: Tensor, graph: Graph) -> Tensor:
-    """(K,) bool, who re-plans (:func:`fallback_agents`' rule) from what each agent found alone
-    (:func:`fallback_seeds`): cell agents in :func:`replanning_closure` of the seeds, every other
-    agent when it is a seed. ``cells``, ``seeds`` (K,) bool; ``exits`` (K, M) bool per slot."""
-    return torch.where(cells, replanning_closure(seeds, exits, graph), seeds)
+def replanning_from_seeds(seeds: Tensor, exits_by_id: Tensor, graph: Graph) -> Tensor:
+    """:func:`replanning_closure` from the distributed agents' messages to the world, whose exits
+    are by agent id: ``exits_by_id`` (K, K), agent k's plan leaving its cell towards agent j."""
+    return replanning_closure(seeds, exits_by_id.gather(1, graph.slot_nbr) & graph.active, graph)
 
 
-def replanning_from_seeds(cells: Tensor, seeds: Tensor, exits_by_id: Tensor, graph: Graph) -> Tensor:
-    """:func:`replanning` from the distributed agents' messages to the world, whose exits are by
-    agent id: ``exits_by_id`` (K, K), agent k's plan leaving its cell towards agent j."""
-    return replanning(cells, seeds, exits_by_id.gather(1, graph.slot_nbr) & graph.active, graph)
-
-
-def cell_agents(momentum: Tensor, graph: Graph) -> Tensor:
-    """(K,) bool: the agents whose safety fallback uses buffered Voronoi cells: those that, like all
-    their neighbours, can stop at once (``momentum`` (K,) bool: a velocity state). A cell's guarantee
-    needs every neighbour to keep to its own cell, which a vehicle with momentum cannot promise (a
-    cell can trap it mid-flight), so pairs with momentum keep the fixed-obstacle re-plan."""
-    nbr_momentum = (momentum[graph.slot_nbr] & graph.active).any(dim=1) if graph.num_slots else \
-        torch.zeros_like(momentum)
-    return ~momentum & ~nbr_momentum
+def cell_slots(momentum: Tensor, graph: Graph) -> Tensor:
+    """(K, M) bool: the pairs whose safety fallback uses buffered Voronoi cells: both agents can stop
+    at once (``momentum`` (K,) bool: a velocity state). A cell's guarantee needs the other agent to
+    keep to its own cell, which a vehicle with momentum cannot promise (a cell can trap it
+    mid-flight), so pairs with momentum keep the fixed-obstacle re-plan."""
+    return graph.active & ~momentum[:, None] & ~momentum[graph.slot_nbr]
 
 
 def fallback_cells(momentum: Tensor, graph: Graph, rule: str) -> Tensor:
-    """(K,) bool: the agents that re-plan inside cells under the ``safety_fallback`` ``rule``:
-    :func:`cell_agents` for ``cells``, none for ``obstacles``."""
-    return cell_agents(momentum, graph) if rule == "cells" else torch.zeros_like(momentum)
+    """(K, M) bool: the pairs kept to cells under the ``safety_fallback`` ``rule``:
+    :func:`cell_slots` for ``cells``, none for ``obstacles``."""
+    slots = cell_slots(momentum, graph)
+    return slots if rule == "cells" else torch.zeros_like(slots)
+
+
+def unsafe_slots(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, position: list[int]) -> Tensor:
+    """(K, M) bool: the pairs whose plans at tau = 1 are closer than the larger of the pair's two
+    row bounds asks, less ``tol`` (:func:`pair_safety`'s test per slot; a bound an agent does not
+    know is ``-inf``). Arguments as :func:`cell_exits`."""
+    K = plans.shape[0]
+    k_idx, m_idx = torch.nonzero(graph.active, as_tuple=True)
+    by_id = bounds.new_full((K, K), float("-inf"))
+    by_id[k_idx, graph.slot_nbr[k_idx, m_idx]] = bounds[k_idx, m_idx]
+    pair_bound = torch.fmax(by_id, by_id.T).gather(1, graph.slot_nbr)
+    gap = torch.linalg.vector_norm(plans[:, None, 1, position] - plans[graph.slot_nbr][:, :, 1, position], dim=-1)
+    return (gap < pair_bound - tol) & graph.active
 
 
 def fallback_seeds(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, position: list[int],
-                   cells: Tensor, unsafe: Tensor) -> tuple[Tensor, Tensor]:
+                   cells: Tensor) -> tuple[Tensor, Tensor]:
     """What each agent knows alone before the team settles who re-plans: ``(seeds (K,), exits
-    (K, M))``: a cell agent is a seed when one of its own rows is not kept at tau = 1
-    (:func:`own_rows_unsafe`), any other agent when ``unsafe``; ``exits`` are the cell agents'
-    :func:`cell_exits` (other agents' rows False). Arguments as :func:`fallback_agents`."""
-    seeds = torch.where(cells, own_rows_unsafe(plans, graph, bounds, tol, position), unsafe)
-    exits = cell_exits(plans, graph, bounds, tol, position) & cells[:, None]
+    (K, M))``. An agent is a seed when one of its own rows of a cell pair is not kept at tau = 1
+    (:func:`own_rows_unsafe`), or when one of its other pairs is unsafe (:func:`unsafe_slots`);
+    ``exits`` are its :func:`cell_exits` towards its cell pairs. Arguments as
+    :func:`fallback_agents`."""
+    cell_bounds = torch.where(cells, bounds, torch.full_like(bounds, float("-inf")))
+    other_unsafe = (unsafe_slots(plans, graph, bounds, tol, position) & ~cells).any(dim=1)
+    seeds = own_rows_unsafe(plans, graph, cell_bounds, tol, position) | other_unsafe
+    exits = cell_exits(plans, graph, bounds, tol, position) & cells
     return seeds, exits
 
 
 def fallback_agents(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, position: list[int],
-                    momentum: Tensor, unsafe: Tensor, rule: str) -> tuple[Tensor, Tensor]:
+                    momentum: Tensor, rule: str) -> tuple[Tensor, Tensor]:
     """Who re-plans after a stop on plans not known to be safe, and how (the rule both backends apply).
 
-    Cell agents (:func:`cell_agents`) re-plan inside their cells when they are in
-    :func:`replanning_closure` of the seeds (:func:`fallback_seeds`): an agent whose own row is not
-    kept at tau = 1, and, again and again, a neighbour whose plan leaves its cell towards an agent
-    that re-plans. Every other agent keeps its plan. A pair is then safe at tau = 1: both keep (no
-    row of theirs was short), both re-plan (each inside its cell), or one re-plans inside its cell
-    and the other's plan is inside its own cell towards it (else it would re-plan too). The other
-    agents re-plan when ``unsafe``, against their neighbours' plans as fixed obstacles.
+    The agents that re-plan are :func:`replanning_closure` of the seeds (:func:`fallback_seeds`):
+    an agent whose own row of a cell pair (:func:`cell_slots`; none under the ``obstacles`` rule) is
+    not kept at tau = 1, or one of whose other pairs is unsafe at tau = 1, and, again and again, an
+    agent whose plan leaves its cell towards an agent of its cell pairs that re-plans. Every other
+    agent keeps its plan. A re-plan keeps to the agent's cells towards its cell pairs and treats
+    its other neighbours' plans as fixed obstacles (:func:`fallback_problem`). A cell pair is then
+    safe at tau = 1 whatever its agents' other neighbours are: both keep (no row of theirs was
+    short), both re-plan (each inside its cell), or one re-plans inside its cell and the other's
+    plan is inside its own cell towards it (else it would re-plan too).
 
     Args:
         plans: (K, T+1, D) the agents' own plans. graph: the communication graph.
         bounds: (K, M) collision bounds at tau = 1 (``-inf``: unknown). tol: allowance.
         position: the state indices of the position. momentum: (K,) bool.
-        unsafe: (K,) bool, agents in a pair unsafe at tau = 1 (:func:`pair_safety`).
         rule: the ``safety_fallback`` setting, ``cells`` or ``obstacles``.
 
     Returns:
-        ``(replan, cells)``, each (K,) bool.
+        ``(replan (K,), cells (K, M))`` bool.
     """
     cells = fallback_cells(momentum, graph, rule)
-    if not bool(cells.any()):
-        return unsafe, cells
-    seeds, exits = fallback_seeds(plans, graph, bounds, tol, position, cells, unsafe)
-    return replanning(cells, seeds, exits, graph), cells
+    seeds, exits = fallback_seeds(plans, graph, bounds, tol, position, cells)
+    return replanning_closure(seeds, exits, graph), cells
 
 
 def fallback_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, position: list[int],
                      cells: Tensor, contact: Tensor | float | None = None) -> LocalProblemData:
-    """The safety fallback's re-plan of each agent: inside its buffered Voronoi cell
-    (:func:`cell_problem`) where ``cells`` (:func:`cell_agents`), else against its neighbours'
+    """The safety fallback's re-plan of each agent: inside its buffered Voronoi cell towards each
+    cell pair (:func:`cell_problem`; ``cells``, :func:`cell_slots`), against its other neighbours'
     latest plans as fixed obstacles (:func:`obstacle_problem`).
 
     Args:
         data: the last iteration's problems. own_plans: (B, T+1, D). nbr_plans: (B, M, T+1, D).
-        position: the state indices of the position. cells: (B,) bool.
+        position: the state indices of the position. cells: (B, M) bool.
         contact: the pairs' collision distances for the cell rows' prices (:func:`cell_problem`).
     """
     if not bool(cells.any()):
         return obstacle_problem(data, nbr_plans)
     cell = cell_problem(data, own_plans, nbr_plans, position, contact)
-    if bool(cells.all()):
+    if bool((cells | ~data.active).all()):  # empty slots are ignored
         return cell
     fixed = obstacle_problem(data, nbr_plans)
-    rows = cells[:, None, None, None]
+    if contact is not None:
+        # an agent with cell rows prices its other rows on the same scale, else a squeeze between
+        # a cell and a neighbour with momentum would always give way towards the latter
+        w = danger_weights(own_plans.detach(), nbr_plans.detach(), data.bounds.detach()[:, :, 0], contact, position)
+        fixed = priced_by_danger(fixed, torch.where(cells.any(dim=1, keepdim=True), w, torch.ones_like(w)))
+    rows = cells[:, :, None, None]
     return dataclasses.replace(fixed, normals=torch.where(rows, cell.normals, fixed.normals),
-                               bounds=torch.where(cells[:, None, None], cell.bounds, fixed.bounds),
-                               rho_nbr=torch.where(cells[:, None], cell.rho_nbr, fixed.rho_nbr),
+                               bounds=torch.where(cells[:, :, None], cell.bounds, fixed.bounds),
+                               rho_nbr=torch.where(cells, cell.rho_nbr, fixed.rho_nbr),
                                z_nbr=torch.where(rows, cell.z_nbr, fixed.z_nbr))
 
 

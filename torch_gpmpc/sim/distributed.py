@@ -256,12 +256,11 @@ class RemotePlanner:
         got = self.net.exchange([], [((replan_seeds_size(K),), rank_of(k, self.per), tag(Kind.REPLAN_SEEDS, k))
                                      for k in live], 2 * self.timeout_s + 5.0)
         self._mark_lost(t)
-        cells, seeds, exits = torch.zeros(K, dtype=torch.bool), torch.zeros(K, dtype=torch.bool), \
-            torch.zeros(K, K, dtype=torch.bool)
+        seeds, exits = torch.zeros(K, dtype=torch.bool), torch.zeros(K, K, dtype=torch.bool)
         for k, vec in zip(live, got):
             if vec is not None:
-                cells[k], seeds[k], exits[k] = vec[0] > 0.5, vec[1] > 0.5, vec[2:] > 0.5
-        replan = replanning_from_seeds(cells, seeds, exits, graph)
+                seeds[k], exits[k] = vec[0] > 0.5, vec[1:] > 0.5
+        replan = replanning_from_seeds(seeds, exits, graph)
         self.net.exchange([(replan[k:k + 1].to(DTYPE), rank_of(k, self.per), tag(Kind.REPLAN, 0, k))
                            for k in self._live()], [], self.timeout_s)
 

@@ -132,7 +132,7 @@ class AgentController:
         gps = None if self.gp is None else [self.gp if j == k else None for j in range(self.num_agents)]
         step = make_agent_step(cfg, system, gps)
         #: the team's known models (a mixed team's :class:`~torch_gpmpc.dynamics.team.TeamNominal`):
-        #: which neighbours can stop at once (the fallback rule) depends on their models
+        #: which pairs can both stop at once (the fallback's cells) depends on their models
         self.team_nominal = step.nominal
         #: this agent's per-agent step (the same object the in-process ADMM iterates; in a mixed
         #: team its model's step, as the in-process TeamStep uses for its rows)
@@ -533,10 +533,10 @@ class AgentController:
         if not settle:
             return
         cells = fallback_cells(self.team_nominal.momentum(self.num_agents), self.graph, self.cfg.safety_fallback)
-        seeds, exits = fallback_seeds(state.plans, self.graph, self._judged_bounds, tol, position, cells, unsafe)
+        seeds, exits = fallback_seeds(state.plans, self.graph, self._judged_bounds, tol, position, cells)
         self._fallback_cells = cells
-        self._seeds[0], self._seeds[1] = float(cells[k]), float(seeds[k])
-        self._seeds[2 + self.graph.slot_nbr[k][exits[k]]] = 1.0
+        self._seeds[0] = float(seeds[k])
+        self._seeds[1 + self.graph.slot_nbr[k][exits[k]]] = 1.0
 
     def replan_seeds(self) -> Tensor:
         """The agent's fallback message to the world, prepared by :meth:`check_safety`
@@ -544,7 +544,7 @@ class AgentController:
         return self._seeds
 
     def replan(self, decided: bool) -> None:
-        """Re-plan (inside its buffered Voronoi cell if it is a cell agent, else against its
+        """Re-plan (inside its buffered Voronoi cell towards its cell pairs, against its other
         neighbours' plans as fixed obstacles) when the team ``decided`` it must."""
         if not decided or self._fallback_cells is None:
             return

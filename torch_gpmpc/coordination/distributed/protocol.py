@@ -122,9 +122,9 @@ def decision_size(cfg: Config) -> int:
 
 def replan_seeds_size(num_agents: int) -> int:
     """Numbers in one agent's fallback message (agent -> world, after a stop on plans not known to
-    be safe): whether it keeps to a cell, whether it must re-plan, and per agent id whether its plan
-    leaves its cell towards that neighbour (:func:`~torch_gpmpc.coordination.fallback.fallback_seeds`)."""
-    return 2 + num_agents
+    be safe): whether it must re-plan, and per agent id whether its plan leaves its cell towards
+    that neighbour (:func:`~torch_gpmpc.coordination.fallback.fallback_seeds`)."""
+    return 1 + num_agents
 
 
 def telemetry_size(cfg: Config) -> int:
