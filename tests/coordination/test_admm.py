@@ -244,9 +244,12 @@ def test_cell_rows_price_slack_by_danger_so_a_jam_opens_its_closest_pair_first()
     """Three agents on a line, every pair inside its bound 1.0: the middle one cannot keep both cell
     rows at tau = 1. With equal slack prices it is indifferent between them and tracking (a target
     on the left) sends it towards its 0.6 m neighbour; priced by danger ((b - c) / (d - c): 5 for the
-    0.6 m pair, 1.43 for the 0.85 m pair, contact c = 0.5) it opens the closest pair instead."""
+    0.6 m pair, 1.43 for the 0.85 m pair, contact c = 0.5) it opens the closest pair instead, also
+    when the close neighbour has momentum and its row is against that neighbour's plan."""
     from torch_gpmpc.control.solvers import make_local_solver
-    from torch_gpmpc.coordination.fallback import MAX_DANGER_WEIGHT, cell_problem, danger_weights, fallback_problem
+    from torch_gpmpc.coordination.fallback import (
+        MAX_DANGER_WEIGHT, cell_problem, cell_slots, danger_weights, fallback_problem,
+    )
 
     T = 6
     x0 = torch.tensor([[-0.6, 0.0], [0.0, 0.0], [0.85, 0.0]], dtype=torch.float64)
@@ -272,11 +275,9 @@ def test_cell_rows_price_slack_by_danger_so_a_jam_opens_its_closest_pair_first()
     assert abs(float(priced.X[1, 1, 0]) - 0.2) < 1e-3  # away at full speed: its bound kept, 0.85 m to the other
     closest = lambda sol: float(torch.pdist(sol.X[:, 1]).min())  # noqa: E731
     assert closest(priced) > closest(equal) + 0.1
-    # the close pair (0, 1) with momentum (its rows against the neighbour's plan, the far pair a
-    # cell): the squeezed agent prices both rows on one scale and still opens the close pair
-    slot_nbr = graph.slot_nbr
-    cells = graph.active & ~(((torch.arange(3)[:, None] == 1) & (slot_nbr == 0))
-                             | ((torch.arange(3)[:, None] == 0) & (slot_nbr == 1)))
+    # agent 0 with momentum: the middle agent's row towards it is against its plan, its row towards
+    # agent 2 a cell; it prices both on one scale and still opens the close pair
+    cells = cell_slots(torch.tensor([True, False, False]), graph)
     mixed = solve(fallback_problem(data, state.plans, nbr, [0, 1], cells, contact=0.5))
     assert bool(mixed.ok.all()) and abs(float(mixed.X[1, 1, 0]) - 0.2) < 1e-3
     # pairs outside their bounds keep weight 1: the re-plan is the unpriced one to the bit

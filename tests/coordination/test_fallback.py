@@ -83,17 +83,21 @@ def test_every_pair_is_safe_after_the_re_plan_on_random_teams():
 
 
 def test_a_cell_pair_is_kept_when_one_of_its_agents_has_a_neighbour_with_momentum():
-    """Four agents on a line, bound 0.5, complete graph; agent 3 has momentum. Agents 0 and 1 step
-    towards each other (their rows are short: seeds). Agent 2's plan leaves its cell towards agent 1
-    (bisector 1.6, its cell x >= 1.85; it plans 1.7) while the pair keeps 1.0 apart at tau = 1, so
-    the pair is not unsafe; agent 1 may re-plan up to its own face at 1.35, 0.35 from agent 2's plan.
-    Agent 2 has a neighbour with momentum, yet the pair (1, 2) is a cell pair: agent 2 re-plans."""
-    plans, graph = _team([[0.0, 0], [1.0, 0], [2.2, 0], [3.4, 0]], [[0.3, 0], [-0.3, 0], [-0.5, 0], [0.0, 0]])
+    """Four agents on a line, bound 0.5, each talking to the next (comm radius 1.3); agent 3 has
+    momentum. Agents 0 and 1 step towards each other (their rows are short: seeds); agent 1 may
+    re-plan up to its cell's face towards agent 2 at 1.35. Agent 2's plan leaves its cell towards
+    agent 1 (bisector 1.6, its cell x >= 1.85; it plans 1.7), 0.35 from that face, while the pair
+    keeps 1.0 apart at tau = 1 (not unsafe). Agent 2 has a neighbour with momentum, yet the pair
+    (1, 2) is a cell pair: agent 2 re-plans. (Decided per agent, agent 2 would give up its cells
+    and keep its plan, since none of its pairs is unsafe, while agent 1 kept to its cells.)"""
+    x0 = torch.tensor([[0.0, 0], [1.0, 0], [2.2, 0], [3.4, 0]], dtype=torch.float64)
+    step = torch.tensor([[0.3, 0], [-0.3, 0], [-0.5, 0], [0.0, 0]], dtype=torch.float64)
+    plans, graph = torch.stack([x0, x0 + step], dim=1), communication_graph(x0, 1.3)
     bounds = torch.where(graph.active, 0.5, float("-inf")).to(torch.float64)
     momentum = torch.tensor([False, False, False, True])
     slots = cell_slots(momentum, graph)
-    nbr = graph.slot_nbr
-    assert torch.equal(slots, graph.active & (nbr != 3) & torch.tensor([True, True, True, False])[:, None])
+    pairs = {(int(k), int(graph.slot_nbr[k, m])) for k, m in zip(*torch.nonzero(slots, as_tuple=True))}
+    assert pairs == {(0, 1), (1, 0), (1, 2), (2, 1)}  # the pair (2, 3) has momentum
     unsafe, _, _ = pair_safety(plans, graph, bounds, 1e-3, POS)
     assert unsafe.tolist() == [True, True, False, False]
     replan, cells = fallback_agents(plans, graph, bounds, 1e-3, POS, momentum, "cells")

@@ -187,9 +187,9 @@ class ControllerSettings:
         safety_fallback: the re-plan after a stop on plans not known to be jointly safe:
             ``cells`` (in pairs of agents that can both stop at once, an agent with its row short
             at tau = 1 and the agents whose plans leave their buffered Voronoi cells towards it
-            re-plan inside their cells; in pairs with momentum, the agents of a pair unsafe at
-            tau = 1 against the neighbour's plan as a fixed obstacle) or ``obstacles`` (every
-            agent of a pair unsafe at tau = 1 against its neighbours' plans).
+            re-plan inside their cells, and the agents of an unsafe pair with momentum re-plan
+            too; a re-plan treats neighbours with momentum as fixed obstacles) or ``obstacles``
+            (every agent of a pair unsafe at tau = 1 against its neighbours' plans).
     Examples:
         >>> from torch_gpmpc import ControllerSettings
         >>> s = ControllerSettings(horizon=10, eps=0.05)

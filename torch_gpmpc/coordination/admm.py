@@ -356,9 +356,9 @@ class ADMM:
             safety_fallback: when ADMM stops on plans not known to be jointly safe, re-plan the
                 agents :func:`~.fallback.fallback_agents` names: in pairs of agents that can both
                 stop at once, those with a row short at tau = 1 and the agents whose plans leave
-                their buffered Voronoi cells towards them, inside their cells; agents of unsafe
-                pairs with momentum against the neighbour's latest plan
-                (:func:`~.fallback.fallback_problem`).
+                their buffered Voronoi cells towards them, and the agents of unsafe pairs with
+                momentum; inside their cells, against neighbours with momentum as fixed
+                obstacles (:func:`~.fallback.fallback_problem`).
         """
         s = self.settings
         ctx, state = self.prepare(x0, xref, graph, warm, rho, risk_split, tol)

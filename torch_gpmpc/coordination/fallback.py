@@ -8,9 +8,11 @@ again and again, when its plan leaves its cell towards an agent that re-plans
 tau = 1. A re-plan keeps to the cells of its agent's cell pairs and treats its other neighbours'
 latest plans as fixed obstacles; the rest keep their plans. Both backends apply the same rule
 (:func:`fallback_agents`; the distributed world closes the agents' seeds over the graph,
-:func:`replanning_from_seeds`). A cell row's slack is priced by how far its pair has eaten into its
-margin (:func:`danger_weights`), so an agent squeezed between pairs already inside their bounds
-opens the closest pair first.
+:func:`replanning_from_seeds`), each agent with the bounds it knows: in process both rows of a
+pair, in the distributed backend its own (a pair with momentum whose two bounds differ can then be
+judged differently). A re-plan's slack is priced by how far each pair has eaten into its margin
+(:func:`danger_weights`), so an agent squeezed between pairs already inside their bounds opens
+the closest pair first.
 """
 
 from __future__ import annotations
@@ -245,9 +247,10 @@ def fallback_agents(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, pos
     agent whose plan leaves its cell towards an agent of its cell pairs that re-plans. Every other
     agent keeps its plan. A re-plan keeps to the agent's cells towards its cell pairs and treats
     its other neighbours' plans as fixed obstacles (:func:`fallback_problem`). A cell pair is then
-    safe at tau = 1 whatever its agents' other neighbours are: both keep (no row of theirs was
-    short), both re-plan (each inside its cell), or one re-plans inside its cell and the other's
-    plan is inside its own cell towards it (else it would re-plan too).
+    safe at tau = 1 as long as no re-plan needs slack: both keep (no row of theirs was short),
+    both re-plan (each inside its cell), or one re-plans inside its cell and the other's plan is
+    inside its own cell towards it (else it would re-plan too). Staying keeps every cell row; a
+    re-plan with rows towards neighbours with momentum too may need slack, shared by danger.
 
     Args:
         plans: (K, T+1, D) the agents' own plans. graph: the communication graph.

@@ -134,8 +134,9 @@ class StepResult:
         solution: the final :class:`LocalSolution` (kept for gradients and diagnostics).
         lost_agents: agents a distributed run has lost (they follow their last plans).
         fallback: ADMM stopped unconverged and some agents re-planned (inside their buffered
-            Voronoi cells, or with momentum against their neighbours' latest plans as fixed
-            obstacles; :func:`~torch_gpmpc.coordination.fallback.fallback_problem`).
+            Voronoi cells towards neighbours that can stop at once, against the latest plans of
+            neighbours with momentum as fixed obstacles;
+            :func:`~torch_gpmpc.coordination.fallback.fallback_problem`).
         unsafe_plan: after any fallback, some pair's applied plans are closer at tau = 1 than
             their collision rows require (``r_safe`` plus the pair's margin, less ``admm_tol``).
         pair_separation: (K, K) the applied plans' distance at tau = 1 per pair (NaN off edges).
