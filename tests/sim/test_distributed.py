@@ -404,3 +404,19 @@ def test_a_mixed_team_runs_distributed_as_in_process(coupling):
     assert np.abs(rollout.states - ref.states).max() <= 1e-9
     assert np.array_equal(rollout.admm_iterations, ref.admm_iterations)
     assert rollout.admm_iterations.max() > 5  # the agents meet: the rows bind
+
+
+def test_a_mixed_team_falls_back_distributed_as_in_process():
+    """Three single integrators and a double integrator close together, the paper's copies capped
+    at 2 iterations: the fallback re-plans on most steps, the single integrators inside their cells
+    towards each other and against the double integrator's plan (its rows priced on the cells'
+    scale), each distributed agent as a batch of one; the states equal the in-process run's."""
+    cfg = Config(scenario="circle", num_agents=4, radii=[0.3, 0.3, 0.2, 0.3], max_steps=8, admm_max_iter=2,
+                 models=["single-integrator", "single-integrator", "double-integrator", "single-integrator"],
+                 method="nominal", noise_std=0.0, wind_scale=0.0, circle_radius=0.6, admm_coupling="copies",
+                 reference="target")
+    rollout, report = simulate_distributed(cfg, agents_per_process=2, timeout_s=60)
+    ref = simulate(cfg)
+    assert not report.lost_agents and int(np.sum(ref.fallback)) >= 5
+    assert np.array_equal(rollout.fallback, ref.fallback)
+    assert np.abs(rollout.states - ref.states).max() <= 1e-9
