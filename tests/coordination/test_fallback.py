@@ -67,8 +67,15 @@ def test_every_pair_is_safe_after_the_re_plan_on_random_teams():
         k, m = torch.nonzero(graph.active & ~cells, as_tuple=True)  # pairs with momentum
         j = graph.slot_nbr[k, m]
         assert bool(replan[k[sep[k, j] < req[k, j] - tol]].all())
-        # without cells, exactly the agents of unsafe pairs re-plan
-        assert torch.equal(fallback_agents(plans, graph, bounds, tol, POS, momentum, "obstacles")[0], unsafe)
+        # without cells, exactly the agents of unsafe pairs re-plan: a pair closer at tau = 1 than
+        # the larger of its two bounds, less tol, counted pair by pair
+        by_pair = {(int(a), int(graph.slot_nbr[a, s])): float(bounds[a, s]) for a, s in graph.active.nonzero()}
+        expected = torch.zeros(K, dtype=torch.bool)
+        for (a, b), bound in by_pair.items():
+            gap = float(torch.linalg.vector_norm(plans[a, 1] - plans[b, 1]))
+            expected[a] |= gap < max(bound, by_pair[(b, a)]) - tol
+        assert torch.equal(unsafe, expected)
+        assert torch.equal(fallback_agents(plans, graph, bounds, tol, POS, momentum, "obstacles")[0], expected)
         joined += int((replan & ~seeds & ~unsafe).sum())
         exits = cell_exits(plans, graph, bounds, tol, POS)
         towards_member = exits & replan[graph.slot_nbr] & cells

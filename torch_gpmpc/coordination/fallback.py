@@ -18,7 +18,6 @@ the closest pair first.
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import torch
 from torch import Tensor
@@ -166,8 +165,24 @@ def own_rows_unsafe(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, pos
 
     Args: as :func:`cell_exits`.
     """
-    gap = torch.linalg.vector_norm(plans[:, None, 1, position] - plans[graph.slot_nbr][:, :, 1, position], dim=-1)
-    return ((gap < bounds - tol) & graph.active).any(dim=1)
+    return ((slot_gaps(plans, graph, position) < bounds - tol) & graph.active).any(dim=1)
+
+
+def slot_gaps(plans: Tensor, graph: Graph, position: list[int]) -> Tensor:
+    """(K, M): the distance at tau = 1 between each agent's plan (K, T+1, D) and each of its slot
+    neighbours' (entries of empty slots mean nothing)."""
+    p = plans[:, 1, position]
+    return torch.linalg.vector_norm(p[:, None] - p[graph.slot_nbr], dim=-1)
+
+
+def pair_bounds(bounds: Tensor, graph: Graph) -> Tensor:
+    """(K, M): the larger of each pair's two row bounds per slot (``bounds`` (K, M); a bound an
+    agent does not know is ``-inf``, and NaN counts as unknown)."""
+    K = bounds.shape[0]
+    k_idx, m_idx = torch.nonzero(graph.active, as_tuple=True)
+    by_id = bounds.new_full((K, K), float("-inf"))
+    by_id[k_idx, graph.slot_nbr[k_idx, m_idx]] = bounds[k_idx, m_idx]
+    return torch.fmax(by_id, by_id.T).gather(1, graph.slot_nbr)
 
 
 def replanning_closure(seeds: Tensor, exits: Tensor, graph: Graph) -> Tensor:
@@ -214,13 +229,7 @@ def unsafe_slots(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, positi
     """(K, M) bool: the pairs whose plans at tau = 1 are closer than the larger of the pair's two
     row bounds asks, less ``tol`` (:func:`pair_safety`'s test per slot; a bound an agent does not
     know is ``-inf``). Arguments as :func:`cell_exits`."""
-    K = plans.shape[0]
-    k_idx, m_idx = torch.nonzero(graph.active, as_tuple=True)
-    by_id = bounds.new_full((K, K), float("-inf"))
-    by_id[k_idx, graph.slot_nbr[k_idx, m_idx]] = bounds[k_idx, m_idx]
-    pair_bound = torch.fmax(by_id, by_id.T).gather(1, graph.slot_nbr)
-    gap = torch.linalg.vector_norm(plans[:, None, 1, position] - plans[graph.slot_nbr][:, :, 1, position], dim=-1)
-    return (gap < pair_bound - tol) & graph.active
+    return (slot_gaps(plans, graph, position) < pair_bounds(bounds, graph) - tol) & graph.active
 
 
 def fallback_seeds(plans: Tensor, graph: Graph, bounds: Tensor, tol: float, position: list[int],
@@ -279,20 +288,19 @@ def fallback_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tenso
     """
     if not bool(cells.any()):
         return obstacle_problem(data, nbr_plans)
-    cell = cell_problem(data, own_plans, nbr_plans, position, contact)
-    if bool((cells | ~data.active).all()):  # empty slots are ignored
-        return cell
-    fixed = obstacle_problem(data, nbr_plans)
-    if contact is not None:
-        # an agent with cell rows prices its other rows on the same scale, else a squeeze between
-        # a cell and a neighbour with momentum would always give way towards the latter
-        w = danger_weights(own_plans.detach(), nbr_plans.detach(), data.bounds.detach()[:, :, 0], contact, position)
-        fixed = priced_by_danger(fixed, torch.where(cells.any(dim=1, keepdim=True), w, torch.ones_like(w)))
-    rows = cells[:, :, None, None]
-    return dataclasses.replace(fixed, normals=torch.where(rows, cell.normals, fixed.normals),
-                               bounds=torch.where(cells[:, :, None], cell.bounds, fixed.bounds),
-                               rho_nbr=torch.where(cells, cell.rho_nbr, fixed.rho_nbr),
-                               z_nbr=torch.where(rows, cell.z_nbr, fixed.z_nbr))
+    posed = cell_problem(data, own_plans, nbr_plans, position)
+    if not bool((cells | ~data.active).all()):  # empty slots are ignored
+        fixed, rows = obstacle_problem(data, nbr_plans), cells[:, :, None, None]
+        posed = dataclasses.replace(fixed, normals=torch.where(rows, posed.normals, fixed.normals),
+                                    bounds=torch.where(cells[:, :, None], posed.bounds, fixed.bounds),
+                                    rho_nbr=torch.where(cells, posed.rho_nbr, fixed.rho_nbr),
+                                    z_nbr=torch.where(rows, posed.z_nbr, fixed.z_nbr))
+    if contact is None:
+        return posed
+    # an agent with cell rows prices all its rows on one danger scale, else a squeeze between a
+    # cell and a neighbour with momentum would always give way towards the latter
+    w = danger_weights(own_plans.detach(), nbr_plans.detach(), data.bounds.detach()[:, :, 0], contact, position)
+    return priced_by_danger(posed, torch.where(cells.any(dim=1, keepdim=True), w, torch.ones_like(w)))
 
 
 def pair_safety(plans: Tensor, graph: Graph, bounds: Tensor, tol: float,
@@ -313,15 +321,12 @@ def pair_safety(plans: Tensor, graph: Graph, bounds: Tensor, tol: float,
     Returns:
         ``(unsafe (K,) bool, separation (K, K), required (K, K))``; off-edge entries are NaN.
     """
-    if position is not None:
-        plans = plans[..., position]
+    position = list(range(plans.shape[-1])) if position is None else position
+    gaps, need = slot_gaps(plans, graph, position), pair_bounds(bounds, graph)
     K = plans.shape[0]
     sep = torch.full((K, K), float("nan"), dtype=plans.dtype)
     req = torch.full((K, K), float("nan"), dtype=plans.dtype)
     k_idx, m_idx = torch.nonzero(graph.active, as_tuple=True)
     j_idx = graph.slot_nbr[k_idx, m_idx]
-    sep[k_idx, j_idx] = torch.linalg.vector_norm(plans[k_idx, 1] - plans[j_idx, 1], dim=-1)
-    req[k_idx, j_idx] = bounds[k_idx, m_idx]
-    req = torch.fmax(req, req.T)
-    unsafe_pair = torch.nan_to_num(sep, nan=math.inf) < torch.nan_to_num(req, nan=-math.inf) - tol
-    return unsafe_pair.any(dim=1), sep, req
+    sep[k_idx, j_idx], req[k_idx, j_idx] = gaps[k_idx, m_idx], need[k_idx, m_idx]
+    return ((gaps < need - tol) & graph.active).any(dim=1), sep, req
