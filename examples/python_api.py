@@ -6,7 +6,8 @@ kernel), wrapped by ``ResidualGP.from_gpytorch``; a ``Controller`` runs 50 close
 then the gradients of a plan cost to rho, the risk split and one lengthscale are taken and
 checked against central finite differences.
 
-Run: ``python examples/python_api.py`` (9 s wall when last measured, alone on a 2-core machine).
+Run: ``python examples/python_api.py`` (10 s wall, alone on a 2-core machine; the first run after
+installing also compiles the solver kernel, 20-30 s).
 """
 
 from __future__ import annotations

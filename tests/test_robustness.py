@@ -304,6 +304,7 @@ CLI_CASES = [
     # ---- config (file and --set)
     ("config-unknown-key-file", lambda t, a: run_config(t, "c.toml", "horizn = 5\n"), "did you mean 'horizon'"),
     ("config-unknown-key-set", lambda t, a: run(t, "--set", "rhoo=5"), "did you mean 'rho'"),
+    ("config-unknown-key-unlike-any", lambda t, a: run(t, "--set", "nosuch=1"), "`gpmpc keys` lists them"),
     ("config-wrong-type-str", lambda t, a: run(t, "--set", "horizon=ten"), "expected int, got str"),
     ("config-wrong-type-float", lambda t, a: run_config(t, "c.toml", "horizon = 1.5\n"), "expected int, got float"),
     ("config-wrong-type-bool", lambda t, a: run(t, "--set", "horizon=true"), "expected int, got bool"),
@@ -397,6 +398,7 @@ CLI_CASES = [
     # ---- GP model files for `gpmpc run --gp-model`
     ("model-random-bytes", lambda t, a: run_model(t, write(t, "m.pt", os.urandom(512))), "cannot be read"),
     ("model-empty-file", lambda t, a: run_model(t, write(t, "m.pt", b"")), "the file is empty"),
+    ("model-is-transitions", lambda t, a: run_model(t, write_npz(t, **arrays())), "gpmpc fit-gp --transitions t.npz"),
     ("model-truncated", lambda t, a: run_model(t, _truncated(a.gp2, t, "m.pt")), "cannot be read"),
     ("model-bit-flipped-header", lambda t, a: run_model(t, _bitflipped(a.gp2, t, "m.pt")), "corrupt"),
     ("model-bit-flipped-tensor", lambda t, a: run_model(t, _flip_tensor_bytes(a.gp2, t)), "checksum mismatch"),

@@ -49,10 +49,11 @@ print(f"autograd {rho.grad.item():+.6f}, finite differences {fd.item():+.6f}")
 
 # %%
 log_rho = torch.tensor(20.0, dtype=torch.float64).log().requires_grad_(True)
-opt = torch.optim.Adam([log_rho], lr=0.3)
+opt = torch.optim.Adam([log_rho], lr=0.15)
 for i in range(5):
     opt.zero_grad()
-    loss = plan_cost(log_rho.exp())
+    rho_i = log_rho.exp()
+    loss = plan_cost(rho_i)
     loss.backward()
+    print(f"iteration {i}: rho {rho_i.item():7.3f}, plan cost {loss.item():.4f}")
     opt.step()
-    print(f"iteration {i}: rho {log_rho.exp().item():7.3f}, plan cost {loss.item():.4f}")

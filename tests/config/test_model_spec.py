@@ -177,3 +177,11 @@ def test_workspace_is_validated_in_config_and_scenario_files(tmp_path):
     path.write_text(json.dumps({"starts": [[-3, 0]], "targets": [[3, 0]], "workspace": {"min": [-4], "max": [4]}}))
     with pytest.raises(GpmpcError, match="scenario file .*workspace has 1 coordinates"):
         make_scenario(Config(), path)
+
+
+def test_states_at_names_the_position_size():
+    nominal = NominalModel(double_integrator(2, 0.1, 2.0))
+    x = nominal.states_at(torch.tensor([[1.0, -2.0]], dtype=torch.float64))
+    assert x.tolist() == [[1.0, -2.0, 0.0, 0.0]]
+    with pytest.raises(GpmpcError, match=r"shape \(\.\.\., 2\).*got \(2, 3\)"):
+        nominal.states_at(torch.zeros(2, 3, dtype=torch.float64))

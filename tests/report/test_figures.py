@@ -7,6 +7,7 @@ import pytest
 
 from torch_gpmpc.report import figures as plots
 from torch_gpmpc.errors import GpmpcError
+from torch_gpmpc.sim.metrics import pair_index
 from tests.sim.test_metrics import HAND_STATES, HAND_TARGETS, make_rollout
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -89,17 +90,27 @@ def test_a_large_team_gets_summary_figures(tmp_path):
     """Past MAX_LABELLED_AGENTS the distance figure draws the closest pair and the median nearest
     neighbour per step (not a line per pair) and the snapshots draw collections: a 40-agent run
     writes every figure, and the nearest-neighbour distances match the pair distances."""
-    from torch_gpmpc.sim.metrics import pair_distances
+    from torch_gpmpc.sim.metrics import nearest_neighbour_distances, pair_distances
 
     rng = np.random.default_rng(0)
     k = 4 * plots.MAX_LABELLED_AGENTS
     states = np.cumsum(rng.normal(scale=0.1, size=(6, k, 2)), axis=0) + rng.uniform(-5, 5, size=(1, k, 2))
-    nearest = plots._nearest_neighbour_distances(states)
+    nearest = nearest_neighbour_distances(states)
     np.testing.assert_allclose(nearest.min(axis=1), pair_distances(states).min(axis=1), rtol=0, atol=1e-12)
     assert nearest.shape == (6, k) and np.isfinite(nearest).all()
     for p in plots.save_run_figures(make_rollout(states, states[-1]), tmp_path):
         assert_png(p)
     assert_no_temp_files(tmp_path)
+
+
+def test_a_team_with_many_pairs_draws_them_grey_without_a_warning(tmp_path, recwarn):
+    """45 pairs (10 agents): one legend entry for the closest pair instead of 45, which collapsed
+    the axes (matplotlib warned that the constrained layout was not applied)."""
+    rng = np.random.default_rng(2)
+    states = np.cumsum(rng.normal(scale=0.1, size=(5, plots.MAX_LABELLED_AGENTS, 2)), axis=0) * 10
+    assert len(pair_index(plots.MAX_LABELLED_AGENTS)) > plots.MAX_LABELLED_PAIRS
+    assert_png(plots.plot_distances(make_rollout(states, states[-1]), tmp_path / "d.png"))
+    assert not [w for w in recwarn if "constrained_layout" in str(w.message)]
 
 
 def test_a_large_3d_team_gets_its_paths_drawn(tmp_path):

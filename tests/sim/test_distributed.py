@@ -343,8 +343,10 @@ def test_killed_agent_becomes_an_obstacle_and_the_run_reports_it(tmp_path, coupl
             os.kill(pids[2], signal.SIGKILL)  # rank 2 hosts agent 2 alone
 
     rollout, report = simulate_distributed(cfg, make_scenario(cfg, str(scen)), agents_per_process=2,
-                                           timeout_s=20, on_launch=pids.update, on_step=on_step)
+                                           timeout_s=20, on_launch=pids.update, on_step=on_step,
+                                           log_dir=tmp_path / "agent_logs")
     assert rollout.num_steps == cfg.max_steps
+    assert sorted(p.name for p in (tmp_path / "agent_logs").glob("rank*.log")) == ["rank1.log", "rank2.log"]
     assert set(report.lost_agents) == {2} and report.lost_agents[2] == 2
     assert report.exit_codes[2] == -signal.SIGKILL and report.exit_codes[1] == 0
     assert "agent 2 at step 2" in report.summary()

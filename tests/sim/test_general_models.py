@@ -4,6 +4,7 @@ backend on it, and the user's chain collect -> fit-gp -> run with a hand-written
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,16 +16,8 @@ from torch_gpmpc.sim.distributed import simulate_distributed
 from torch_gpmpc.sim.metrics import compute_metrics
 from tests.helpers import lag_model
 
-HAND_WRITTEN = """name = "hand-written double integrator"
-dt = 0.1
-A = [[1, 0, 0.1, 0], [0, 1, 0, 0.1], [0, 0, 1, 0], [0, 0, 0, 1]]
-B = [[0.005, 0], [0, 0.005], [0.1, 0], [0, 0.1]]
-position = [0, 1]
-residual = [2, 3]
-gp_inputs = ["x0", "x1"]
-[input_bound]
-norm = 2.0
-"""
+#: The Models page's hand-written model file.
+HAND_WRITTEN = (Path(__file__).resolve().parents[2] / "examples" / "models" / "double_integrator_2d.toml").read_text()
 
 
 def test_double_integrator_pair_swaps_places_safely():

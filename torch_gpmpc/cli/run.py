@@ -80,6 +80,8 @@ def main(args) -> int:
         from torch_gpmpc.dynamics.team import team_system_from_config
         from torch_gpmpc.gp import fit_agent_gps
 
+        print(f"gpmpc: fitting {scenario.num_agents} residual GPs ({cfg.gp_samples} transitions each; "
+              f"--gp-model loads a fitted one) ...", file=sys.stderr, flush=True)
         with collector.setup_phase(collect=True):  # fits (and flights) make garbage as they go
             gps = fit_agent_gps(cfg, team_system_from_config(cfg), scenario.num_agents)
     tb = TBLogger(out / "tb")

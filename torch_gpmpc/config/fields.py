@@ -56,15 +56,17 @@ def check_keys(data: Mapping[str, Any], keys: Iterable[str], what: str, prefix: 
     what to do, else naming the nearest valid key.
 
     Raises:
-        GpmpcError: ``<what> 'key': <why>; delete the key`` or ``unknown <what> 'key'; did you mean
-        '<prefix>near'?``.
+        GpmpcError: ``<what> 'key': <why>; delete the key``, ``unknown <what> 'key'; did you mean
+        '<prefix>near'?`` or, with no key alike, ``unknown <what> 'key'; `gpmpc keys` lists them``.
     """
     keys = list(keys)
     for key in data:
         if key in REMOVED_KEYS and key not in keys:
             raise GpmpcError(f"{what} '{prefix}{key}': {REMOVED_KEYS[key]}")
         if key not in keys:
-            raise GpmpcError(f"unknown {what} '{key}'; did you mean '{prefix}{nearest_key(key, keys)}'?")
+            alike = difflib.get_close_matches(str(key), keys, n=1)
+            hint = f"did you mean '{prefix}{alike[0]}'?" if alike else "`gpmpc keys` lists them"
+            raise GpmpcError(f"unknown {what} '{key}'; {hint}")
 
 
 def field_types(cls: type) -> dict[str, Any]:

@@ -135,7 +135,14 @@ class NominalModel(SpecSizes):
         return torch.stack(cols, dim=-1)
 
     def states_at(self, positions: Tensor) -> Tensor:
-        """States at rest at ``positions`` (..., P): the position set, every other state 0; (..., n)."""
+        """States at rest at ``positions`` (..., P): the position set, every other state 0; (..., n).
+
+        Raises:
+            GpmpcError: when the last dimension of ``positions`` is not P.
+        """
+        if positions.ndim < 1 or positions.shape[-1] != len(self.position):
+            raise GpmpcError(f"states_at: positions must have shape (..., {len(self.position)}) (the model's position "
+                             f"states {list(self.position)}), got {tuple(positions.shape)}")
         x = positions.new_zeros(*positions.shape[:-1], self.dim)
         x[..., self.position] = positions
         return x

@@ -38,6 +38,9 @@ def read_payload(path: Path, src: str) -> Any:
     if path.stat().st_size == 0:
         raise GpmpcError(f"{src}: cannot be read: the file is empty (an interrupted copy?); "
                          "fit one with `gpmpc fit-gp --out FILE`")
+    if _is_numpy_archive(path):
+        raise GpmpcError(f"{src}: is a NumPy archive (transitions or a rollout), not a GP model; fit one from "
+                         f"transitions with `gpmpc fit-gp --transitions {path.name} --out gp.pt`")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # e.g. "Detected pickle protocol 4"
@@ -51,8 +54,21 @@ def read_payload(path: Path, src: str) -> Any:
                          "pickle content); only files written by ResidualGP.save are accepted") from None
     except Exception as exc:  # torch raises RuntimeError/EOFError/ValueError... on garbage
         first = (str(exc).splitlines() or [""])[0].split(". ")[0]  # torch's miniz errors run on
-        raise GpmpcError(f"{src}: cannot be read (corrupt, truncated or not a torch file): "
-                         f"{type(exc).__name__}: {first}") from None
+        raise GpmpcError(f"{src}: cannot be read (corrupt, truncated or not a torch file: "
+                         f"{type(exc).__name__}: {first}); fit one with `gpmpc fit-gp --out FILE`") from None
+
+
+def _is_numpy_archive(path: Path) -> bool:
+    """Whether ``path`` is a zip of ``.npy`` entries (``numpy.savez``), which torch's loader
+    would report as a corrupt torch file."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as archive:
+            names = archive.namelist()
+    except (zipfile.BadZipFile, OSError):
+        return False
+    return bool(names) and all(name.endswith(".npy") for name in names)
 
 
 def payload_checksum(payload: dict) -> str:

@@ -23,8 +23,8 @@ from matplotlib.patches import Circle, Rectangle
 from torch_gpmpc.config.obstacles import ObstacleField
 from torch_gpmpc.errors import GpmpcError
 from torch_gpmpc.fileio import atomic_path
-from torch_gpmpc.sim.metrics import (body_radii_of, pair_distances, pair_index, path_lengths, run_setting,
-                                     time_to_target)
+from torch_gpmpc.sim.metrics import (body_radii_of, nearest_neighbour_distances, pair_distances, pair_index,
+                                     path_lengths, run_setting, time_to_target)
 from torch_gpmpc.sim.rollout import Rollout
 
 logger = logging.getLogger(__name__)
@@ -35,6 +35,8 @@ _DPI = 110
 #: the median nearest neighbour per step instead of a line per pair (499 500 lines at K = 1000;
 #: the tab10 colours repeat after 10 agents anyway).
 MAX_LABELLED_AGENTS = 10
+#: Distance figures with more pairs than this draw the pairs grey and label only the closest.
+MAX_LABELLED_PAIRS = 10
 
 
 def _color(k: int) -> str:
@@ -200,8 +202,9 @@ def _share_limits(axes: Sequence[Any], states: np.ndarray, targets: Any) -> None
 
 
 def plot_distances(rollout: Rollout, path: str | Path) -> Path:
-    """Inter-agent distance over time, with r_safe dashed: one line per pair, or for a team of
-    more than :data:`MAX_LABELLED_AGENTS` the closest pair and the agents' median distance to
+    """Inter-agent distance over time, with r_safe dashed: one line per pair (beyond
+    :data:`MAX_LABELLED_PAIRS` pairs grey, the closest pair coloured and labelled), or for a team
+    of more than :data:`MAX_LABELLED_AGENTS` the closest pair and the agents' median distance to
     their nearest neighbour per step.
 
     Args:
@@ -217,13 +220,20 @@ def plot_distances(rollout: Rollout, path: str | Path) -> Path:
     ax = axes[0, 0]
     steps = np.arange(states.shape[0])
     if states.shape[1] > MAX_LABELLED_AGENTS:
-        nearest = _nearest_neighbour_distances(states)  # (S+1, K)
+        nearest = nearest_neighbour_distances(states)  # (S+1, K)
         ax.plot(steps, nearest.min(axis=1), color="C3", lw=1.5, label="closest pair")
         ax.plot(steps, np.median(nearest, axis=1), color="C0", lw=1.2, label="median nearest neighbour")
     else:
         dists = pair_distances(states)  # (S+1, P)
-        for p, (i, j) in enumerate(pair_index(states.shape[1])):
-            ax.plot(steps, dists[:, p], color=_color(p), label=f"agents {i}-{j}")
+        pairs = pair_index(states.shape[1])
+        if len(pairs) <= MAX_LABELLED_PAIRS:
+            for p, (i, j) in enumerate(pairs):
+                ax.plot(steps, dists[:, p], color=_color(p), label=f"agents {i}-{j}")
+        else:
+            ax.plot(steps, dists, color="0.75", lw=0.6)
+            closest = int(np.argmin(dists.min(axis=0)))
+            i, j = pairs[closest]
+            ax.plot(steps, dists[:, closest], color="C3", lw=1.5, label=f"closest pair (agents {i}-{j})")
         if dists.shape[1] == 0:
             ax.text(0.5, 0.5, "single agent: no pairs", ha="center", transform=ax.transAxes)
     ax.axhline(r_safe, color="k", ls="--", lw=1.0, label=f"r_safe = {r_safe:g}")
@@ -233,17 +243,6 @@ def plot_distances(rollout: Rollout, path: str | Path) -> Path:
     ax.grid(True, lw=0.3)
     ax.legend(fontsize=7)
     return _save(fig, path)
-
-
-def _nearest_neighbour_distances(states: np.ndarray) -> np.ndarray:
-    """Each agent's distance to its nearest other agent per step: (S+1, K, D) -> (S+1, K).
-    One step's (K, K) distances at a time (16 MB at K = 1000)."""
-    out = np.empty(states.shape[:2])
-    for s, x in enumerate(states):
-        d = np.linalg.norm(x[:, None, :] - x[None, :, :], axis=-1)
-        np.fill_diagonal(d, np.inf)
-        out[s] = d.min(axis=1)
-    return out
 
 
 def plot_admm_residuals(rollout: Rollout, path: str | Path) -> Path:

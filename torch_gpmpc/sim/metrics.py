@@ -38,6 +38,17 @@ OBSTACLE_TOL = 1e-6
 PAIR_CHUNK = 1 << 21
 
 
+def nearest_neighbour_distances(states: np.ndarray) -> np.ndarray:
+    """Each agent's distance to its nearest other agent per step: (S+1, K, D) -> (S+1, K).
+    One step's (K, K) distances at a time (16 MB at K = 1000)."""
+    out = np.empty(states.shape[:2])
+    for s, x in enumerate(states):
+        d = np.linalg.norm(x[:, None, :] - x[None, :, :], axis=-1)
+        np.fill_diagonal(d, np.inf)
+        out[s] = d.min(axis=1)
+    return out
+
+
 def pair_index(num_agents: int) -> list[tuple[int, int]]:
     """All unordered agent pairs (i, j) with i < j, in row-major order.
 
