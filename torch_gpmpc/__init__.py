@@ -6,8 +6,8 @@ the ``ResidualModel`` protocol; ``OffsetCorrected`` for offset-free tracking),
 ``ControllerSettings``, ``Controller`` (``step``). Its parts:
 ``LocalStep`` (the per-agent step), ``ADMM`` (``prepare``/``iterate``/``solve_step``),
 ``make_local_solver`` with the ``LocalProblemData`` -> ``LocalSolution`` contract and the
-backends ``InteriorPointMPC`` (default, compiled) and ``CvxpyLayerMPC`` (reference; ``LocalMPC`` is
-its name in the design's API contract), the problem's cost ``QuadraticCost``. Runs: ``Config``,
+backends ``InteriorPointMPC`` (default, compiled), ``CvxpyLayerMPC`` (reference; ``LocalMPC`` is
+its name in the design's API contract) and ``DirectClarabelMPC``, the problem's cost ``QuadraticCost``. Runs: ``Config``,
 ``simulate``, ``Rollout``, ``compute_metrics``; data: ``Transitions``.
 Imports are lazy so that ``gpmpc --help`` and light modules stay fast. Importing the
 package changes no global state: every tensor the package creates is float64 explicitly.
@@ -29,6 +29,7 @@ _EXPORTS = {
     "fit_residual_gp": "gp.fit",
     "CvxpyLayerMPC": "control.solvers.conic",
     "InteriorPointMPC": "control.solvers.interior_point",
+    "DirectClarabelMPC": "control.solvers.direct_clarabel",
     "make_local_solver": "control.solvers",
     "LocalProblemData": "control.problem",
     "LocalSolution": "control.problem",

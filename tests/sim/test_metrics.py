@@ -295,3 +295,22 @@ def test_pair_summary_in_chunks_equals_one_reduction(monkeypatch):
     assert metrics.pair_summary(states, required)["min_clearance"] is None
     single = metrics.pair_summary(states[:, :1], 0.5)
     assert single["violations"] == 0 and single["min_clearance"] is None and np.isinf(single["closest"]).all()
+
+
+def test_prediction_metrics_split_at_the_wind_change_by_hand():
+    """Errors 0.1 for 3 steps then 0.3 for 2 (change at step 3), standard deviation 0.1: before the
+    change every row within 1.96 sd, after it none; RMSEs by hand."""
+    from dataclasses import replace
+
+    from torch_gpmpc.sim.metrics import prediction_metrics
+
+    states = np.zeros((6, 2, 2))
+    error = np.concatenate([np.full((3, 2, 2), 0.1), np.full((2, 2, 2), 0.3)])
+    rollout = replace(make_rollout(states, states[-1]), prediction_error=error, prediction_var=np.full_like(error, 0.01),
+                      gp_update_time=np.zeros(5))
+    m = prediction_metrics(rollout, change_step=3)
+    assert m["online_prediction_rmse_before_change"] == pytest.approx(0.1)
+    assert m["online_prediction_rmse_after_change"] == pytest.approx(0.3)
+    assert m["online_prediction_rmse_at_change"] == pytest.approx(0.3)
+    assert (m["online_coverage95_before_change"], m["online_coverage95_after_change"]) == (1.0, 0.0)
+    assert m["online_coverage95"] == pytest.approx(0.6) and m["frozen_prediction_rmse"] is None

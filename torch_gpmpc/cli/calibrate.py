@@ -50,6 +50,7 @@ def main(args) -> int:
     write_json(out / "calibration.json", payload)
     plot_calibration(rows, out / "calibration.png")
     print(_table(rows))
+    print(f"wrote {out / 'calibration.json'} and {out / 'calibration.png'}")
     return 0
 
 
@@ -77,6 +78,7 @@ def _mission(args, cfg, out, workers: int) -> int:
     write_json(out / "calibration.json", payload)
     plot_mission_calibration(entries, out / "mission.png")
     print(_mission_table(entries))
+    print(f"wrote {out / 'calibration.json'} (mission, mission_rows) and {out / 'mission.png'}")
     return 0
 
 

@@ -203,7 +203,9 @@ def compute_metrics(rollout: Rollout | None = None, *, states: Any = None, targe
     with GPs, their one-step prediction during the run (:func:`prediction_metrics`).
 
     Args:
-        rollout: the run, with ``states`` (S+1, K, D) and ``targets`` (K, D).
+        rollout: the run, with ``states`` (S+1, K, n) and ``targets`` (K, P).
+        states, targets, r_safe, goal_tol, position, radii: the loop form above (without
+            ``rollout``); ``radii`` (K,) the body radii.
 
     Returns:
         Dict of JSON-serializable values.
@@ -300,8 +302,9 @@ def trajectory_metrics(states: Any, targets: Any, r_safe: float = 0.5, goal_tol:
     if position is not None:
         pos = pos[..., list(position)]
     if goal.shape != pos.shape[1:]:
-        raise GpmpcError(f"compute_metrics: targets must have shape (K, P) = {pos.shape[1:]}, got {goal.shape}; "
-                         "pass position=[state indices] when states hold more than the position")
+        fix = "one row per agent" if goal.ndim == 2 and goal.shape[0] != pos.shape[1] else \
+            "pass position=[state indices] when states hold more than the position"
+        raise GpmpcError(f"compute_metrics: targets must have shape (K, P) = {pos.shape[1:]}, got {goal.shape}; {fix}")
     for name, arr in (("states", pos), ("targets", goal)):
         if not np.isfinite(arr).all():
             raise GpmpcError(f"compute_metrics: {name} hold NaN or inf")
@@ -389,6 +392,7 @@ def prediction_metrics(rollout: Rollout, change_step: int | None) -> dict[str, A
         out.update({"online_prediction_rmse_after_change": rmse(after),
                     "online_coverage95_after_change": coverage(after),
                     "online_prediction_rmse_before_change": rmse(before),
+                    "online_coverage95_before_change": coverage(before),
                     "online_prediction_rmse_at_change": rmse(slice(c, c + 1)),
                     "frozen_prediction_rmse_after_change": rmse(after, frozen)})
     return out

@@ -51,12 +51,13 @@ class Rollout:
         fallback: the safety fallback re-planned some agent at this step, bool, shape (S,).
         unsafe_plan: some pair's applied plans were closer at tau = 1 than their rows require,
             bool, shape (S,).
-        pair_separation: the applied plans' distance at tau = 1 per pair, shape (S, P) (pairs in
-            the order of :func:`~torch_gpmpc.sim.metrics.pair_index`; NaN for pairs not in contact).
+        pair_separation: the applied plans' distance at tau = 1 per pair, shape (S, K (K-1) / 2)
+            (pairs in the order of :func:`~torch_gpmpc.sim.metrics.pair_index`; NaN for pairs not
+            in contact).
         pair_required: the separation the pair's collision rows required at tau = 1 (``r_safe``
-            plus the pair margin), shape (S, P), NaN for pairs not in contact.
+            plus the pair margin), shape (S, K (K-1) / 2), NaN for pairs not in contact.
         pair_risk: the bound on each pair's probability of colliding at the next sample, from the
-            applied plans and the agents' variances at tau = 1, shape (S, P), NaN for pairs not
+            applied plans and the agents' variances at tau = 1, shape (S, K (K-1) / 2), NaN for pairs not
             in contact or methods without margins (``None`` in older files).
         obstacle_risk: each agent's summed bound on hitting an obstacle of its rows at the next
             sample, shape (S, K), NaN for methods without margins (``None`` without obstacles and
