@@ -267,7 +267,7 @@ def test_cell_rows_price_slack_by_danger_so_a_jam_opens_its_closest_pair_first()
 
     solve = make_local_solver(T, 2, 2, nominal, 2.0, 1e-3, 1e4, "fast")
     equal = solve(cell_problem(data, state.plans, nbr, [0, 1]))
-    priced = solve(cell_problem(data, state.plans, nbr, [0, 1], contact=0.5))
+    priced = solve(fallback_problem(data, state.plans, nbr, [0, 1], graph.active, contact=0.5))
     assert bool(equal.ok.all()) and bool(priced.ok.all())
     # the outer agents step away at full speed either way
     torch.testing.assert_close(priced.X[[0, 2], 1, 0], torch.tensor([-0.8, 1.05], dtype=torch.float64))
@@ -285,7 +285,7 @@ def test_cell_rows_price_slack_by_danger_so_a_jam_opens_its_closest_pair_first()
     ctx, state = admm.prepare(far, xref, communication_graph(far, None), None)
     data = admm.agent_step.assemble(far, xref, state, graph, ctx.rho, ctx.eps_self).data
     a = solve(cell_problem(data, state.plans, state.plans[graph.slot_nbr], [0, 1]))
-    b = solve(cell_problem(data, state.plans, state.plans[graph.slot_nbr], [0, 1], contact=0.5))
+    b = solve(fallback_problem(data, state.plans, state.plans[graph.slot_nbr], [0, 1], graph.active, contact=0.5))
     assert torch.equal(a.X, b.X)
 
 

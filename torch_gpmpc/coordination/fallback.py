@@ -70,8 +70,8 @@ def cell_planes(own_plans: Tensor, nbr_plans: Tensor, position: list[int]) -> tu
     return n, m
 
 
-def cell_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, position: list[int],
-                 contact: Tensor | float | None = None) -> LocalProblemData:
+def cell_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor,
+                 position: list[int]) -> LocalProblemData:
     """The safety fallback's re-plan: the local problems with each collision row replaced by the
     agent's buffered Voronoi cell at every step, ``n^T p_tau >= m + b_tau / 2`` (:func:`cell_planes`;
     ``b_tau`` the row's bound, chance margin included), and no consensus pull.
@@ -87,10 +87,6 @@ def cell_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, p
         own_plans: (B, T+1, D) the agents' latest plans (tau = 0: the measured states).
         nbr_plans: (B, M, T+1, D) their neighbours' latest plans.
         position: the state indices of the position.
-        contact: the distance each pair's rows ask before margins, (B, M, 1) or a number
-            (:func:`~torch_gpmpc.coordination.bodies.slot_distances`: ``r_k + r_j`` or ``r_safe``, plus
-            ``pair_buffer``): each row's slack is then priced by :func:`danger_weights`; ``None``:
-            every row at the solver's one price.
     """
     n, m = cell_planes(own_plans.detach(), nbr_plans.detach(), position)
     T, D = data.normals.shape[2], data.normals.shape[3]
@@ -98,11 +94,7 @@ def cell_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tensor, p
     # a virtual neighbour at m - b/2 along n turns the row n^T (X - Y) >= b into n^T X >= m + b / 2
     anchor = (m[..., None, None] - 0.5 * data.bounds.detach()[..., None]) * normals
     obstacles = torch.cat([anchor[:, :, :1], anchor], dim=2)  # tau = 0 has no row
-    cell = obstacle_problem(dataclasses.replace(data, normals=normals), obstacles)
-    if contact is None:
-        return cell
-    return priced_by_danger(cell, danger_weights(own_plans.detach(), nbr_plans.detach(),
-                                                 data.bounds.detach()[:, :, 0], contact, position))
+    return obstacle_problem(dataclasses.replace(data, normals=normals), obstacles)
 
 
 def priced_by_danger(problem: LocalProblemData, w: Tensor) -> LocalProblemData:
@@ -284,7 +276,10 @@ def fallback_problem(data: LocalProblemData, own_plans: Tensor, nbr_plans: Tenso
     Args:
         data: the last iteration's problems. own_plans: (B, T+1, D). nbr_plans: (B, M, T+1, D).
         position: the state indices of the position. cells: (B, M) bool.
-        contact: the pairs' collision distances for the cell rows' prices (:func:`cell_problem`).
+        contact: the distance each pair's rows ask before margins, (B, M, 1) or a number
+            (:func:`~torch_gpmpc.coordination.bodies.slot_distances`: ``r_k + r_j`` or ``r_safe``, plus
+            ``pair_buffer``): the rows of an agent with cell rows are then priced by
+            :func:`danger_weights`; ``None``: every row at the solver's one price.
     """
     if not bool(cells.any()):
         return obstacle_problem(data, nbr_plans)
