@@ -35,11 +35,12 @@ class Rules:
     ranges: Mapping[str, Range] = field(default_factory=dict)
 
 
-def nearest_key(name: str, keys: Iterable[str]) -> str:
-    """The key in ``keys`` closest to ``name`` (for "did you mean" messages)."""
-    keys = list(keys)
-    match = difflib.get_close_matches(str(name), keys, n=1, cutoff=0.0)
-    return match[0] if match else keys[0]
+def nearest_key(name: str, keys: Iterable[str], cutoff: float = 0.0) -> str | None:
+    """The key in ``keys`` closest to ``name`` (for "did you mean" messages); ``None`` when no key
+    is at least ``cutoff`` alike (``difflib``'s ratio; with the default 0 every key is, so a
+    non-empty ``keys`` always gives one)."""
+    match = difflib.get_close_matches(str(name), list(keys), n=1, cutoff=cutoff)
+    return match[0] if match else None
 
 
 #: Keys that were removed, with why and what to do instead (CHANGELOG.md has the measurements).
@@ -64,8 +65,8 @@ def check_keys(data: Mapping[str, Any], keys: Iterable[str], what: str, prefix: 
         if key in REMOVED_KEYS and key not in keys:
             raise GpmpcError(f"{what} '{prefix}{key}': {REMOVED_KEYS[key]}")
         if key not in keys:
-            alike = difflib.get_close_matches(str(key), keys, n=1)
-            hint = f"did you mean '{prefix}{alike[0]}'?" if alike else "`gpmpc keys` lists them"
+            alike = nearest_key(key, keys, cutoff=0.6)  # difflib's own default: an unrelated key is no hint
+            hint = f"did you mean '{prefix}{alike}'?" if alike else "`gpmpc keys` lists them"
             raise GpmpcError(f"unknown {what} '{key}'; {hint}")
 
 
